@@ -1,0 +1,66 @@
+"""Frames for people: nearest-neighbour upscaling, rgb arrays and PNG strips."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+
+def _check_frames(frames: torch.Tensor) -> torch.Tensor:
+    if not isinstance(frames, torch.Tensor):
+        raise ValueError(f"frames must be a torch.Tensor, got {type(frames).__name__}.")
+    if frames.dtype != torch.uint8:
+        raise ValueError(f"frames must be uint8, got {frames.dtype}.")
+    if frames.dim() < 3 or frames.shape[-3] != 3:
+        raise ValueError(f"frames must have shape [..., 3, H, W], got {list(frames.shape)}.")
+    return frames
+
+
+def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
+    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``."""
+    frames = _check_frames(frames)
+    if scale < 1:
+        raise ValueError(f"scale must be >= 1, got {scale}.")
+    return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
+
+
+def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
+    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's rgb_array)."""
+    return upscale_frames(frames, scale).movedim(-3, -1).cpu().numpy().copy()
+
+
+def frame_grid(frames: torch.Tensor, scale: int = 8, gap: int = 1) -> np.ndarray:
+    """Lays out ``[N, 3, H, W]`` (one row) or ``[R, N, 3, H, W]`` frames as one rgb array.
+
+    Frames are separated by ``gap`` grey pixels (in upscaled units) so that black
+    backgrounds stay distinguishable.
+    """
+    frames = _check_frames(frames)
+    if frames.dim() == 4:
+        frames = frames.unsqueeze(0)
+    if frames.dim() != 5:
+        raise ValueError(
+            f"frames must be [N, 3, H, W] or [R, N, 3, H, W], got {list(frames.shape)}."
+        )
+    rows, cols, _, height, width = frames.shape
+    big = frames_to_rgb_array(frames, scale)  # [R, N, H*s, W*s, 3]
+    hs, ws = height * scale, width * scale
+    canvas = np.full(
+        (rows * hs + (rows + 1) * gap, cols * ws + (cols + 1) * gap, 3), 96, dtype=np.uint8
+    )
+    for r in range(rows):
+        for c in range(cols):
+            top, left = gap + r * (hs + gap), gap + c * (ws + gap)
+            canvas[top : top + hs, left : left + ws] = big[r, c]
+    return canvas
+
+
+def save_frame_strip(frames: torch.Tensor, path: str | Path, scale: int = 8, gap: int = 1) -> Path:
+    """Writes :func:`frame_grid` of ``frames`` to a PNG file and returns its path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(frame_grid(frames, scale=scale, gap=gap)).save(path)
+    return path

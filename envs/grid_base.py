@@ -1,0 +1,320 @@
+"""Shared machinery of the paper's 16x16 pixel environments.
+
+:class:`GridWorldEnv` is a stateless, batched TorchRL :class:`~torchrl.envs.EnvBase`:
+every quantity that defines an episode (configuration, goal, step counter) lives in the
+tensordict, and every operation is vectorised over the leading batch dimensions.
+Subclasses only describe their world: how to sample valid configurations, how one
+action changes a configuration, how a configuration is drawn, and how far apart two
+configurations are.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+GRID_SIZE = 16
+
+# Directions of a unit move, indexed as in the paper's action encoding:
+# 0 up (row - 1), 1 down (row + 1), 2 left (column - 1), 3 right (column + 1).
+DIRECTIONS = torch.tensor([[-1, 0], [1, 0], [0, -1], [0, 1]], dtype=torch.int64)
+
+
+def paint_layers(masks: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
+    """Paints boolean layers onto a black canvas; later layers cover earlier ones.
+
+    This is the one renderer of the package: every environment describes its frame as
+    a stack of masks with one colour each.
+
+    Args:
+        masks: bool ``[*B, L, H, W]``, one mask per layer.
+        colours: uint8 ``[L, 3]`` (or ``[*B, L, 3]``), the RGB colour of each layer.
+
+    Returns:
+        uint8 ``[*B, 3, H, W]`` image.
+    """
+    num_layers = masks.shape[-3]
+    # Index of the top-most layer covering each pixel (0 = background).
+    depth = torch.arange(1, num_layers + 1, device=masks.device).view(num_layers, 1, 1)
+    top = (masks.to(torch.int64) * depth).amax(dim=-3)  # [*B, H, W]
+    palette = torch.cat(
+        [torch.zeros_like(colours[..., :1, :]), colours.to(masks.device, torch.uint8)], dim=-2
+    )  # [(*B), L + 1, 3]
+    if palette.dim() == 2:
+        image = palette[top]  # [*B, H, W, 3]
+    else:
+        flat_top = top.flatten(-2)  # [*B, H*W]
+        image = torch.gather(palette, -2, flat_top.unsqueeze(-1).expand(*flat_top.shape, 3))
+        image = image.unflatten(-2, top.shape[-2:])
+    return image.movedim(-1, -3).contiguous()
+
+
+class GridWorldEnv(EnvBase):
+    """Base class of the 16x16 pixel environments (stateless, batched).
+
+    Keys produced by ``reset`` and ``step``:
+
+    - ``pixels`` / ``goal_pixels``: uint8 ``[*B, 3, 16, 16]`` (black background);
+    - ``state`` / ``goal_state``: int64 ground-truth configuration (shape per env);
+    - ``step_count``: int64 ``[*B, 1]``, steps taken in the episode;
+    - ``success``: bool ``[*B, 1]``, ``state == goal_state``;
+    - ``reward``: 1.0 when the goal is reached, else 0.0;
+    - ``terminated`` on success, ``truncated`` at ``max_steps``, ``done`` either.
+
+    The action is int64 ``[*B, 1]`` under a :class:`~torchrl.data.Categorical` spec.
+
+    ``reset()`` samples a random valid start and goal. ``reset(td, set_state=True)``
+    starts from the ``state`` and/or ``goal_state`` found in ``td`` (missing ones are
+    sampled). With ``batch_size=()`` and ``batch_locked=False`` the env accepts any
+    leading shape, which is how it serves as a planning model.
+
+    Args:
+        max_steps: episode length before ``truncated`` is set.
+        batch_size: number of independent copies (any shape).
+        device: where tensors live.
+        seed: seeds the env's own generator (see :meth:`set_seed`).
+        batch_locked: if ``False`` (only with ``batch_size=()``), any leading shape works.
+        terminate_on_success: set ``terminated`` when the goal is reached. Play-data
+            collection turns it off so that random walks are not cut by random goals.
+    """
+
+    _supports_set_state = True
+    grid_size = GRID_SIZE
+
+    def __init__(
+        self,
+        *,
+        max_steps: int,
+        batch_size: Sequence[int] | torch.Size = (),
+        device: torch.device | str | None = None,
+        seed: int | None = None,
+        batch_locked: bool = True,
+        terminate_on_success: bool = True,
+    ) -> None:
+        batch_size = torch.Size(batch_size)
+        if not batch_locked and batch_size != torch.Size([]):
+            raise ValueError(
+                f"batch_locked=False needs batch_size=(), got batch_size={tuple(batch_size)}."
+            )
+        if int(max_steps) < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+        super().__init__(device=device, batch_size=batch_size)
+        # EnvBase keeps batch_locked on the class; keep ours on the instance.
+        self.__dict__["_batch_locked"] = bool(batch_locked)
+        self.max_steps = int(max_steps)
+        self.terminate_on_success = bool(terminate_on_success)
+        self.rng = torch.Generator(device=self.device)
+        self._make_specs()
+        self.set_seed(torch.empty((), dtype=torch.int64).random_().item() if seed is None else seed)
+
+    # ------------------------------------------------------------------ #
+    # What subclasses describe
+    # ------------------------------------------------------------------ #
+    @property
+    def num_actions(self) -> int:
+        raise NotImplementedError
+
+    @property
+    def state_shape(self) -> torch.Size:
+        """Per-item shape of ``state`` (without batch dimensions)."""
+        raise NotImplementedError
+
+    def _state_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Elementwise (low, high) of ``state`` for its spec."""
+        raise NotImplementedError
+
+    def sample_states(self, shape: torch.Size) -> torch.Tensor:
+        """Random valid start configurations, int64 ``[*shape, *state_shape]``."""
+        raise NotImplementedError
+
+    def sample_goal_states(self, shape: torch.Size) -> torch.Tensor:
+        """Random valid goal configurations (defaults to :meth:`sample_states`)."""
+        return self.sample_states(shape)
+
+    def transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Next configuration. ``state`` ``[*B, *state_shape]``, ``action`` ``[*B]``."""
+        raise NotImplementedError
+
+    def render_state(self, state: torch.Tensor) -> torch.Tensor:
+        """Draws any batch of states: int64 ``[*B, *state_shape]`` -> uint8 ``[*B, 3, 16, 16]``."""
+        raise NotImplementedError
+
+    def invalid_states(self, state: torch.Tensor) -> torch.Tensor:
+        """bool ``[*B]``: which configurations break the rules (overlap, wall, off-grid)."""
+        raise NotImplementedError
+
+    def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
+        """int64 ``[*B]``: a lower bound on the steps from ``state`` to ``goal_state``."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ #
+    # Checks with errors that say what was expected
+    # ------------------------------------------------------------------ #
+    def check_state(self, state: torch.Tensor, name: str = "state") -> torch.Tensor:
+        """Validates dtype, shape and rules of a batch of states and returns it on device."""
+        if not isinstance(state, torch.Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(state).__name__}.")
+        if state.dtype != torch.int64:
+            raise ValueError(f"{name} must have dtype torch.int64, got {state.dtype}.")
+        expected = tuple(self.state_shape)
+        if state.dim() < len(expected) or tuple(state.shape[state.dim() - len(expected) :]) != (
+            expected
+        ):
+            raise ValueError(
+                f"{name} must have shape [*B, {', '.join(map(str, expected))}], "
+                f"got {list(state.shape)}."
+            )
+        state = state.to(self.device)
+        bad = self.invalid_states(state)
+        if bad.any():
+            rows = bad.nonzero().tolist()
+            first = rows[0] if bad.dim() > 0 else []
+            raise ValueError(
+                f"{name} holds {len(rows) or 1} invalid configuration(s) "
+                f"({self._describe_invalid(state, bad)}); first at batch index {first}: "
+                f"{state[tuple(first)].tolist()}."
+            )
+        return state
+
+    def _describe_invalid(self, state: torch.Tensor, bad: torch.Tensor) -> str:
+        return "breaks the environment's rules"
+
+    def check_action(self, action: torch.Tensor) -> torch.Tensor:
+        """Validates an action tensor ``[*B, 1]`` and returns it as int64 ``[*B]``."""
+        if not isinstance(action, torch.Tensor):
+            raise ValueError(f"action must be a torch.Tensor, got {type(action).__name__}.")
+        if action.dtype.is_floating_point or action.dtype == torch.bool:
+            raise ValueError(f"action must be an integer tensor, got dtype {action.dtype}.")
+        if action.shape[-1:] != (1,):
+            raise ValueError(f"action must have shape [*B, 1], got {list(action.shape)}.")
+        if action.numel() and ((action < 0).any() or (action >= self.num_actions).any()):
+            raise ValueError(
+                f"action out of range: expected integers in [0, {self.num_actions - 1}], got "
+                f"min {int(action.min())} and max {int(action.max())}."
+            )
+        return action.squeeze(-1).to(torch.int64)
+
+    # ------------------------------------------------------------------ #
+    # EnvBase
+    # ------------------------------------------------------------------ #
+    def _make_specs(self) -> None:
+        shape = self.batch_size
+        low, high = self._state_bounds()
+        image = Bounded(
+            low=0, high=255, shape=(*shape, 3, self.grid_size, self.grid_size), dtype=torch.uint8
+        )
+        state = Bounded(
+            low=low.expand(*shape, *self.state_shape),
+            high=high.expand(*shape, *self.state_shape),
+            dtype=torch.int64,
+        )
+        self.observation_spec = Composite(
+            pixels=image,
+            goal_pixels=image.clone(),
+            state=state,
+            goal_state=state.clone(),
+            step_count=Unbounded(shape=(*shape, 1), dtype=torch.int64),
+            success=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
+            shape=shape,
+        )
+        # Declared as state too, so `reset(td, set_state=True)` is TorchRL's way to pick them.
+        self.state_spec = Composite(state=state.clone(), goal_state=state.clone(), shape=shape)
+        self.action_spec = Categorical(self.num_actions, shape=(*shape, 1), dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(*shape, 1), dtype=torch.float32)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
+            terminated=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
+            truncated=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
+            shape=shape,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            seed = torch.empty((), dtype=torch.int64).random_().item()
+        self.rng.manual_seed(int(seed) % (2**63))
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        set_state = bool(kwargs.get("set_state", False))
+        if tensordict is not None and not self.batch_locked:
+            shape = tensordict.batch_size
+        else:
+            shape = self.batch_size
+        given = tensordict if (set_state and tensordict is not None) else None
+        state = given.get("state", None) if given is not None else None
+        goal_state = given.get("goal_state", None) if given is not None else None
+        state = (
+            self.sample_states(shape)
+            if state is None
+            else self.check_state(state, "state").expand(*shape, *self.state_shape).clone()
+        )
+        goal_state = (
+            self.sample_goal_states(shape)
+            if goal_state is None
+            else self.check_state(goal_state, "goal_state")
+            .expand(*shape, *self.state_shape)
+            .clone()
+        )
+        success = self._success(state, goal_state)
+        false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        return TensorDict(
+            pixels=self.render_state(state),
+            goal_pixels=self.render_state(goal_state),
+            state=state,
+            goal_state=goal_state,
+            step_count=torch.zeros((*shape, 1), dtype=torch.int64, device=self.device),
+            success=success,
+            done=false,
+            terminated=false.clone(),
+            truncated=false.clone(),
+            batch_size=shape,
+            device=self.device,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        shape = tensordict.batch_size
+        action = self.check_action(tensordict.get("action"))
+        state = tensordict.get("state")
+        goal_state = tensordict.get("goal_state")
+        step_count = tensordict.get("step_count", None)
+        if step_count is None:
+            step_count = torch.zeros((*shape, 1), dtype=torch.int64, device=self.device)
+        next_state = self.transition(state, action)
+        success = self._success(next_state, goal_state)
+        step_count = step_count + 1
+        terminated = success & self.terminate_on_success
+        truncated = (step_count >= self.max_steps) & ~terminated
+        goal_pixels = tensordict.get("goal_pixels", None)
+        if goal_pixels is None:
+            goal_pixels = self.render_state(goal_state)
+        return TensorDict(
+            pixels=self.render_state(next_state),
+            goal_pixels=goal_pixels,
+            state=next_state,
+            goal_state=goal_state,
+            step_count=step_count,
+            success=success,
+            reward=success.to(torch.float32),
+            done=terminated | truncated,
+            terminated=terminated,
+            truncated=truncated,
+            batch_size=shape,
+            device=self.device,
+        )
+
+    def _success(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
+        dims = tuple(range(-len(self.state_shape), 0))
+        return (state == goal_state).all(dim=dims).unsqueeze(-1)
+
+    # ------------------------------------------------------------------ #
+    # Helpers for subclasses
+    # ------------------------------------------------------------------ #
+    def _coords(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Row and column index grids, each int64 ``[16, 16]``."""
+        idx = torch.arange(self.grid_size, device=self.device)
+        return idx.view(-1, 1).expand(self.grid_size, self.grid_size), idx.view(1, -1).expand(
+            self.grid_size, self.grid_size
+        )

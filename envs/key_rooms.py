@@ -1,0 +1,286 @@
+"""Key rooms: a one-pixel agent must fetch a one-pixel key to open a door."""
+
+from __future__ import annotations
+
+import torch
+
+from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
+
+WALL_COLOUR = (128, 128, 128)  # grey
+DOOR_COLOUR = (150, 75, 0)  # brown
+KEY_COLOUR = (255, 255, 0)  # yellow
+AGENT_COLOUR = (255, 0, 0)  # red
+
+
+def parse_layout(layout: str) -> dict[str, torch.Tensor]:
+    """Reads an ASCII map (``#`` wall, ``D`` door, ``K`` key, ``.`` floor) of 16 x 16 cells."""
+    lines = [line.strip() for line in layout.strip().splitlines()]
+    if len(lines) != GRID_SIZE or any(len(line) != GRID_SIZE for line in lines):
+        raise ValueError(f"a layout must be {GRID_SIZE} lines of {GRID_SIZE} characters.")
+    if set("".join(lines)) - set("#DK."):
+        raise ValueError("a layout may only use '#', 'D', 'K' and '.'.")
+    chars = [list(line) for line in lines]
+    grid = {
+        c: torch.tensor([[ch == c for ch in row] for row in chars], dtype=torch.bool) for c in "#DK"
+    }
+    if int(grid["K"].sum()) != 1:
+        raise ValueError("a layout needs exactly one key 'K'.")
+    return {"wall": grid["#"], "door": grid["D"], "key": grid["K"]}
+
+
+class KeyRoomEnv(GridWorldEnv):
+    """Base of the key-room environments: one agent pixel, one key pixel, a locked door.
+
+    ``state`` is int64 ``[*B, 3]``: agent row, agent column, has-key flag (0 or 1).
+    The 4 actions move the agent up, down, left, right. Moving into a wall, a closed
+    door or off the grid does nothing; stepping on the key takes it and opens the door.
+    A random start puts the agent in an unlocked room without the key (not on the key);
+    a random goal has the key taken, the door open and the agent on any free cell.
+
+    Subclasses set :attr:`LAYOUT` (an ASCII map) and :attr:`DEFAULT_MAX_STEPS`.
+    """
+
+    LAYOUT: str = ""
+    DEFAULT_MAX_STEPS: int = 400
+
+    def __init__(self, *, max_steps: int | None = None, **kwargs) -> None:
+        cells = parse_layout(self.LAYOUT)
+        self._cells_cpu = cells
+        super().__init__(
+            max_steps=self.DEFAULT_MAX_STEPS if max_steps is None else max_steps, **kwargs
+        )
+        self.wall = cells["wall"].to(self.device)
+        self.door = cells["door"].to(self.device)
+        self.key = cells["key"].to(self.device)
+        self.key_cell = self.key.nonzero()[0]  # [2]
+        self.unlocked = self._reachable_without_key()
+        free = ~self.wall
+        # Flat indices (row * 16 + col) of valid starts and goals.
+        self.start_cells = (self.unlocked & ~self.key).flatten().nonzero().squeeze(-1)
+        self.goal_cells = free.flatten().nonzero().squeeze(-1)
+        self._distances: torch.Tensor | None = None
+
+    @property
+    def num_actions(self) -> int:
+        return 4
+
+    @property
+    def state_shape(self) -> torch.Size:
+        return torch.Size([3])
+
+    def _state_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.zeros(3, dtype=torch.int64), torch.tensor([GRID_SIZE - 1, GRID_SIZE - 1, 1])
+
+    def _reachable_without_key(self) -> torch.Tensor:
+        """bool ``[16, 16]``: cells reachable from the key's room without crossing the door."""
+        passable = ~self.wall & ~self.door
+        reached = self.key.clone()
+        while True:
+            grown = reached.clone()
+            grown[1:] |= reached[:-1]
+            grown[:-1] |= reached[1:]
+            grown[:, 1:] |= reached[:, :-1]
+            grown[:, :-1] |= reached[:, 1:]
+            grown &= passable
+            if torch.equal(grown, reached):
+                return reached
+            reached = grown
+
+    # ------------------------------------------------------------------ #
+    def invalid_states(self, state: torch.Tensor) -> torch.Tensor:
+        row, col, has_key = state.unbind(-1)
+        off = (row < 0) | (row >= GRID_SIZE) | (col < 0) | (col >= GRID_SIZE)
+        off |= (has_key < 0) | (has_key > 1)
+        r, c = row.clamp(0, GRID_SIZE - 1), col.clamp(0, GRID_SIZE - 1)
+        no_key = has_key == 0
+        bad = self.wall[r, c] | (no_key & ~self.unlocked[r, c]) | (no_key & self.key[r, c])
+        return off | bad
+
+    def _describe_invalid(self, state: torch.Tensor, bad: torch.Tensor) -> str:
+        return (
+            "the agent must be on the grid and not in a wall, has-key must be 0 or 1, and "
+            "without the key the agent must be in an unlocked room and not on the key"
+        )
+
+    def sample_states(self, shape: torch.Size) -> torch.Tensor:
+        cell = self._sample_cells(self.start_cells, shape)
+        return torch.stack([cell // GRID_SIZE, cell % GRID_SIZE, torch.zeros_like(cell)], dim=-1)
+
+    def sample_goal_states(self, shape: torch.Size) -> torch.Tensor:
+        cell = self._sample_cells(self.goal_cells, shape)
+        return torch.stack([cell // GRID_SIZE, cell % GRID_SIZE, torch.ones_like(cell)], dim=-1)
+
+    def _sample_cells(self, cells: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+        pick = torch.randint(len(cells), tuple(shape), generator=self.rng, device=self.device)
+        return cells[pick]
+
+    def transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        pos, has_key = state[..., :2], state[..., 2]
+        target = pos + DIRECTIONS.to(state.device)[action]
+        inside = ((target >= 0) & (target < GRID_SIZE)).all(-1)
+        r, c = target.unbind(-1)
+        r, c = r.clamp(0, GRID_SIZE - 1), c.clamp(0, GRID_SIZE - 1)
+        blocked = ~inside | self.wall[r, c] | (self.door[r, c] & (has_key == 0))
+        new_pos = torch.where(blocked.unsqueeze(-1), pos, target)
+        on_key = (new_pos == self.key_cell).all(-1)
+        new_key = torch.where(on_key, torch.ones_like(has_key), has_key)
+        return torch.cat([new_pos, new_key.unsqueeze(-1)], dim=-1)
+
+    def render_state(self, state: torch.Tensor) -> torch.Tensor:
+        batch = state.shape[:-1]
+        rows, cols = self._coords()
+        closed = (state[..., 2] == 0)[..., None, None]
+        agent = (rows == state[..., 0, None, None]) & (cols == state[..., 1, None, None])
+        masks = torch.stack(
+            [
+                self.wall.expand(*batch, GRID_SIZE, GRID_SIZE),
+                self.door & closed,
+                self.key & closed,
+                agent,
+            ],
+            dim=-3,
+        )
+        colours = torch.tensor(
+            [WALL_COLOUR, DOOR_COLOUR, KEY_COLOUR, AGENT_COLOUR],
+            dtype=torch.uint8,
+            device=self.device,
+        )
+        return paint_layers(masks, colours)
+
+    # ------------------------------------------------------------------ #
+    def _state_index(self, state: torch.Tensor) -> torch.Tensor:
+        return state[..., 2] * GRID_SIZE * GRID_SIZE + state[..., 0] * GRID_SIZE + state[..., 1]
+
+    def distance_table(self) -> torch.Tensor:
+        """int64 ``[512, 512]``: exact shortest-path steps between all (cell, key) states.
+
+        Entry ``[i, j]`` is ``-1`` when ``j`` cannot be reached from ``i`` (the key cannot
+        be put back). Computed once by breadth-first search over all sources at once.
+        """
+        if self._distances is None:
+            n = 2 * GRID_SIZE * GRID_SIZE
+            idx = torch.arange(n, device=self.device)
+            states = torch.stack(
+                [
+                    (idx % (GRID_SIZE * GRID_SIZE)) // GRID_SIZE,
+                    idx % GRID_SIZE,
+                    idx // (GRID_SIZE * GRID_SIZE),
+                ],
+                dim=-1,
+            )
+            adjacency = torch.zeros(n, n, device=self.device)
+            for a in range(4):
+                nxt = self._state_index(
+                    self.transition(states, torch.full((n,), a, device=self.device))
+                )
+                adjacency[idx, nxt] = 1.0
+            dist = torch.full((n, n), -1, dtype=torch.int64, device=self.device)
+            frontier = torch.eye(n, device=self.device)
+            reached = frontier.bool()
+            dist[reached] = 0
+            step = 0
+            while frontier.any():
+                step += 1
+                frontier = ((frontier @ adjacency) > 0) & ~reached
+                dist[frontier] = step
+                reached |= frontier
+                frontier = frontier.float()
+            self._distances = dist
+        return self._distances
+
+    def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
+        """Exact BFS steps from ``state`` to ``goal_state`` (``-1`` if unreachable)."""
+        return self.distance_table()[self._state_index(state), self._state_index(goal_state)]
+
+
+class KeyWallEnv(KeyRoomEnv):
+    """Key-wall: two rooms split by a wall at column 8 with a 3-cell door (rows 6-8).
+
+    The key lies at (0, 0) in the left room; the right room is locked until it is taken.
+    ``K`` key, ``D`` door, ``#`` wall::
+
+        K.......#.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........D.......
+        ........D.......
+        ........D.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........#.......
+        ........#.......
+
+    Examples:
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> env = KeyWallEnv(batch_size=(2,), seed=0)
+        >>> env.reset()["state"][:, 2].tolist()  # starts without the key
+        [0, 0]
+    """
+
+    LAYOUT = "\n".join(
+        ["K.......#......."]
+        + ["........#......."] * 5
+        + ["........D......."] * 3
+        + ["........#......."] * 7
+    )
+    DEFAULT_MAX_STEPS = 400
+
+
+class KeyCorridorEnv(KeyRoomEnv):
+    """Key-corridor: six rooms off a central corridor (columns 6-9); the top-right is locked.
+
+    Vertical walls at columns 5 and 10 with openings, stubs at rows 5 and 10 split each
+    side into three rooms, the key lies at (15, 0) in the bottom-left room and the door
+    (rows 0-1 of column 10) is the only way into the top-right room::
+
+        .....#....D.....
+        .....#....D.....
+        ..........#.....
+        ..........#.....
+        .....#....#.....
+        ######....######
+        .....#....#.....
+        ................
+        ................
+        .....#....#.....
+        ######....######
+        .....#....#.....
+        ................
+        ................
+        .....#....#.....
+        K....#....#.....
+
+    Examples:
+        >>> from dorp_rl.envs import KeyCorridorEnv
+        >>> env = KeyCorridorEnv(seed=0)
+        >>> env.max_steps
+        800
+    """
+
+    LAYOUT = "\n".join(
+        [
+            ".....#....D.....",
+            ".....#....D.....",
+            "..........#.....",
+            "..........#.....",
+            ".....#....#.....",
+            "######....######",
+            ".....#....#.....",
+            "................",
+            "................",
+            ".....#....#.....",
+            "######....######",
+            ".....#....#.....",
+            "................",
+            "................",
+            ".....#....#.....",
+            "K....#....#.....",
+        ]
+    )
+    DEFAULT_MAX_STEPS = 800

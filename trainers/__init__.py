@@ -1,0 +1,1 @@
+"""Trainers (RepresentationTrainer, WorldModelTrainer)."""
