@@ -84,6 +84,8 @@ class GridWorldEnv(EnvBase):
 
     _supports_set_state = True
     grid_size = GRID_SIZE
+    #: Length of one play-data trajectory (the paper resets rearrangement after every step).
+    PLAY_TRAJECTORY_LENGTH: int = 1
 
     def __init__(
         self,
@@ -150,6 +152,14 @@ class GridWorldEnv(EnvBase):
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """int64 ``[*B]``: a lower bound on the steps from ``state`` to ``goal_state``."""
         raise NotImplementedError
+
+    def config(self) -> dict:
+        """JSON-able description of the world (class and layout options, not batch or seed).
+
+        Data sets and checkpoints store it, so that loading them next to another
+        environment fails with a message saying what differs.
+        """
+        return {"env": type(self).__name__}
 
     # ------------------------------------------------------------------ #
     # Checks with errors that say what was expected

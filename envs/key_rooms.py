@@ -42,6 +42,8 @@ class KeyRoomEnv(GridWorldEnv):
 
     LAYOUT: str = ""
     DEFAULT_MAX_STEPS: int = 400
+    #: Length of the random walks of the paper's play data.
+    PLAY_TRAJECTORY_LENGTH: int = 1000
 
     def __init__(self, *, max_steps: int | None = None, **kwargs) -> None:
         cells = parse_layout(self.LAYOUT)
@@ -59,6 +61,9 @@ class KeyRoomEnv(GridWorldEnv):
         self.start_cells = (self.unlocked & ~self.key).flatten().nonzero().squeeze(-1)
         self.goal_cells = free.flatten().nonzero().squeeze(-1)
         self._distances: torch.Tensor | None = None
+
+    def config(self) -> dict:
+        return {**super().config(), "layout": self.LAYOUT}
 
     @property
     def num_actions(self) -> int:
@@ -284,3 +289,4 @@ class KeyCorridorEnv(KeyRoomEnv):
         ]
     )
     DEFAULT_MAX_STEPS = 800
+    PLAY_TRAJECTORY_LENGTH = 1500

@@ -110,6 +110,14 @@ class ObjectRearrangementEnv(GridWorldEnv):
             raise ValueError(f"block sides must be in [1, {GRID_SIZE}], got {shapes.tolist()}.")
         return shapes
 
+    def config(self) -> dict:
+        return {
+            **super().config(),
+            "num_objects": self.num_objects,
+            "block_shapes": self.block_shapes.tolist(),
+            "colours": self.colours.tolist(),
+        }
+
     @property
     def num_actions(self) -> int:
         return 4 * self.num_objects
