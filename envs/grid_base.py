@@ -104,7 +104,9 @@ class GridWorldEnv(EnvBase):
             )
         if int(max_steps) < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
-        super().__init__(device=device, batch_size=batch_size)
+        super().__init__(
+            device=torch.device("cpu") if device is None else device, batch_size=batch_size
+        )
         # EnvBase keeps batch_locked on the class; keep ours on the instance.
         self.__dict__["_batch_locked"] = bool(batch_locked)
         self.max_steps = int(max_steps)
