@@ -32,7 +32,7 @@ def paint_layers(masks: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
 
     Args:
         masks: bool ``[*B, L, H, W]``, one mask per layer.
-        colours: uint8 ``[L, 3]`` (or ``[*B, L, 3]``), the RGB colour of each layer.
+        colours: uint8 ``[L, 3]``, the RGB colour of each layer.
 
     Returns:
         uint8 ``[*B, 3, H, W]`` image.
@@ -42,14 +42,12 @@ def paint_layers(masks: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
     depth = torch.arange(1, num_layers + 1, device=masks.device).view(num_layers, 1, 1)
     top = (masks.to(torch.int64) * depth).amax(dim=-3)  # [*B, H, W]
     palette = torch.cat(
-        [torch.zeros_like(colours[..., :1, :]), colours.to(masks.device, torch.uint8)], dim=-2
-    )  # [(*B), L + 1, 3]
-    if palette.dim() == 2:
-        image = palette[top]  # [*B, H, W, 3]
-    else:
-        flat_top = top.flatten(-2)  # [*B, H*W]
-        image = torch.gather(palette, -2, flat_top.unsqueeze(-1).expand(*flat_top.shape, 3))
-        image = image.unflatten(-2, top.shape[-2:])
+        [
+            torch.zeros(1, 3, dtype=torch.uint8, device=masks.device),
+            colours.to(masks.device, torch.uint8),
+        ]
+    )  # [L + 1, 3]
+    image = palette[top]  # [*B, H, W, 3]
     return image.movedim(-1, -3).contiguous()
 
 
@@ -258,13 +256,16 @@ class GridWorldEnv(EnvBase):
         given = tensordict if (set_state and tensordict is not None) else None
         state = given.get("state", None) if given is not None else None
         goal_state = given.get("goal_state", None) if given is not None else None
+        # Partial reset: only the flagged rows are kept by EnvBase, so only they are sampled.
+        rows = tensordict.get("_reset", None) if tensordict is not None else None
+        rows = None if rows is None or rows.all() else rows.reshape(shape)
         state = (
-            self.sample_states(shape)
+            self._sample_rows(self.sample_states, shape, rows)
             if state is None
             else self.check_state(state, "state").expand(*shape, *self.state_shape).clone()
         )
         goal_state = (
-            self.sample_goal_states(shape)
+            self._sample_rows(self.sample_goal_states, shape, rows)
             if goal_state is None
             else self.check_state(goal_state, "goal_state")
             .expand(*shape, *self.state_shape)
@@ -285,6 +286,14 @@ class GridWorldEnv(EnvBase):
             batch_size=shape,
             device=self.device,
         )
+
+    def _sample_rows(self, sampler, shape: torch.Size, rows: torch.Tensor | None) -> torch.Tensor:
+        """``sampler`` for the rows flagged in ``rows`` (all rows if ``None``); others hold zeros."""
+        if rows is None:
+            return sampler(shape)
+        out = torch.zeros((*shape, *self.state_shape), dtype=torch.int64, device=self.device)
+        out[rows] = sampler(torch.Size([int(rows.sum())]))
+        return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = tensordict.batch_size

@@ -88,7 +88,12 @@ class GymnasiumGridEnv(gymnasium.Env):
         given = {}
         for key in ("state", "goal_state"):
             if options and options.get(key) is not None:
-                given[key] = torch.as_tensor(np.asarray(options[key]), dtype=torch.int64)
+                value = np.asarray(options[key])
+                if value.dtype.kind not in "iu":
+                    raise ValueError(
+                        f"options[{key!r}] must hold integers, got dtype {value.dtype}."
+                    )
+                given[key] = torch.as_tensor(value, dtype=torch.int64)
         unknown = set(options or {}) - {"state", "goal_state"}
         if unknown:
             raise ValueError(

@@ -11,6 +11,9 @@ DOOR_COLOUR = (150, 75, 0)  # brown
 KEY_COLOUR = (255, 255, 0)  # yellow
 AGENT_COLOUR = (255, 0, 0)  # red
 
+# Shortest-path tables per (layout, device): the same for every env of a layout.
+_DISTANCE_CACHE: dict[tuple[str, str], torch.Tensor] = {}
+
 
 def parse_layout(layout: str) -> dict[str, torch.Tensor]:
     """Reads an ASCII map (``#`` wall, ``D`` door, ``K`` key, ``.`` floor) of 16 x 16 cells."""
@@ -60,7 +63,7 @@ class KeyRoomEnv(GridWorldEnv):
         # Flat indices (row * 16 + col) of valid starts and goals.
         self.start_cells = (self.unlocked & ~self.key).flatten().nonzero().squeeze(-1)
         self.goal_cells = free.flatten().nonzero().squeeze(-1)
-        self._distances: torch.Tensor | None = None
+        self._frame_table = self._build_frame_table()
 
     def config(self) -> dict:
         return {**super().config(), "layout": self.LAYOUT}
@@ -131,14 +134,24 @@ class KeyRoomEnv(GridWorldEnv):
         new_key = torch.where(on_key, torch.ones_like(has_key), has_key)
         return torch.cat([new_pos, new_key.unsqueeze(-1)], dim=-1)
 
-    def render_state(self, state: torch.Tensor) -> torch.Tensor:
-        batch = state.shape[:-1]
+    def _all_states(self) -> torch.Tensor:
+        """int64 ``[512, 3]``: every (row, col, has-key), ordered by :meth:`_state_index`."""
+        idx = torch.arange(2 * GRID_SIZE * GRID_SIZE, device=self.device)
+        cells = idx % (GRID_SIZE * GRID_SIZE)
+        return torch.stack(
+            [cells // GRID_SIZE, cells % GRID_SIZE, idx // (GRID_SIZE * GRID_SIZE)], -1
+        )
+
+    def _build_frame_table(self) -> torch.Tensor:
+        """uint8 ``[512, 3, 16, 16]``: the frame of every (cell, has-key) state."""
+        states = self._all_states()
         rows, cols = self._coords()
-        closed = (state[..., 2] == 0)[..., None, None]
-        agent = (rows == state[..., 0, None, None]) & (cols == state[..., 1, None, None])
+        closed = (states[:, 2] == 0).view(-1, 1, 1)
+        agent = (rows == states[:, 0, None, None]) & (cols == states[:, 1, None, None])
+        n = states.shape[0]
         masks = torch.stack(
             [
-                self.wall.expand(*batch, GRID_SIZE, GRID_SIZE),
+                self.wall.expand(n, GRID_SIZE, GRID_SIZE),
                 self.door & closed,
                 self.key & closed,
                 agent,
@@ -152,6 +165,13 @@ class KeyRoomEnv(GridWorldEnv):
         )
         return paint_layers(masks, colours)
 
+    def render_state(self, state: torch.Tensor) -> torch.Tensor:
+        """Draws states ``[*B, 3]`` as uint8 ``[*B, 3, 16, 16]``: one gather per frame."""
+        index = self._state_index(state.clamp(0, GRID_SIZE - 1)).reshape(-1)
+        return self._frame_table.index_select(0, index).view(
+            *state.shape[:-1], 3, GRID_SIZE, GRID_SIZE
+        )
+
     # ------------------------------------------------------------------ #
     def _state_index(self, state: torch.Tensor) -> torch.Tensor:
         return state[..., 2] * GRID_SIZE * GRID_SIZE + state[..., 0] * GRID_SIZE + state[..., 1]
@@ -160,38 +180,35 @@ class KeyRoomEnv(GridWorldEnv):
         """int64 ``[512, 512]``: exact shortest-path steps between all (cell, key) states.
 
         Entry ``[i, j]`` is ``-1`` when ``j`` cannot be reached from ``i`` (the key cannot
-        be put back). Computed once by breadth-first search over all sources at once.
+        be put back). Computed once per layout and device by breadth-first search from all
+        sources at once, and shared by every env with that layout.
         """
-        if self._distances is None:
-            n = 2 * GRID_SIZE * GRID_SIZE
-            idx = torch.arange(n, device=self.device)
-            states = torch.stack(
-                [
-                    (idx % (GRID_SIZE * GRID_SIZE)) // GRID_SIZE,
-                    idx % GRID_SIZE,
-                    idx // (GRID_SIZE * GRID_SIZE),
-                ],
-                dim=-1,
-            )
-            adjacency = torch.zeros(n, n, device=self.device)
-            for a in range(4):
-                nxt = self._state_index(
-                    self.transition(states, torch.full((n,), a, device=self.device))
-                )
-                adjacency[idx, nxt] = 1.0
+        cache_key = (self.LAYOUT, str(self.device))
+        if cache_key not in _DISTANCE_CACHE:
+            states = self._all_states()
+            n = states.shape[0]
+            successors = [
+                self._state_index(self.transition(states, torch.full((n,), a, device=self.device)))
+                for a in range(4)
+            ]
             dist = torch.full((n, n), -1, dtype=torch.int64, device=self.device)
-            frontier = torch.eye(n, device=self.device)
-            reached = frontier.bool()
+            reached = torch.eye(n, dtype=torch.bool, device=self.device)  # [source, state]
+            frontier = reached.to(torch.float32)
             dist[reached] = 0
             step = 0
-            while frontier.any():
+            while True:
                 step += 1
-                frontier = ((frontier @ adjacency) > 0) & ~reached
-                dist[frontier] = step
-                reached |= frontier
-                frontier = frontier.float()
-            self._distances = dist
-        return self._distances
+                grown = torch.zeros_like(frontier)
+                for nxt in successors:  # push every frontier state to its successor
+                    grown.index_add_(1, nxt, frontier)
+                new = (grown > 0) & ~reached
+                if not new.any():
+                    break
+                dist[new] = step
+                reached |= new
+                frontier = new.to(torch.float32)
+            _DISTANCE_CACHE[cache_key] = dist
+        return _DISTANCE_CACHE[cache_key]
 
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Exact BFS steps from ``state`` to ``goal_state`` (``-1`` if unreachable)."""

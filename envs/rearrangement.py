@@ -92,9 +92,25 @@ class ObjectRearrangementEnv(GridWorldEnv):
         if max_steps is None:
             max_steps = DEFAULT_MAX_STEPS.get(num_objects, 400 * num_objects - 200)
         self._colours_cpu = colours
+        self._check_placeable()
         super().__init__(max_steps=max_steps, **kwargs)
         self.block_shapes = self.block_shapes.to(self.device)
         self.colours = colours.to(self.device)
+        self._frame_table = self._build_frame_table()
+
+    def _check_placeable(self, attempts: int = 4096) -> None:
+        """Raises ``ValueError`` if no valid placement turns up in ``attempts`` random draws."""
+        gen = torch.Generator().manual_seed(0)
+        span = (GRID_SIZE - self.block_shapes + 1).to(torch.float64)
+        draws = (
+            torch.rand((attempts, self.num_objects, 2), generator=gen, dtype=torch.float64) * span
+        )
+        if self._overlaps(draws.floor().to(torch.int64)).all():
+            raise ValueError(
+                f"num_objects={self.num_objects} blocks of shapes {self.block_shapes.tolist()} "
+                f"cannot be placed without overlap on the {GRID_SIZE}x{GRID_SIZE} grid "
+                f"(no valid placement in {attempts} random draws); use fewer or smaller blocks."
+            )
 
     @staticmethod
     def _parse_block_shapes(block_shapes, num_objects: int) -> torch.Tensor:
@@ -171,7 +187,7 @@ class ObjectRearrangementEnv(GridWorldEnv):
             ok = ~self._overlaps(cand)
             out[todo[ok]] = cand[ok]
             todo = todo[~ok]
-        raise RuntimeError(
+        raise ValueError(
             f"could not place {self.num_objects} blocks of shapes {self.block_shapes.tolist()} "
             f"without overlap after {_MAX_REJECTION_ROUNDS} rounds of rejection sampling."
         )
@@ -184,14 +200,39 @@ class ObjectRearrangementEnv(GridWorldEnv):
         ok = ~self.invalid_states(moved)
         return torch.where(ok[..., None, None], moved, state)
 
-    def render_state(self, state: torch.Tensor) -> torch.Tensor:
+    def _build_frame_table(self) -> torch.Tensor:
+        """uint8 ``[k * 256, 3, 16, 16]``: object ``o`` alone with its top-left at cell ``p``.
+
+        Rendering a state is then one gather and a sum over objects (blocks never overlap),
+        instead of rasterising rectangles at every step.
+        """
         rows, cols = self._coords()
-        top = state[..., 0, None, None]  # [*B, k, 1, 1]
-        left = state[..., 1, None, None]
-        height = self.block_shapes[:, 0, None, None]
-        width = self.block_shapes[:, 1, None, None]
+        cell = torch.arange(GRID_SIZE * GRID_SIZE, device=self.device)
+        top = (cell // GRID_SIZE).view(1, -1, 1, 1)
+        left = (cell % GRID_SIZE).view(1, -1, 1, 1)
+        height = self.block_shapes[:, 0].view(-1, 1, 1, 1)
+        width = self.block_shapes[:, 1].view(-1, 1, 1, 1)
         masks = (rows >= top) & (rows < top + height) & (cols >= left) & (cols < left + width)
-        return paint_layers(masks, self.colours)
+        frames = torch.stack(
+            [
+                paint_layers(masks[o].unsqueeze(-3), self.colours[o : o + 1])
+                for o in range(self.num_objects)
+            ]
+        )  # [k, 256, 3, H, W]
+        return frames.reshape(self.num_objects * GRID_SIZE * GRID_SIZE, 3, GRID_SIZE, GRID_SIZE)
+
+    def render_state(self, state: torch.Tensor) -> torch.Tensor:
+        """Draws valid states ``[*B, k, 2]`` as uint8 ``[*B, 3, 16, 16]`` (black background)."""
+        cell = state[..., 0].clamp(0, GRID_SIZE - 1) * GRID_SIZE + state[..., 1].clamp(
+            0, GRID_SIZE - 1
+        )
+        offset = torch.arange(self.num_objects, device=state.device) * (GRID_SIZE * GRID_SIZE)
+        index = (cell + offset).reshape(-1)
+        frames = self._frame_table.index_select(0, index)
+        frames = frames.view(*state.shape[:-2], self.num_objects, 3, GRID_SIZE, GRID_SIZE)
+        if self.num_objects == 1:
+            return frames.squeeze(-4)
+        return frames.sum(-4, dtype=torch.uint8)
 
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Sum over blocks of the Manhattan distance to the goal corner."""

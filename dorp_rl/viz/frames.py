@@ -60,7 +60,8 @@ def frame_grid(frames: torch.Tensor, scale: int = 8, gap: int = 1) -> np.ndarray
 
 def save_frame_strip(frames: torch.Tensor, path: str | Path, scale: int = 8, gap: int = 1) -> Path:
     """Writes :func:`frame_grid` of ``frames`` to a PNG file and returns its path."""
+    image = frame_grid(frames, scale=scale, gap=gap)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(frame_grid(frames, scale=scale, gap=gap)).save(path)
+    Image.fromarray(image).save(path)
     return path
