@@ -1,5 +1,22 @@
-"""Pictures: upscaled frames, PNG strips (code maps and histograms come with the encoder)."""
+"""Pictures: upscaled frames and PNG strips, code maps, factorization histograms."""
 
+from dorp_rl.viz.code_maps import (
+    code_colours,
+    plot_factorization_histogram,
+    plot_key_room_code_map,
+    plot_rearrangement_code_map,
+    write_diagnostic_plots,
+)
 from dorp_rl.viz.frames import frame_grid, frames_to_rgb_array, save_frame_strip, upscale_frames
 
-__all__ = ["frame_grid", "frames_to_rgb_array", "save_frame_strip", "upscale_frames"]
+__all__ = [
+    "code_colours",
+    "frame_grid",
+    "frames_to_rgb_array",
+    "plot_factorization_histogram",
+    "plot_key_room_code_map",
+    "plot_rearrangement_code_map",
+    "save_frame_strip",
+    "upscale_frames",
+    "write_diagnostic_plots",
+]

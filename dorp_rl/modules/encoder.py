@@ -1,0 +1,186 @@
+"""DORP's discrete object-factorized encoder: object extractor, shared per-map encoder, one-hots."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+
+@dataclass
+class EncoderConfig:
+    """Sizes of :class:`DiscreteCodeEncoder`.
+
+    Attributes:
+        code_sizes: number of codes of each one-hot, e.g. ``(32, 32)`` for two objects
+            or ``(16, 2)`` for key rooms (agent one-hot plus a 2-way key bit).
+        channels: width of the object extractor's convolutions.
+        conv_layers: number of hidden 3x3 conv + BatchNorm + ReLU layers.
+        mlp_sizes: hidden widths of the shared per-map encoder; the last is followed by
+            LayerNorm and ReLU, as in the authors' release.
+        input_scale: pixels in ``[0, 1]`` are multiplied by this (the authors used 10).
+        map_competition: ``"sigmoid"`` (the authors': each map independent) or
+            ``"softmax"``: each pixel's maps compete through a softmax over the one-hots
+            plus one background map, so that a pixel feeds mostly one one-hot.
+    """
+
+    code_sizes: tuple[int, ...] = (32,)
+    channels: int = 32
+    conv_layers: int = 3
+    mlp_sizes: tuple[int, ...] = (512, 512)
+    input_scale: float = 10.0
+    map_competition: str = "sigmoid"
+
+    @classmethod
+    def authors(cls, code_sizes: Sequence[int]) -> EncoderConfig:
+        """The authors' release: 32 channels, per-map MLP 256-512-512-Z."""
+        return cls(code_sizes=tuple(code_sizes))
+
+    @classmethod
+    def small(cls, code_sizes: Sequence[int]) -> EncoderConfig:
+        """About 3x faster on a 2-core CPU: 16 channels, per-map MLP 256-128-128-Z."""
+        return cls(code_sizes=tuple(code_sizes), channels=16, mlp_sizes=(128, 128))
+
+
+def check_pixels(pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
+    """Validates images ``[*B, 3, 16, 16]`` (uint8, or float in [0, 1]) and returns floats in [0, 1]."""
+    if not isinstance(pixels, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(pixels).__name__}.")
+    if pixels.dim() < 3 or tuple(pixels.shape[-3:]) != (3, 16, 16):
+        raise ValueError(f"{name} must have shape [*B, 3, 16, 16], got {list(pixels.shape)}.")
+    if pixels.dtype == torch.uint8:
+        return pixels.float() / 255.0
+    if pixels.dtype.is_floating_point:
+        return pixels
+    raise ValueError(f"{name} must be uint8 (0-255) or floating point (0-1), got {pixels.dtype}.")
+
+
+class DiscreteCodeEncoder(nn.Module):
+    """Maps images to C discrete codes, one per one-hot (ideally one per object).
+
+    A CNN object extractor turns the image into C feature maps (one per one-hot); one
+    MLP shared by all maps turns each map into the logits of its one-hot. One-hots may
+    have different sizes: the shared head outputs ``max(code_sizes)`` logits and the
+    extra ones of a smaller one-hot are masked out.
+
+    ``forward(pixels)`` returns ``(code, code_probs)``: int64 ``[*B, C]`` (argmax of the
+    logits, as the authors' inference) and float ``[*B, C, Z]`` (softmax, zero on masked
+    codes). :meth:`logits` gives the raw ``[*B, C, Z]`` logits (``-inf`` where masked)
+    for training. :meth:`as_tensordict_module` wraps it as a ``TensorDictModule``.
+
+    Args:
+        config: sizes (see :class:`EncoderConfig`).
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+        >>> encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(16, 2)))
+        >>> pixels = torch.randint(0, 256, (4, 3, 16, 16), dtype=torch.uint8)
+        >>> code, probs = encoder(pixels)
+        >>> code.shape, probs.shape
+        (torch.Size([4, 2]), torch.Size([4, 2, 16]))
+        >>> bool((code[:, 1] < 2).all())  # the key bit only uses 2 codes
+        True
+    """
+
+    def __init__(self, config: EncoderConfig) -> None:
+        super().__init__()
+        sizes = tuple(int(z) for z in config.code_sizes)
+        if not sizes or min(sizes) < 2:
+            raise ValueError(f"code_sizes needs at least one one-hot of >= 2 codes, got {sizes}.")
+        if config.map_competition not in ("sigmoid", "softmax"):
+            raise ValueError(
+                f"map_competition must be 'sigmoid' or 'softmax', got {config.map_competition!r}."
+            )
+        self.config = config
+        self.code_sizes = sizes
+        self.num_onehots = len(sizes)
+        self.max_codes = max(sizes)
+        layers: list[nn.Module] = []
+        in_channels = 3
+        for _ in range(config.conv_layers):
+            layers += [
+                nn.Conv2d(in_channels, config.channels, 3, padding=1),
+                nn.BatchNorm2d(config.channels),
+                nn.ReLU(),
+            ]
+            in_channels = config.channels
+        extra = 1 if config.map_competition == "softmax" else 0
+        layers.append(nn.Conv2d(in_channels, self.num_onehots + extra, 3, padding=1))
+        self.extractor = nn.Sequential(*layers)
+        mlp: list[nn.Module] = []
+        width = 16 * 16
+        for i, hidden in enumerate(config.mlp_sizes):
+            mlp.append(nn.Linear(width, hidden))
+            if i == len(config.mlp_sizes) - 1:
+                mlp.append(nn.LayerNorm(hidden))
+            mlp.append(nn.ReLU())
+            width = hidden
+        mlp.append(nn.Linear(width, self.max_codes))
+        self.map_encoder = nn.Sequential(*mlp)
+        mask = torch.zeros(self.num_onehots, self.max_codes, dtype=torch.bool)
+        for i, size in enumerate(sizes):
+            mask[i, size:] = True
+        self.register_buffer("code_mask", mask, persistent=False)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """Xavier-uniform weights and zero biases (the authors' initialisation)."""
+        for module in self.modules():
+            if isinstance(module, (nn.Conv2d, nn.Linear)):
+                nn.init.xavier_uniform_(module.weight)
+                nn.init.zeros_(module.bias)
+            elif isinstance(module, (nn.BatchNorm2d, nn.LayerNorm)):
+                module.reset_parameters()
+
+    def object_maps(self, pixels: torch.Tensor) -> torch.Tensor:
+        """The extractor's per-one-hot maps, float ``[*B, C, 16, 16]``."""
+        x = check_pixels(pixels) * self.config.input_scale
+        batch = x.shape[:-3]
+        out = self.extractor(x.reshape(-1, 3, 16, 16))
+        if self.config.map_competition == "softmax":
+            out = out.softmax(dim=1)[:, : self.num_onehots]
+        else:
+            out = out.sigmoid()
+        return out.reshape(*batch, self.num_onehots, 16, 16)
+
+    def logits(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Per-one-hot code logits, float ``[*B, C, Z]``, ``-inf`` on masked codes."""
+        maps = self.object_maps(pixels)
+        logits = self.map_encoder(maps.flatten(-2))
+        return logits.masked_fill(self.code_mask, float("-inf"))
+
+    def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        logits = self.logits(pixels)
+        return logits.argmax(-1), logits.softmax(-1)
+
+    @torch.no_grad()
+    def encode(self, pixels: torch.Tensor, chunk_size: int = 4096) -> torch.Tensor:
+        """Codes int64 ``[N, C]`` of many images, in eval mode and in chunks."""
+        was_training = self.training
+        self.eval()
+        try:
+            device = self.code_mask.device
+            flat = pixels.reshape(-1, *pixels.shape[-3:])
+            codes = [self(chunk.to(device))[0] for chunk in flat.split(chunk_size)]
+            return torch.cat(codes).reshape(*pixels.shape[:-3], self.num_onehots)
+        finally:
+            self.train(was_training)
+
+    def as_tensordict_module(
+        self,
+        in_key: str = "pixels",
+        out_keys: tuple[str, str] = ("code", "code_probs"),
+    ) -> TensorDictModule:
+        """This encoder as a ``TensorDictModule``: ``pixels`` -> ``code``, ``code_probs``.
+
+        Pass ``in_key="goal_pixels"`` and ``out_keys=("goal_code", "goal_code_probs")``
+        to encode goals.
+        """
+        return TensorDictModule(self, in_keys=[in_key], out_keys=list(out_keys))
+
+    def extra_repr(self) -> str:
+        return f"code_sizes={self.code_sizes}, {asdict(self.config)}"

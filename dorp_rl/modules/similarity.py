@@ -1,0 +1,131 @@
+"""Similarity matrices of the bilinear InfoNCE score ``z_anchor^T W z_positive``.
+
+- :class:`DDDPSimilarity`: DORP's diagonally dominant, diagonally positive matrix;
+- :class:`FullSimilarity`: an arbitrary learned matrix (CPC's ablation);
+- :class:`IdentitySimilarity`: the identity (MoCo-style ablation).
+
+Each is an ``nn.Module`` whose :meth:`matrix` returns ``W`` ``[L, L]`` for codes
+flattened to length ``L = C * Z``; calling it on ``(anchor [B, L], positive [B', L])``
+gives the score matrix ``[B, B']``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class _Similarity(nn.Module):
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        if int(dim) < 1:
+            raise ValueError(f"dim must be >= 1, got {dim}.")
+        self.dim = int(dim)
+
+    def matrix(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    def forward(self, anchor: torch.Tensor, positive: torch.Tensor) -> torch.Tensor:
+        """Scores ``[B, B']`` of every anchor ``[B, L]`` against every candidate ``[B', L]``."""
+        for name, value in (("anchor", anchor), ("positive", positive)):
+            if value.dim() != 2 or value.shape[-1] != self.dim:
+                raise ValueError(
+                    f"{name} must have shape [B, {self.dim}], got {list(value.shape)}."
+                )
+        return anchor @ self.matrix() @ positive.transpose(0, 1)
+
+
+class DDDPSimilarity(_Similarity):
+    """DORP's matrix ``exp(psi0) * (-sigmoid(psi1) + alpha * I)``.
+
+    For ``alpha >= 1`` and any parameters, every diagonal entry is positive and larger
+    than every other entry of its row and column (off-diagonal entries are negative),
+    which pushes a code to score highest against itself: temporally close frames share
+    codes, and neighbouring codes can learn milder penalties than distant ones.
+
+    Args:
+        dim: flattened code length ``L``.
+        alpha: the diagonal offset (the authors used 1).
+        sign: ``"paper"`` for the formula above, or ``"authors"`` for their release:
+            ``exp(psi0) * (sigmoid(psi1) + alpha)`` on the diagonal and
+            ``-exp(psi0) * sigmoid(psi1)`` off it.
+        init_scale: initial ``exp(psi0)``.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.modules import DDDPSimilarity
+        >>> w = DDDPSimilarity(8).matrix()
+        >>> bool((w.diagonal() > 0).all()), bool((w - torch.diag(w.diagonal()) < 0).all())
+        (True, True)
+    """
+
+    def __init__(
+        self, dim: int, alpha: float = 1.0, sign: str = "paper", init_scale: float = 1.0
+    ) -> None:
+        super().__init__(dim)
+        if sign not in ("paper", "authors"):
+            raise ValueError(f"sign must be 'paper' or 'authors', got {sign!r}.")
+        if alpha < 1.0:
+            raise ValueError(f"alpha must be >= 1 for a diagonally dominant matrix, got {alpha}.")
+        self.alpha = float(alpha)
+        self.sign = sign
+        self.log_scale = nn.Parameter(torch.tensor(float(init_scale)).log())
+        self.psi = nn.Parameter(torch.zeros(self.dim, self.dim))
+
+    def matrix(self) -> torch.Tensor:
+        scale = self.log_scale.exp()
+        eye = torch.eye(self.dim, dtype=torch.bool, device=self.psi.device)
+        off = -torch.sigmoid(self.psi)
+        if self.sign == "paper":
+            # alpha - sigmoid(x) written as (alpha - 1) + sigmoid(-x): stays > 0 in float32.
+            diag = (self.alpha - 1.0) + torch.sigmoid(-self.psi)
+        else:
+            diag = self.alpha + torch.sigmoid(self.psi)
+        return scale * torch.where(eye, diag, off)
+
+
+class FullSimilarity(_Similarity):
+    """An arbitrary learned matrix (CPC), initialised to the identity plus small noise.
+
+    Examples:
+        >>> from dorp_rl.modules import FullSimilarity
+        >>> FullSimilarity(8).matrix().shape
+        torch.Size([8, 8])
+    """
+
+    def __init__(self, dim: int, init_noise: float = 0.01) -> None:
+        super().__init__(dim)
+        self.weight = nn.Parameter(
+            torch.eye(self.dim) + init_noise * torch.randn(self.dim, self.dim)
+        )
+
+    def matrix(self) -> torch.Tensor:
+        return self.weight
+
+
+class IdentitySimilarity(_Similarity):
+    """The identity: the score counts matching codes (MoCo-style dot product).
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.modules import IdentitySimilarity
+        >>> bool(torch.equal(IdentitySimilarity(4).matrix(), torch.eye(4)))
+        True
+    """
+
+    def __init__(self, dim: int) -> None:
+        super().__init__(dim)
+        self.register_buffer("eye", torch.eye(self.dim), persistent=False)
+
+    def matrix(self) -> torch.Tensor:
+        return self.eye
+
+
+SIMILARITIES = {"dddp": DDDPSimilarity, "full": FullSimilarity, "identity": IdentitySimilarity}
+
+
+def make_similarity(kind: str, dim: int, **kwargs) -> _Similarity:
+    """Builds a similarity by name: ``"dddp"``, ``"full"`` or ``"identity"``."""
+    if kind not in SIMILARITIES:
+        raise ValueError(f"similarity must be one of {sorted(SIMILARITIES)}, got {kind!r}.")
+    return SIMILARITIES[kind](dim, **kwargs)

@@ -1,0 +1,296 @@
+"""Encoder, similarity matrices, CPC loss, representation trainer and checkpoints."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import replace
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from tensordict import TensorDict
+
+from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.modules import (
+    DDDPSimilarity,
+    DiscreteCodeEncoder,
+    EncoderConfig,
+    FullSimilarity,
+    IdentitySimilarity,
+)
+from dorp_rl.objectives import CPCLoss
+from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+
+
+def _pixels(n: int, seed: int = 0) -> torch.Tensor:
+    env = ObjectRearrangementEnv(2, seed=seed, batch_size=(), batch_locked=False)
+    return env.render_state(env.sample_states((n,)))
+
+
+def _tiny_config(tmp_path, **overrides) -> RepresentationConfig:
+    base = RepresentationConfig.rearrangement(
+        1,
+        code_size=8,
+        num_frames=512,
+        num_envs=16,
+        batch_size=32,
+        num_steps=12,
+        log_every=3,
+        checkpoint_every=5,
+        diagnostics_every=10**9,
+        progress=False,
+        out_dir=str(tmp_path / "run"),
+        collapse_check_after=10**9,
+    )
+    return replace(base, **overrides)
+
+
+# ---------------------------------------------------------------- encoder
+@pytest.mark.parametrize("competition", ["sigmoid", "softmax"])
+def test_encoder_shapes_and_dtypes(competition):
+    encoder = DiscreteCodeEncoder(
+        EncoderConfig(
+            code_sizes=(16, 2), channels=8, mlp_sizes=(32, 32), map_competition=competition
+        )
+    )
+    code, probs = encoder(_pixels(5))
+    assert code.dtype == torch.int64 and code.shape == (5, 2)
+    assert probs.shape == (5, 2, 16) and probs.dtype == torch.float32
+    assert torch.allclose(probs.sum(-1), torch.ones(5, 2))
+    # the 2-way one-hot never puts mass on codes it does not have
+    assert probs[:, 1, 2:].abs().max() == 0 and (code[:, 1] < 2).all()
+    assert encoder.logits(_pixels(3)).shape == (3, 2, 16)
+    assert encoder.encode(_pixels(7).view(7, 1, 3, 16, 16)).shape == (7, 1, 2)
+
+
+def test_encoder_as_tensordict_module():
+    encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(8, 8)))
+    module = encoder.as_tensordict_module()
+    td = module(TensorDict(pixels=_pixels(4), batch_size=[4]))
+    assert td["code"].shape == (4, 2) and td["code_probs"].shape == (4, 2, 8)
+    goal = encoder.as_tensordict_module("goal_pixels", ("goal_code", "goal_code_probs"))
+    td = goal(TensorDict(goal_pixels=_pixels(4), batch_size=[4]))
+    assert "goal_code" in td.keys()
+
+
+def test_encoder_presets_differ_in_size():
+    small = sum(p.numel() for p in DiscreteCodeEncoder(EncoderConfig.small((32,))).parameters())
+    big = sum(p.numel() for p in DiscreteCodeEncoder(EncoderConfig.authors((32,))).parameters())
+    assert small < big / 3
+
+
+@pytest.mark.parametrize(
+    "pixels, match",
+    [
+        (torch.zeros(2, 3, 8, 8, dtype=torch.uint8), r"\[\*B, 3, 16, 16\]"),
+        (torch.zeros(2, 16, 16, 3, dtype=torch.uint8), r"\[\*B, 3, 16, 16\]"),
+        (torch.zeros(2, 3, 16, 16, dtype=torch.int32), "uint8"),
+    ],
+)
+def test_encoder_rejects_bad_pixels(pixels, match):
+    encoder = DiscreteCodeEncoder(EncoderConfig.small((8,)))
+    with pytest.raises(ValueError, match=match):
+        encoder(pixels)
+
+
+def test_encoder_rejects_bad_config():
+    with pytest.raises(ValueError, match="code_sizes"):
+        DiscreteCodeEncoder(EncoderConfig(code_sizes=(1,)))
+    with pytest.raises(ValueError, match="map_competition"):
+        DiscreteCodeEncoder(EncoderConfig(code_sizes=(4,), map_competition="max"))
+
+
+# ---------------------------------------------------------------- similarity
+@settings(max_examples=50, deadline=None)
+@given(
+    dim=st.integers(2, 12),
+    scale=st.floats(-4, 4),
+    psi=st.floats(-10, 10),
+    spread=st.floats(0, 10),
+    seed=st.integers(0, 1000),
+    sign=st.sampled_from(["paper", "authors"]),
+)
+def test_dddp_diagonally_positive_and_dominant(dim, scale, psi, spread, seed, sign):
+    sim = DDDPSimilarity(dim, sign=sign)
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        sim.log_scale.fill_(scale)
+        sim.psi.copy_(psi + spread * torch.randn(dim, dim, generator=gen))
+    w = sim.matrix()
+    diag = w.diagonal()
+    off = w.masked_fill(torch.eye(dim, dtype=torch.bool), float("-inf"))
+    assert (diag > 0).all()
+    # each diagonal entry beats every other entry of its row and of its column
+    assert (diag > off.max(dim=1).values).all() and (diag > off.max(dim=0).values).all()
+    if sign == "authors":  # their variant is dominant in magnitude too
+        assert (diag > w.masked_fill(torch.eye(dim, dtype=torch.bool), 0).abs().max(1).values).all()
+
+
+def test_similarity_variants_and_errors():
+    a, b = torch.randn(3, 6), torch.randn(5, 6)
+    assert IdentitySimilarity(6)(a, b).shape == (3, 5)
+    assert torch.allclose(IdentitySimilarity(6)(a, b), a @ b.T)
+    assert len(list(FullSimilarity(6).parameters())) == 1
+    assert len(list(IdentitySimilarity(6).parameters())) == 0
+    with pytest.raises(ValueError, match=r"anchor must have shape \[B, 6\]"):
+        IdentitySimilarity(6)(torch.randn(3, 4), b)
+    with pytest.raises(ValueError, match="alpha"):
+        DDDPSimilarity(4, alpha=0.5)
+    with pytest.raises(ValueError, match="sign"):
+        DDDPSimilarity(4, sign="other")
+
+
+# ---------------------------------------------------------------- loss
+def _loss(gumbel_side="positive", **kwargs) -> CPCLoss:
+    torch.manual_seed(0)
+    encoder = DiscreteCodeEncoder(EncoderConfig(code_sizes=(8, 8), channels=8, mlp_sizes=(32, 32)))
+    return CPCLoss(encoder, DDDPSimilarity(16), gumbel_side=gumbel_side, **kwargs)
+
+
+@pytest.mark.parametrize("side", ["positive", "anchor"])
+def test_gradients_reach_extractor_through_gumbel_path(side):
+    loss = _loss(side)
+    pixels = _pixels(8)
+    out = loss(TensorDict(pixels=pixels, future_pixels=_pixels(8, seed=1), batch_size=[8]))
+    out["loss_cpc"].backward()
+    first_conv = loss.encoder.extractor[0].weight
+    assert first_conv.grad is not None and first_conv.grad.abs().sum() > 0
+    assert loss.similarity.psi.grad.abs().sum() > 0
+    assert math.isclose(
+        float(out["mi_lower_bound"]), math.log(8) - float(out["loss_cpc"].detach()), rel_tol=1e-5
+    )
+    assert 0 <= float(out["accuracy"]) <= 1 and 1 <= float(out["codes_in_batch"]) <= 8
+
+
+def test_loss_optional_terms_and_keys():
+    loss = _loss(usage_weight=0.1, exclusivity_weight=0.1)
+    loss.set_keys(pixels="obs", future_pixels=("next", "obs"))
+    td = TensorDict(
+        obs=_pixels(6), next=TensorDict(obs=_pixels(6, 1), batch_size=[6]), batch_size=[6]
+    )
+    out = loss(td)
+    assert {"loss_cpc", "loss_usage", "loss_exclusivity"} <= set(out.keys())
+    assert float(out["loss_usage"]) >= 0 and float(out["loss_exclusivity"]) >= 0
+
+
+def test_loss_errors():
+    loss = _loss()
+    with pytest.raises(ValueError, match="same shape"):
+        loss(TensorDict(pixels=_pixels(4), future_pixels=_pixels(5), batch_size=[]))
+    with pytest.raises(ValueError, match="dim"):
+        CPCLoss(loss.encoder, DDDPSimilarity(10))
+    with pytest.raises(ValueError, match="gumbel_side"):
+        CPCLoss(loss.encoder, DDDPSimilarity(16), gumbel_side="both")
+
+
+def test_loss_falls_on_a_tiny_dataset():
+    torch.manual_seed(0)
+    env = ObjectRearrangementEnv(1, seed=0, batch_size=(), batch_locked=False)
+    states = env.sample_states((64,))
+    moved = env.transition(states, torch.randint(4, (64,)))
+    td = TensorDict(
+        pixels=env.render_state(states), future_pixels=env.render_state(moved), batch_size=[64]
+    )
+    encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(16,)))
+    loss = CPCLoss(encoder, DDDPSimilarity(16))
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    first = None
+    for _ in range(150):
+        out = loss(td)
+        first = float(out["loss_cpc"]) if first is None else first
+        opt.zero_grad()
+        out["loss_cpc"].backward()
+        opt.step()
+    assert float(out["loss_cpc"]) < first - 1.0
+
+
+# ---------------------------------------------------------------- trainer
+def test_trainer_runs_logs_and_checkpoints(tmp_path):
+    trainer = RepresentationTrainer(_tiny_config(tmp_path))
+    result = trainer.train()
+    assert result["step"] == 12 and not result["collapsed"]
+    assert trainer.checkpoint_path.exists()
+    assert (tmp_path / "run" / "logs").exists()
+    assert [h["step"] for h in trainer.history] == [3, 6, 9, 12]
+
+
+def test_checkpoint_round_trip(tmp_path):
+    trainer = RepresentationTrainer(_tiny_config(tmp_path))
+    trainer.train()
+    other = RepresentationTrainer(_tiny_config(tmp_path, seed=5))
+    other.load(trainer.checkpoint_path)
+    pixels = _pixels(16)
+    assert torch.equal(trainer.encoder.encode(pixels), other.encoder.encode(pixels))
+    assert other.step == trainer.step
+    for a, b in zip(trainer.similarity.parameters(), other.similarity.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_resume_equals_uninterrupted_run(tmp_path):
+    full = RepresentationTrainer(_tiny_config(tmp_path / "a"))
+    full.train()
+
+    interrupted = RepresentationTrainer(_tiny_config(tmp_path / "b", num_steps=5))
+    interrupted.train()  # stops at step 5 with a checkpoint
+    resumed = RepresentationTrainer(_tiny_config(tmp_path / "b"))
+    resumed.train(resume=True)
+    assert resumed.step == 12
+    for a, b in zip(
+        full.encoder.state_dict().values(), resumed.encoder.state_dict().values(), strict=True
+    ):
+        assert torch.equal(a, b)
+
+
+def test_collapse_detector_restarts_and_reports(tmp_path):
+    # A learning rate of 0 can never leave the initial near-uniform codes: the loss stays
+    # at log B, so every attempt is declared collapsed.
+    cfg = _tiny_config(tmp_path, lr=0.0, collapse_check_after=4, max_restarts=2, num_steps=15)
+    trainer = RepresentationTrainer(cfg)
+    reason = trainer.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 0.1}, 10)
+    assert reason is not None and "only 1 code" in reason
+    with pytest.warns(RuntimeWarning, match="collapsed"):
+        result = trainer.train()
+    assert result["attempt"] == 2 and len(result["restarts"]) == 2
+    assert result["collapsed"] is True
+
+
+def test_healthy_metrics_are_not_collapse(tmp_path):
+    trainer = RepresentationTrainer(_tiny_config(tmp_path))
+    assert trainer.collapse_reason({"min_codes_in_batch": 9.0, "loss_cpc": 2.0}, 10**6) is None
+    assert trainer.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 2.0}, 0) is None
+
+
+def test_checkpoint_from_another_env_or_corrupted(tmp_path):
+    trainer = RepresentationTrainer(_tiny_config(tmp_path))
+    trainer.train()
+    two = RepresentationTrainer(_tiny_config(tmp_path / "two", num_objects=2))
+    with pytest.raises(ValueError, match="another environment.*num_objects"):
+        two.load(trainer.checkpoint_path)
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="corrupted"):
+        load_checkpoint(broken)
+    with pytest.raises(FileNotFoundError):
+        load_checkpoint(tmp_path / "missing.pt")
+    path = save_checkpoint(
+        tmp_path / "wm.pt", kind="world_model", config={}, env_config={}, state={}, step=0
+    )
+    with pytest.raises(ValueError, match="expected 'representation'"):
+        load_checkpoint(path, kind="representation")
+
+
+def test_config_presets_and_validation():
+    assert RepresentationConfig.rearrangement(3).code_sizes == (32, 32, 32)
+    assert RepresentationConfig.rearrangement(1).code_sizes == (16,)
+    assert RepresentationConfig.key_wall().code_sizes == (16, 2)
+    assert RepresentationConfig.key_corridor().env == "key-corridor"
+    with pytest.raises(ValueError, match="env must be one of"):
+        RepresentationConfig(env="maze").validate()
+    with pytest.raises(ValueError, match="unknown RepresentationConfig fields"):
+        RepresentationConfig.from_dict({"colour": 1})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        RepresentationConfig.key_wall().validate()

@@ -1,0 +1,422 @@
+"""RepresentationTrainer: learns DORP's discrete codes from play data with CPCLoss."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torchrl.data import TensorDictReplayBuffer
+
+from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
+from dorp_rl.envs import (
+    GridWorldEnv,
+    KeyCorridorEnv,
+    KeyRoomEnv,
+    KeyWallEnv,
+    ObjectRearrangementEnv,
+)
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
+from dorp_rl.objectives import CPCLoss
+
+ENV_NAMES = ("rearrangement", "key-wall", "key-corridor")
+
+
+@dataclass
+class RepresentationConfig:
+    """Everything that defines a representation run (a CleanRL-style flat dataclass).
+
+    Use the presets :meth:`rearrangement`, :meth:`key_wall` and :meth:`key_corridor`, then
+    override fields with :func:`dataclasses.replace`.
+    """
+
+    # environment and play data
+    env: str = "rearrangement"
+    num_objects: int = 2
+    num_frames: int = 100_000
+    num_envs: int = 64
+    trajectory_length: int | None = None
+    min_offset: int = 1
+    max_offset: int = 1
+    data_dir: str | None = None
+    # encoder
+    code_size: int = 32
+    encoder_preset: str = "small"
+    map_competition: str = "sigmoid"
+    # loss
+    similarity: str = "dddp"
+    dddp_sign: str = "paper"
+    alpha: float = 1.0
+    gumbel_side: str = "positive"
+    gumbel_temperature: float = 0.1
+    gumbel_temperature_start: float | None = None
+    gumbel_anneal_steps: int = 0
+    ce_temperature: float = 0.1
+    usage_weight: float = 0.0
+    exclusivity_weight: float = 0.0
+    # optimisation
+    batch_size: int = 128
+    lr: float = 1e-3
+    similarity_lr_scale: float = 1.0
+    num_steps: int = 2000
+    # bookkeeping
+    seed: int = 0
+    device: str = "cpu"
+    out_dir: str = "outputs/representation"
+    log_every: int = 50
+    diagnostics_every: int = 500
+    diagnostics_samples: int = 2048
+    checkpoint_every: int = 500
+    progress: bool = True
+    # collapse detection
+    collapse_check_after: int = 300
+    collapse_min_codes: int = 2
+    collapse_loss_margin: float = 0.05
+    max_restarts: int = 3
+
+    @classmethod
+    def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
+        """k-object rearrangement: one-step play transitions, one one-hot per object."""
+        base = cls(
+            env="rearrangement", num_objects=num_objects, code_size=16 if num_objects == 1 else 32
+        )
+        return replace(base, **overrides)
+
+    @classmethod
+    def key_wall(cls, **overrides: Any) -> RepresentationConfig:
+        """Key-wall: 1000-step random walks, a 16-code agent one-hot plus a 2-way key bit."""
+        base = cls(env="key-wall", num_objects=1, code_size=16, num_frames=64_000, max_offset=4)
+        return replace(base, **overrides)
+
+    @classmethod
+    def key_corridor(cls, **overrides: Any) -> RepresentationConfig:
+        """Key-corridor: 1500-step random walks, a 32-code agent one-hot plus a key bit."""
+        base = cls(env="key-corridor", num_objects=1, code_size=32, num_frames=96_000, max_offset=4)
+        return replace(base, **overrides)
+
+    @property
+    def code_sizes(self) -> tuple[int, ...]:
+        if self.env == "rearrangement":
+            return (self.code_size,) * self.num_objects
+        return (self.code_size, 2)
+
+    def validate(self) -> None:
+        if self.env not in ENV_NAMES:
+            raise ValueError(f"env must be one of {ENV_NAMES}, got {self.env!r}.")
+        for name in ("num_steps", "batch_size", "num_frames", "log_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}.")
+        if self.encoder_preset not in ("small", "authors"):
+            raise ValueError(
+                f"encoder_preset must be 'small' or 'authors', got {self.encoder_preset!r}."
+            )
+
+    def make_env(self, **kwargs: Any) -> GridWorldEnv:
+        """The environment this config trains on."""
+        if self.env == "rearrangement":
+            return ObjectRearrangementEnv(
+                num_objects=self.num_objects, device=self.device, **kwargs
+            )
+        cls = KeyWallEnv if self.env == "key-wall" else KeyCorridorEnv
+        return cls(device=self.device, **kwargs)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> RepresentationConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown RepresentationConfig fields {unknown}.")
+        return cls(**values)
+
+
+def diagnose(
+    env: GridWorldEnv, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
+) -> dict:
+    """Ground-truth diagnostics of an encoder's codes on ``env`` (see :mod:`dorp_rl.eval`)."""
+    from dorp_rl.eval.diagnostics import key_room_diagnostics, rearrangement_diagnostics
+
+    encode = encoder.encode
+    if isinstance(env, KeyRoomEnv):
+        result = key_room_diagnostics(env, encode)
+    else:
+        result = rearrangement_diagnostics(env, encode, num_samples=num_samples, seed=seed)
+    return result.to_dict() if hasattr(result, "to_dict") else dict(result)
+
+
+class RepresentationTrainer:
+    """Trains a :class:`~dorp_rl.modules.DiscreteCodeEncoder` with :class:`~dorp_rl.objectives.CPCLoss`.
+
+    Data come from a play buffer (collected, or loaded from ``config.data_dir``) through a
+    :class:`~dorp_rl.data.FuturePairSampler`. The trainer logs to a torchrl CSV logger,
+    shows a tqdm bar, runs ground-truth diagnostics every ``diagnostics_every`` steps and
+    writes a checkpoint (config, weights, optimiser, step, RNG states) every
+    ``checkpoint_every`` steps and at the end; ``train(resume=True)`` continues from the
+    last checkpoint and ends exactly where an uninterrupted run would.
+
+    Collapse: after ``collapse_check_after`` steps of an attempt, if the anchor codes of a
+    batch use at most ``collapse_min_codes`` codes on some one-hot, or the loss is still
+    within ``collapse_loss_margin`` of ``log B`` (nothing learned), the attempt is declared
+    collapsed: a warning names the cause, the encoder and similarity are re-initialised
+    from a new seed and training restarts (up to ``max_restarts`` times). If the last
+    attempt collapses too, ``train`` still returns, with ``collapsed=True`` in its result
+    and a ``RuntimeWarning``: a dead encoder is never returned silently.
+
+    Examples:
+        >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+        >>> cfg = RepresentationConfig.rearrangement(1, num_steps=20, num_frames=2000,
+        ...     progress=False, out_dir="/tmp/dorp_doc_repr", diagnostics_every=10**9)
+        >>> result = RepresentationTrainer(cfg).train()
+        >>> result["step"]
+        20
+    """
+
+    kind = "representation"
+
+    def __init__(
+        self,
+        config: RepresentationConfig,
+        buffer: TensorDictReplayBuffer | None = None,
+        logger: Any | None = None,
+    ) -> None:
+        config.validate()
+        self.config = config
+        self.device = torch.device(config.device)
+        self.env = config.make_env(batch_size=(config.num_envs,))
+        self.out_dir = Path(config.out_dir)
+        self.sampler = FuturePairSampler(config.min_offset, config.max_offset)
+        if buffer is None:
+            buffer = collect_play_data(
+                self.env,
+                config.num_frames,
+                directory=config.data_dir,
+                seed=config.seed,
+                trajectory_length=config.trajectory_length,
+                sampler=self.sampler,
+                batch_size=config.batch_size,
+                progress=config.progress,
+            )
+        self.buffer = buffer
+        self.data_generator = torch.Generator()
+        self.buffer.set_rng(self.data_generator)
+        if logger is None:
+            from torchrl.record.loggers import CSVLogger
+
+            logger = CSVLogger(exp_name="logs", log_dir=str(self.out_dir))
+        self.logger = logger
+        self.attempt = 0
+        self.step = 0
+        self.history: list[dict[str, float]] = []
+        self.restarts: list[dict[str, Any]] = []
+        self._build(seed=config.seed)
+
+    # ------------------------------------------------------------------ #
+    def _build(self, seed: int) -> None:
+        """(Re-)creates encoder, similarity, loss and optimiser from ``seed``."""
+        cfg = self.config
+        torch.manual_seed(seed)
+        preset = EncoderConfig.small if cfg.encoder_preset == "small" else EncoderConfig.authors
+        enc_cfg = preset(cfg.code_sizes)
+        enc_cfg.map_competition = cfg.map_competition
+        self.encoder = DiscreteCodeEncoder(enc_cfg).to(self.device)
+        sim_kwargs: dict[str, Any] = {}
+        if cfg.similarity == "dddp":
+            sim_kwargs = {"alpha": cfg.alpha, "sign": cfg.dddp_sign}
+        dim = self.encoder.num_onehots * self.encoder.max_codes
+        self.similarity = make_similarity(cfg.similarity, dim, **sim_kwargs).to(self.device)
+        self.loss = CPCLoss(
+            self.encoder,
+            self.similarity,
+            gumbel_side=cfg.gumbel_side,
+            gumbel_temperature=cfg.gumbel_temperature_start or cfg.gumbel_temperature,
+            ce_temperature=cfg.ce_temperature,
+            usage_weight=cfg.usage_weight,
+            exclusivity_weight=cfg.exclusivity_weight,
+        )
+        groups = [{"params": list(self.encoder.parameters()), "lr": cfg.lr}]
+        sim_params = list(self.similarity.parameters())
+        if sim_params:
+            groups.append({"params": sim_params, "lr": cfg.lr * cfg.similarity_lr_scale})
+        self.optimizer = torch.optim.Adam(groups)
+        self.data_generator.manual_seed(seed + 1)
+
+    def gumbel_temperature_at(self, step: int) -> float:
+        """Exponential annealing from ``gumbel_temperature_start`` to ``gumbel_temperature``."""
+        cfg = self.config
+        if not cfg.gumbel_temperature_start or cfg.gumbel_anneal_steps <= 0:
+            return cfg.gumbel_temperature
+        frac = min(1.0, step / cfg.gumbel_anneal_steps)
+        start, floor = cfg.gumbel_temperature_start, cfg.gumbel_temperature
+        return float(start * (floor / start) ** frac)
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out_dir / "checkpoints" / "last.pt"
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "encoder": self.encoder.state_dict(),
+            "similarity": self.similarity.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def save(self, path: str | Path | None = None) -> Path:
+        """Writes a checkpoint (default: ``<out_dir>/checkpoints/last.pt``)."""
+        return save_checkpoint(
+            path or self.checkpoint_path,
+            kind=self.kind,
+            config=self.config.to_dict(),
+            env_config=self.env.config(),
+            state=self.state_dict(),
+            step=self.step,
+            rng={"torch": torch.get_rng_state(), "data": self.data_generator.get_state()},
+            extra={"attempt": self.attempt, "restarts": self.restarts, "history": self.history},
+        )
+
+    def load(self, path: str | Path | None = None) -> None:
+        """Restores a checkpoint of this trainer (same environment and code sizes)."""
+        payload = load_checkpoint(
+            path or self.checkpoint_path, kind=self.kind, env_config=self.env.config()
+        )
+        stored = RepresentationConfig.from_dict(payload["config"])
+        if stored.code_sizes != self.config.code_sizes:
+            raise ValueError(
+                f"checkpoint has code sizes {stored.code_sizes}, this trainer {self.config.code_sizes}."
+            )
+        extra = payload["extra"]
+        self.attempt = int(extra.get("attempt", 0))
+        if self.attempt:
+            self._build(seed=self._attempt_seed(self.attempt))
+        self.encoder.load_state_dict(payload["state"]["encoder"])
+        self.similarity.load_state_dict(payload["state"]["similarity"])
+        self.optimizer.load_state_dict(payload["state"]["optimizer"])
+        self.step = payload["step"]
+        self.restarts = list(extra.get("restarts", []))
+        self.history = list(extra.get("history", []))
+        torch.set_rng_state(payload["rng"]["torch"])
+        self.data_generator.set_state(payload["rng"]["data"])
+
+    def _attempt_seed(self, attempt: int) -> int:
+        return self.config.seed + 7919 * attempt
+
+    # ------------------------------------------------------------------ #
+    def collapse_reason(self, metrics: dict[str, float], attempt_steps: int) -> str | None:
+        """Why the current attempt looks collapsed (``None`` if it does not)."""
+        cfg = self.config
+        if attempt_steps < cfg.collapse_check_after:
+            return None
+        if metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
+            return (
+                f"a one-hot uses only {int(metrics['min_codes_in_batch'])} code(s) in a batch "
+                f"of {cfg.batch_size}"
+            )
+        if metrics["loss_cpc"] > math.log(cfg.batch_size) - cfg.collapse_loss_margin:
+            return f"the loss is flat at log B = {math.log(cfg.batch_size):.3f}"
+        return None
+
+    def _batch(self) -> TensorDict:
+        anchor, future, _ = future_pairs(self.buffer.sample(self.config.batch_size))
+        return TensorDict(
+            pixels=anchor.to(self.device),
+            future_pixels=future.to(self.device),
+            batch_size=[anchor.shape[0]],
+        )
+
+    def train_step(self) -> dict[str, float]:
+        """One gradient step; returns the detached metrics."""
+        self.loss.gumbel_temperature = self.gumbel_temperature_at(self.step)
+        out = self.loss(self._batch())
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.optimizer.step()
+        self.step += 1
+        return {k: float(v) for k, v in out.items()}
+
+    def train(self, resume: bool = False) -> dict[str, Any]:
+        """Runs to ``config.num_steps`` and returns the final metrics and diagnostics."""
+        cfg = self.config
+        if resume and self.checkpoint_path.exists():
+            self.load()
+        bar = None
+        if cfg.progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=cfg.num_steps, initial=self.step, desc="representation")
+        attempt_start = self.restarts[-1]["step"] if self.restarts else 0
+        metrics: dict[str, float] = {}
+        diagnostics: dict[str, Any] = {}
+        try:
+            while self.step < cfg.num_steps:
+                metrics = self.train_step()
+                reason = self.collapse_reason(metrics, self.step - attempt_start)
+                if reason is not None and self.attempt < cfg.max_restarts:
+                    self.attempt += 1
+                    self.restarts.append(
+                        {"step": self.step, "attempt": self.attempt, "reason": reason}
+                    )
+                    warnings.warn(
+                        f"representation collapsed at step {self.step} ({reason}); re-initialising "
+                        f"encoder and similarity (restart {self.attempt}/{cfg.max_restarts}).",
+                        RuntimeWarning,
+                        stacklevel=2,
+                    )
+                    self.logger.log_scalar("restart", float(self.attempt), step=self.step)
+                    self._build(seed=self._attempt_seed(self.attempt))
+                    attempt_start = self.step
+                if self.step % cfg.log_every == 0:
+                    for key, value in metrics.items():
+                        self.logger.log_scalar(key, value, step=self.step)
+                    self.history.append({"step": self.step, **metrics})
+                    if bar is not None:
+                        bar.set_postfix(
+                            loss=f"{metrics['loss_cpc']:.3f}",
+                            codes=f"{metrics['codes_in_batch']:.1f}",
+                        )
+                if self.step % cfg.diagnostics_every == 0:
+                    diagnostics = self.diagnose()
+                if self.step % cfg.checkpoint_every == 0:
+                    self.save()
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        self.save()
+        if not diagnostics or cfg.num_steps % cfg.diagnostics_every != 0:
+            diagnostics = self.diagnose() if cfg.diagnostics_every <= cfg.num_steps else {}
+        final_reason = self.collapse_reason(metrics, self.step - attempt_start) if metrics else None
+        if final_reason is not None:
+            warnings.warn(
+                f"representation still collapsed after {self.attempt} restart(s): {final_reason}.",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        return {
+            "step": self.step,
+            "attempt": self.attempt,
+            "restarts": self.restarts,
+            "collapsed": final_reason is not None,
+            "metrics": metrics,
+            "diagnostics": diagnostics,
+        }
+
+    def diagnose(self) -> dict[str, Any]:
+        """Runs the ground-truth diagnostics now and logs their scalar entries."""
+        result = diagnose(
+            self.config.make_env(),
+            self.encoder,
+            num_samples=self.config.diagnostics_samples,
+            seed=self.config.seed,
+        )
+        for key, value in result.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                self.logger.log_scalar(f"diag/{key}", float(value), step=self.step)
+        return result
