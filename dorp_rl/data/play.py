@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -127,6 +128,11 @@ def load_play_data(
         metadata = json.loads(meta_path.read_text())
     except json.JSONDecodeError as err:
         raise ValueError(f"play data metadata {meta_path} is corrupted: {err}.") from err
+    required = ("format_version", "env_config", "num_frames", "seed", "trajectory_length")
+    if not isinstance(metadata, dict) or any(k not in metadata for k in required):
+        raise ValueError(
+            f"play data metadata {meta_path} is corrupted: expected a JSON object with {list(required)}."
+        )
     if metadata.get("format_version") != _FORMAT_VERSION:
         raise ValueError(
             f"play data at {directory} has format_version {metadata.get('format_version')}, "
@@ -144,6 +150,8 @@ def load_play_data(
         buffer.loads(directory)
     except Exception as err:  # a partial or damaged dump
         raise ValueError(f"play data at {directory} could not be loaded ({err}).") from err
+    # ReplayBuffer.loads restores the batch size saved at collection time; use the requested one.
+    buffer._batch_size = batch_size
     if len(buffer) != metadata["num_frames"]:
         raise ValueError(
             f"play data at {directory} holds {len(buffer)} frames, its metadata says "
@@ -208,6 +216,8 @@ def collect_play_data(
                 k: metadata[k] for k in ("env_config", "num_frames", "seed", "trajectory_length")
             }
             return load_play_data(directory, sampler=sampler, batch_size=batch_size, expected=check)
+        # No metadata: nothing complete is here. Clear what an interrupted collection left.
+        shutil.rmtree(directory / "storage", ignore_errors=True)
         directory.mkdir(parents=True, exist_ok=True)
 
     num_envs = int(collect_env.batch_size.numel())
