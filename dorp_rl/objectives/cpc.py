@@ -30,6 +30,23 @@ def standardize_codes(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return ((finite - mean) / (var + 1e-5).sqrt()).masked_fill(mask, float("-inf"))
 
 
+def change_overlap(anchor_probs: torch.Tensor, future_probs: torch.Tensor) -> torch.Tensor:
+    """Mean cosine similarity, over pairs of one-hots, of their change indicators in a batch.
+
+    ``change[b, c] = 1 - sum_z p_anchor[b, c, z] p_future[b, c, z]`` is the probability that
+    one-hot ``c`` differs between the two frames of pair ``b``. Play data move one thing per
+    step, so object-factorized one-hots rarely change together: their change vectors are
+    nearly orthogonal, while two one-hots that duplicate or mix objects change together
+    (cosine near 1). The cosine ignores how often codes change, so making codes constant
+    does not lower it.
+    """
+    change = 1.0 - (anchor_probs * future_probs).sum(-1)  # [B, C]
+    unit = change / change.norm(dim=0, keepdim=True).clamp_min(1e-6)
+    gram = unit.transpose(0, 1) @ unit  # [C, C]
+    num = change.shape[-1]
+    return (gram.sum() - gram.diagonal().sum()) / (num * (num - 1))
+
+
 def encoder_has_pairs(probs: torch.Tensor) -> bool:
     """Whether codes have at least two one-hots (the exclusivity term needs pairs)."""
     return probs.shape[-2] > 1
@@ -52,6 +69,8 @@ class CPCLoss(LossModule):
         gumbel_temperature: Gumbel-softmax temperature (the trainer may anneal it).
         ce_temperature: the scores are divided by it. 0.1 learned codes in about 500
             steps on this CPU where 1.0 (the authors') stalled at 3-4 codes.
+        exclusivity_weight: weight of an optional term that keeps one-hots from changing
+            together (see :func:`change_overlap`).
         usage_weight: weight of an optional code-usage term,
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
             collapse onto a few codes (0 disables it).
@@ -179,9 +198,8 @@ class CPCLoss(LossModule):
                 "loss_usage", self.usage_weight * (max_entropy.to(entropy.device) - entropy).mean()
             )
         if self.exclusivity_weight > 0 and encoder_has_pairs(probs):
-            same = (probs * future_logits.softmax(-1)).sum(-1)  # [B, C]
-            change = 1.0 - same
-            total = change.sum(-1)
-            cochange = (total**2 - (change**2).sum(-1)) / 2  # sum over one-hot pairs
-            out.set("loss_exclusivity", self.exclusivity_weight * cochange.mean())
+            out.set(
+                "loss_exclusivity",
+                self.exclusivity_weight * change_overlap(probs, future_logits.softmax(-1)),
+            )
         return out
