@@ -96,7 +96,10 @@ class ObjectRearrangementEnv(GridWorldEnv):
         super().__init__(max_steps=max_steps, **kwargs)
         self.block_shapes = self.block_shapes.to(self.device)
         self.colours = colours.to(self.device)
-        self._frame_table = self._build_frame_table()
+        # Each frame's 768 bytes seen as 96 int64 words: see render_state.
+        self._frame_words = (
+            self._build_frame_table().reshape(-1, 3 * GRID_SIZE * GRID_SIZE).view(torch.int64)
+        )
 
     def _check_placeable(self, attempts: int = 4096) -> None:
         """Raises ``ValueError`` if no valid placement turns up in ``attempts`` random draws."""
@@ -195,10 +198,21 @@ class ObjectRearrangementEnv(GridWorldEnv):
     def transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         obj = action // 4
         delta = DIRECTIONS.to(state.device)[action % 4]  # [*B, 2]
-        which = torch.nn.functional.one_hot(obj, self.num_objects).to(torch.int64)  # [*B, k]
-        moved = state + which.unsqueeze(-1) * delta.unsqueeze(-2)
-        ok = ~self.invalid_states(moved)
-        return torch.where(ok[..., None, None], moved, state)
+        corner = torch.gather(state, -2, obj[..., None, None].expand(*obj.shape, 1, 2)).squeeze(-2)
+        target = corner + delta  # new top-left of the moved block, [*B, 2]
+        size = self.block_shapes[obj]  # [*B, 2]
+        inside = ((target >= 0) & (target + size <= GRID_SIZE)).all(-1)
+        # Only the moved block can create an overlap: test it against every other block.
+        others_low, others_high = state, state + self.block_shapes  # [*B, k, 2]
+        hits = (
+            (target.unsqueeze(-2) < others_high) & (others_low < (target + size).unsqueeze(-2))
+        ).all(-1)  # [*B, k]
+        hits &= torch.arange(self.num_objects, device=state.device) != obj.unsqueeze(-1)
+        ok = inside & ~hits.any(-1)
+        which = (
+            torch.arange(self.num_objects, device=state.device) == obj.unsqueeze(-1)
+        ) & ok.unsqueeze(-1)
+        return torch.where(which.unsqueeze(-1), target.unsqueeze(-2), state)
 
     def _build_frame_table(self) -> torch.Tensor:
         """uint8 ``[k * 256, 3, 16, 16]``: object ``o`` alone with its top-left at cell ``p``.
@@ -222,17 +236,22 @@ class ObjectRearrangementEnv(GridWorldEnv):
         return frames.reshape(self.num_objects * GRID_SIZE * GRID_SIZE, 3, GRID_SIZE, GRID_SIZE)
 
     def render_state(self, state: torch.Tensor) -> torch.Tensor:
-        """Draws valid states ``[*B, k, 2]`` as uint8 ``[*B, 3, 16, 16]`` (black background)."""
+        """Draws valid states ``[*B, k, 2]`` as uint8 ``[*B, 3, 16, 16]`` (black background).
+
+        Frames are gathered and summed as int64 words (8 pixels' bytes each): blocks never
+        overlap, so every byte has at most one non-zero term and no carry crosses bytes.
+        """
         cell = state[..., 0].clamp(0, GRID_SIZE - 1) * GRID_SIZE + state[..., 1].clamp(
             0, GRID_SIZE - 1
         )
         offset = torch.arange(self.num_objects, device=state.device) * (GRID_SIZE * GRID_SIZE)
         index = (cell + offset).reshape(-1)
-        frames = self._frame_table.index_select(0, index)
-        frames = frames.view(*state.shape[:-2], self.num_objects, 3, GRID_SIZE, GRID_SIZE)
-        if self.num_objects == 1:
-            return frames.squeeze(-4)
-        return frames.sum(-4, dtype=torch.uint8)
+        words = self._frame_words.index_select(0, index)
+        words = words.view(-1, self.num_objects, words.shape[-1])
+        if self.num_objects > 1:
+            words = words.sum(1)
+        frames = words.reshape(-1).view(torch.uint8)
+        return frames.view(*state.shape[:-2], 3, GRID_SIZE, GRID_SIZE)
 
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Sum over blocks of the Manhattan distance to the goal corner."""
