@@ -147,11 +147,15 @@ class DiscreteCodeEncoder(nn.Module):
             out = out.sigmoid()
         return out.reshape(*batch, self.num_onehots, 16, 16)
 
-    def logits(self, pixels: torch.Tensor) -> torch.Tensor:
-        """Per-one-hot code logits, float ``[*B, C, Z]``, ``-inf`` on masked codes."""
+    def logits_and_maps(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, 16, 16]``."""
         maps = self.object_maps(pixels)
         logits = self.map_encoder(maps.flatten(-2))
-        return logits.masked_fill(self.code_mask, float("-inf"))
+        return logits.masked_fill(self.code_mask, float("-inf")), maps
+
+    def logits(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Per-one-hot code logits, float ``[*B, C, Z]``, ``-inf`` on masked codes."""
+        return self.logits_and_maps(pixels)[0]
 
     def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         logits = self.logits(pixels)

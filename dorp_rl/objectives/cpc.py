@@ -30,17 +30,17 @@ def standardize_codes(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return ((finite - mean) / (var + 1e-5).sqrt()).masked_fill(mask, float("-inf"))
 
 
-def change_overlap(anchor_probs: torch.Tensor, future_probs: torch.Tensor) -> torch.Tensor:
-    """Mean cosine similarity, over pairs of one-hots, of their change indicators in a batch.
+def change_overlap(change: torch.Tensor) -> torch.Tensor:
+    """Mean cosine similarity, over pairs of one-hots, of how much each changes in a batch.
 
-    ``change[b, c] = 1 - sum_z p_anchor[b, c, z] p_future[b, c, z]`` is the probability that
-    one-hot ``c`` differs between the two frames of pair ``b``. Play data move one thing per
-    step, so object-factorized one-hots rarely change together: their change vectors are
-    nearly orthogonal, while two one-hots that duplicate or mix objects change together
-    (cosine near 1). The cosine ignores how often codes change, so making codes constant
-    does not lower it.
+    Args:
+        change: non-negative ``[B, C]``, how much one-hot ``c`` changes within pair ``b``.
+
+    Play data move one object per step, so one-hots that each follow one object change
+    on disjoint sets of pairs (orthogonal columns, cosine 0), while one-hots that each
+    see several objects change together (cosine near 1). The cosine ignores the size of
+    the changes, so it cannot be lowered by making everything constant.
     """
-    change = 1.0 - (anchor_probs * future_probs).sum(-1)  # [B, C]
     unit = change / change.norm(dim=0, keepdim=True).clamp_min(1e-6)
     gram = unit.transpose(0, 1) @ unit  # [C, C]
     num = change.shape[-1]
@@ -69,8 +69,10 @@ class CPCLoss(LossModule):
         gumbel_temperature: Gumbel-softmax temperature (the trainer may anneal it).
         ce_temperature: the scores are divided by it. 0.1 learned codes in about 500
             steps on this CPU where 1.0 (the authors') stalled at 3-4 codes.
-        exclusivity_weight: weight of an optional term that keeps one-hots from changing
-            together (see :func:`change_overlap`).
+        exclusivity_weight: weight of an optional term that keeps the object maps of
+            different one-hots from changing on the same pairs (see :func:`change_overlap`):
+            it makes each map follow one object where plain InfoNCE often settles on maps
+            that all show every object.
         usage_weight: weight of an optional code-usage term,
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
             collapse onto a few codes (0 disables it).
@@ -160,7 +162,7 @@ class CPCLoss(LossModule):
             )
         batch = anchor.shape[0]
         # One pass through the encoder so that BatchNorm sees both sides.
-        logits = self.encoder.logits(torch.cat([anchor, future]))
+        logits, maps = self.encoder.logits_and_maps(torch.cat([anchor, future]))
         anchor_logits, future_logits = logits[:batch], logits[batch:]
         if self.gumbel_side == "positive":
             z_anchor = anchor_logits.softmax(-1)
@@ -198,8 +200,8 @@ class CPCLoss(LossModule):
                 "loss_usage", self.usage_weight * (max_entropy.to(entropy.device) - entropy).mean()
             )
         if self.exclusivity_weight > 0 and encoder_has_pairs(probs):
-            out.set(
-                "loss_exclusivity",
-                self.exclusivity_weight * change_overlap(probs, future_logits.softmax(-1)),
-            )
+            # How much each one-hot's object map changes between o_t and o_t+k: dense
+            # gradients straight into the extractor, where objects are told apart.
+            map_change = (maps[:batch] - maps[batch:]).abs().flatten(-2).sum(-1)  # [B, C]
+            out.set("loss_exclusivity", self.exclusivity_weight * change_overlap(map_change))
         return out
