@@ -33,7 +33,6 @@ def main() -> None:
         seed=args.seed,
         out_dir=str(args.out_dir),
         diagnostics_every=max(args.steps // 4, 1),
-        exclusivity_weight=1.0 if args.num_objects > 1 else 0.0,
     )
     trainer = RepresentationTrainer(config)
     result = trainer.train(resume=args.resume)

@@ -294,3 +294,25 @@ def test_config_presets_and_validation():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         RepresentationConfig.key_wall().validate()
+
+
+def test_change_overlap_separates_factorized_from_shared_changes():
+    from dorp_rl.objectives.cpc import change_overlap
+
+    moved = torch.tensor([0, 1, 0, 1, 1, 0, 0, 1])
+    factorized = torch.nn.functional.one_hot(moved, 2).float() * torch.rand(8, 1).add(0.5)
+    assert float(change_overlap(factorized)) == pytest.approx(0.0, abs=1e-6)
+    shared = torch.rand(8, 1).add(0.1).expand(8, 3)  # every one-hot changes on every pair
+    assert float(change_overlap(shared)) == pytest.approx(1.0, abs=1e-5)
+    # scale-free: shrinking all changes does not lower it; constant maps give 0, not NaN
+    assert float(change_overlap(shared * 1e-3)) == pytest.approx(1.0, abs=1e-4)
+    assert float(change_overlap(torch.zeros(8, 3))) == 0.0
+
+
+def test_exclusivity_gradient_reaches_the_extractor():
+    loss = _loss(exclusivity_weight=1.0)
+    out = loss(TensorDict(pixels=_pixels(8), future_pixels=_pixels(8, seed=3), batch_size=[8]))
+    out["loss_exclusivity"].backward()
+    assert loss.encoder.extractor[0].weight.grad.abs().sum() > 0
+    # the term only looks at the maps: the code head gets no gradient from it
+    assert loss.encoder.map_encoder[-1].weight.grad is None

@@ -90,13 +90,27 @@ class RepresentationConfig:
     @classmethod
     def key_wall(cls, **overrides: Any) -> RepresentationConfig:
         """Key-wall: 1000-step random walks, a 16-code agent one-hot plus a 2-way key bit."""
-        base = cls(env="key-wall", num_objects=1, code_size=16, num_frames=64_000, max_offset=4)
+        base = cls(
+            env="key-wall",
+            num_objects=1,
+            code_size=16,
+            num_frames=64_000,
+            max_offset=4,
+            exclusivity_weight=1.0,
+        )
         return replace(base, **overrides)
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> RepresentationConfig:
         """Key-corridor: 1500-step random walks, a 32-code agent one-hot plus a key bit."""
-        base = cls(env="key-corridor", num_objects=1, code_size=32, num_frames=96_000, max_offset=4)
+        base = cls(
+            env="key-corridor",
+            num_objects=1,
+            code_size=32,
+            num_frames=96_000,
+            max_offset=4,
+            exclusivity_weight=1.0,
+        )
         return replace(base, **overrides)
 
     @property

@@ -47,6 +47,26 @@ def change_overlap(change: torch.Tensor) -> torch.Tensor:
     return (gram.sum() - gram.diagonal().sum()) / (num * (num - 1))
 
 
+def change_imbalance(change: torch.Tensor) -> torch.Tensor:
+    """How unevenly one-hots share the changes of a batch: ``1 - H(u) / log C`` in [0, 1].
+
+    Args:
+        change: non-negative ``[B, C]``, how much one-hot ``c`` changes within pair ``b``.
+
+    ``u`` is the average over pairs of each pair's change distribution over one-hots.
+    When objects move equally often and each one-hot follows one object, ``u`` is uniform
+    (0); a one-hot that follows nothing, or one that follows two objects while another
+    duplicates a third, makes it uneven. Pairs where nothing changes are skipped.
+    """
+    total = change.sum(-1, keepdim=True)
+    moving = total.squeeze(-1) > 1e-6
+    if not moving.any():
+        return change.sum() * 0.0
+    share = (change[moving] / total[moving]).mean(0)
+    entropy = -(share * share.clamp_min(1e-12).log()).sum()
+    return 1.0 - entropy / math.log(change.shape[-1])
+
+
 def encoder_has_pairs(probs: torch.Tensor) -> bool:
     """Whether codes have at least two one-hots (the exclusivity term needs pairs)."""
     return probs.shape[-2] > 1
@@ -72,7 +92,8 @@ class CPCLoss(LossModule):
         exclusivity_weight: weight of an optional term that keeps the object maps of
             different one-hots from changing on the same pairs (see :func:`change_overlap`):
             it makes each map follow one object where plain InfoNCE often settles on maps
-            that all show every object.
+            that all show every object. It also adds :func:`change_imbalance`, so that no
+            map is left following nothing while another follows two objects.
         usage_weight: weight of an optional code-usage term,
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
             collapse onto a few codes (0 disables it).
@@ -203,5 +224,9 @@ class CPCLoss(LossModule):
             # How much each one-hot's object map changes between o_t and o_t+k: dense
             # gradients straight into the extractor, where objects are told apart.
             map_change = (maps[:batch] - maps[batch:]).abs().flatten(-2).sum(-1)  # [B, C]
-            out.set("loss_exclusivity", self.exclusivity_weight * change_overlap(map_change))
+            out.set(
+                "loss_exclusivity",
+                self.exclusivity_weight
+                * (change_overlap(map_change) + change_imbalance(map_change)),
+            )
         return out
