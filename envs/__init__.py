@@ -7,6 +7,7 @@ Importing this package also registers the gymnasium ids ``dorp_rl/ObjectRearrang
 from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
 from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_envs
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.envs.rearrangement import DEFAULT_MAX_STEPS, OBJECT_COLOURS, ObjectRearrangementEnv
 
 register_gymnasium_envs()
@@ -16,6 +17,7 @@ __all__ = [
     "DIRECTIONS",
     "GRID_SIZE",
     "GridWorldEnv",
+    "GroundTruthModelEnv",
     "GymnasiumGridEnv",
     "KeyCorridorEnv",
     "KeyRoomEnv",
@@ -24,4 +26,5 @@ __all__ = [
     "ObjectRearrangementEnv",
     "paint_layers",
     "register_gymnasium_envs",
+    "WorldModelEnv",
 ]

@@ -297,7 +297,12 @@ class GridWorldEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = tensordict.batch_size
-        action = self.check_action(tensordict.get("action"))
+        action = tensordict.get("action")
+        if isinstance(action, torch.Tensor) and tuple(action.shape[:-1]) != tuple(shape):
+            raise ValueError(
+                f"action must have shape [*B, 1] with B = {list(shape)}, got {list(action.shape)}."
+            )
+        action = self.check_action(action)
         state = tensordict.get("state")
         goal_state = tensordict.get("goal_state")
         step_count = tensordict.get("step_count", None)

@@ -1,1 +1,5 @@
-"""Placeholder package; filled by later issues."""
+"""Policies: the paper's visual-foresight baselines (and, later, DORP's hierarchical policy)."""
+
+from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightPolicy
+
+__all__ = ["VARIANT_DEFAULTS", "VisualForesightPolicy"]

@@ -1,0 +1,300 @@
+"""Latency of one planning call, 1000 candidates x 14 steps, and what dominates it.
+
+What is measured
+----------------
+One :class:`~dorp_rl.planners.RandomShootingPlanner` call (``num_candidates`` random
+sequences of ``horizon`` steps, pixel-L2 cost to the goal, one acting env) through:
+
+- ``ground truth``: :class:`~dorp_rl.envs.GroundTruthModelEnv` (true dynamics and
+  renderer of ``ObjectRearrangementEnv``);
+- ``world model``: :class:`~dorp_rl.envs.WorldModelEnv` wrapping the project's
+  ``VideoPredictionModel`` if ``from dorp_rl.modules import VideoPredictionModel``
+  works and the model can be built for the env, else a stand-in conv net of the size
+  REFERENCE.md describes (frame folded to an 8x8 grid of 12 channels, action one-hot
+  as input channels and FiLM, residual dilated 3x3 convs, per-pixel scores over the
+  palette turned back into a frame by a max-mask and a 1x1 conv; ~65k parameters by
+  default, untrained: latency does not depend on the weights);
+- ``bare forward``: the model's ``predict`` on the same frames, ``horizon`` calls of
+  ``num_candidates`` frames each, nothing else: the floor a planner through this model
+  cannot beat. ``bare forward x1`` is one call on all ``num_candidates * horizon``
+  frames, for reference.
+
+With ``--cem`` the :class:`~dorp_rl.planners.CategoricalCEMPlanner` (3 iterations) is
+timed too. Each number is the median of ``--repeats`` calls after a warm-up call. A
+breakdown of the world-model call splits it into model ``predict``, the cost, and the
+rest (TorchRL ``step`` / ``step_mdp``, sampling, stacking), timed by wrappers in the
+same call; ``--profile`` adds torch.profiler's top operators.
+
+The issue's goal: at most 1 s per call through the video model on this 2-core CPU.
+
+Usage::
+
+    .venv/bin/python benchmarks/planning_latency.py               # 2 threads
+    .venv/bin/python benchmarks/planning_latency.py --threads 1 --cem --profile
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+
+from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.planners import CategoricalCEMPlanner, PixelDistanceCost, RandomShootingPlanner
+
+GOAL_SECONDS = 1.0
+
+
+class StandInVideoModel(nn.Module):
+    """Deterministic conv video model of the size REFERENCE.md measured (untrained).
+
+    Frame ``[N, 3, 16, 16]`` -> pixel-unshuffle to ``[N, 12, 8, 8]`` -> concat action
+    one-hot -> 3x3 conv to ``width`` -> ``blocks`` residual blocks (dilated 3x3 conv,
+    FiLM from the action, ReLU) -> 1x1 conv to ``4 * P`` palette scores ->
+    pixel-shuffle to ``[N, P, 16, 16]``; a copy path adds the input frame's palette
+    one-hot. The predicted frame is the max-scoring palette colour per pixel, drawn by
+    a 1x1 conv with the palette as weights.
+    """
+
+    def __init__(
+        self, num_actions: int, palette: torch.Tensor, width: int = 44, blocks: int = 3
+    ) -> None:
+        super().__init__()
+        self.num_actions = num_actions
+        self.register_buffer("palette", palette.float() / 255.0)  # [P, 3]
+        p = palette.shape[0]
+        self.inp = nn.Conv2d(12 + num_actions, width, 3, padding=1)
+        self.blocks = nn.ModuleList(
+            nn.Conv2d(width, width, 3, padding=d, dilation=d) for d in [1, 2, 4, 1][:blocks]
+        )
+        self.film = nn.Linear(num_actions, 2 * width * blocks)
+        self.out = nn.Conv2d(width, 4 * p, 1)
+        self.copy_gain = nn.Parameter(torch.tensor(4.0))
+
+    def forward(self, frames: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Palette scores ``[N, P, 16, 16]`` from float frames and int64 actions ``[N, 1]``."""
+        n = frames.shape[0]
+        onehot = nn.functional.one_hot(action.squeeze(-1), self.num_actions).float()
+        x = nn.functional.pixel_unshuffle(frames, 2)
+        x = torch.cat([x, onehot.view(n, -1, 1, 1).expand(n, -1, 8, 8)], 1)
+        h = torch.relu(self.inp(x))
+        film = self.film(onehot).view(n, len(self.blocks), 2, -1, 1, 1)
+        for i, conv in enumerate(self.blocks):
+            h = h + torch.relu(conv(h) * (1 + film[:, i, 0]) + film[:, i, 1])
+        scores = nn.functional.pixel_shuffle(self.out(h), 2)
+        # Copy path: the input frame's own colour per pixel (distance to the palette).
+        distance = (frames.unsqueeze(1) - self.palette.view(1, -1, 3, 1, 1)).abs().sum(2)
+        return scores - self.copy_gain * distance
+
+    @torch.no_grad()
+    def predict(
+        self, pixels: torch.Tensor, action: torch.Tensor, deterministic: bool = True
+    ) -> torch.Tensor:
+        scores = self(pixels.float() / 255.0, action)
+        mask = (scores == scores.amax(1, keepdim=True)).float()
+        frame = nn.functional.conv2d(mask, self.palette.t().reshape(3, -1, 1, 1))
+        return (frame.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def build_model(env: ObjectRearrangementEnv, args: argparse.Namespace) -> tuple[nn.Module, str]:
+    """The project's VideoPredictionModel if it imports and builds, else the stand-in."""
+    reason = "--model standin"
+    if args.model != "standin":
+        try:
+            from dorp_rl.modules import VideoPredictionModel  # type: ignore[attr-defined]
+
+            params = inspect.signature(VideoPredictionModel).parameters
+            offer = {
+                "num_actions": env.num_actions,
+                "num_objects": env.num_objects,
+                "colours": env.colours,
+                "palette": env.colours,
+            }
+            kwargs = {k: v for k, v in offer.items() if k in params}
+            model = VideoPredictionModel(**kwargs)
+            if not callable(getattr(model, "predict", None)):
+                raise TypeError("it has no predict method")
+            return model.eval(), f"VideoPredictionModel({', '.join(kwargs)})"
+        except Exception as error:  # noqa: BLE001 - any failure means: fall back
+            reason = f"VideoPredictionModel unavailable ({type(error).__name__}: {error})"
+            if args.model == "real":
+                raise
+    palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours])
+    model = StandInVideoModel(env.num_actions, palette, args.width, args.blocks).eval()
+    return model, f"stand-in conv net ({reason})"
+
+
+def median_seconds(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+class Timed:
+    """Accumulates the time spent in a callable (a model's predict, a cost)."""
+
+    def __init__(self, fn: Callable) -> None:
+        self.fn, self.seconds, self.calls = fn, 0.0, 0
+
+    def __call__(self, *args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return self.fn(*args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - start
+            self.calls += 1
+
+
+class TimedCost(nn.Module):
+    def __init__(self, cost: nn.Module) -> None:
+        super().__init__()
+        self.cost, self.timer = cost, Timed(cost)
+        self.in_keys, self.reduction = cost.in_keys, cost.reduction
+
+    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+        return self.timer(rollout)
+
+
+class TimedModel:
+    def __init__(self, model: nn.Module) -> None:
+        self.model, self.timer = model, Timed(model.predict)
+
+    def predict(self, pixels, action, deterministic=True):
+        return self.timer(pixels, action, deterministic=deterministic)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
+    parser.add_argument("--candidates", type=int, default=1000)
+    parser.add_argument("--horizon", type=int, default=14)
+    parser.add_argument("--objects", type=int, default=3, help="blocks in the rearrangement env")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--model", choices=("auto", "real", "standin"), default="auto")
+    parser.add_argument("--width", type=int, default=44, help="stand-in conv width")
+    parser.add_argument("--blocks", type=int, default=3, help="stand-in residual blocks (<= 4)")
+    parser.add_argument("--cem", action="store_true", help="also time CEM (3 iterations)")
+    parser.add_argument("--profile", action="store_true", help="torch.profiler top operators")
+    args = parser.parse_args()
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    env = ObjectRearrangementEnv(num_objects=args.objects, batch_size=(1,), seed=0)
+    td = env.reset()
+    n, h = args.candidates, args.horizon
+    model, description = build_model(env, args)
+    num_params = sum(p.numel() for p in model.parameters())
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} threads; {args.objects}-object "
+        f"rearrangement; {n} candidates x {h} steps, batch 1"
+    )
+    print(f"model: {description}, {num_params:,} parameters")
+
+    def planner(cls, model_env, cost=None, **kwargs):
+        return cls(
+            model_env, cost or PixelDistanceCost(), num_candidates=n, horizon=h, seed=0, **kwargs
+        )
+
+    rows: list[tuple[str, float]] = []
+    gt = planner(RandomShootingPlanner, GroundTruthModelEnv(env))
+    rows.append(("RS call, ground truth", median_seconds(lambda: gt(td.clone()), args.repeats)))
+    wm_env = WorldModelEnv(model, env.num_actions)
+    wm = planner(RandomShootingPlanner, wm_env)
+    rows.append(("RS call, world model", median_seconds(lambda: wm(td.clone()), args.repeats)))
+    frames = td["pixels"].expand(n, 3, 16, 16).contiguous()
+    actions = torch.randint(0, env.num_actions, (n, 1))
+
+    def bare() -> None:
+        for _ in range(h):
+            model.predict(frames, actions, deterministic=True)
+
+    rows.append((f"bare forward ({h} x {n} frames)", median_seconds(bare, args.repeats)))
+    all_frames = frames.repeat(h, 1, 1, 1)
+    all_actions = actions.repeat(h, 1)
+    rows.append(
+        (
+            f"bare forward x1 ({h * n} frames)",
+            median_seconds(lambda: model.predict(all_frames, all_actions), args.repeats),
+        )
+    )
+    if args.cem:
+        cem_gt = planner(CategoricalCEMPlanner, GroundTruthModelEnv(env))
+        cem_wm = planner(CategoricalCEMPlanner, wm_env)
+        rows.append(
+            (
+                "CEM call (3 it.), ground truth",
+                median_seconds(lambda: cem_gt(td.clone()), args.repeats),
+            )
+        )
+        rows.append(
+            (
+                "CEM call (3 it.), world model",
+                median_seconds(lambda: cem_wm(td.clone()), args.repeats),
+            )
+        )
+
+    bare_s = rows[2][1]
+    print(f"\n{'':34s} {'ms':>9s} {'/ bare fwd':>11s}")
+    for name, seconds in rows:
+        print(f"{name:34s} {seconds * 1e3:9.1f} {seconds / bare_s:10.2f}x")
+    wm_s = rows[1][1]
+    verdict = "meets" if wm_s <= GOAL_SECONDS else "misses"
+    print(
+        f"\nworld-model call {wm_s:.2f} s: {verdict} the <= {GOAL_SECONDS:.0f} s goal; ground "
+        f"truth is {wm_s / rows[0][1]:.1f}x faster than the world model."
+    )
+
+    # Breakdown of one world-model call, timed by wrappers inside the call.
+    timed_model = TimedModel(model)
+    timed_cost = TimedCost(PixelDistanceCost())
+    breakdown = planner(
+        RandomShootingPlanner, WorldModelEnv(timed_model, env.num_actions), timed_cost
+    )
+    breakdown(td.clone())
+    timed_model.timer.seconds = timed_cost.timer.seconds = 0.0
+    start = time.perf_counter()
+    breakdown(td.clone())
+    total = time.perf_counter() - start
+    predict_s, cost_s = timed_model.timer.seconds, timed_cost.timer.seconds
+    other = total - predict_s - cost_s
+    print("\nwhere a world-model call goes:")
+    for name, seconds in (
+        ("model predict", predict_s),
+        ("pixel cost", cost_s),
+        ("rest (step/step_mdp, sampling, stacking)", other),
+    ):
+        print(f"  {name:42s} {seconds * 1e3:8.1f} ms  {100 * seconds / total:5.1f} %")
+    gt_timed_cost = TimedCost(PixelDistanceCost())
+    gt_breakdown = planner(RandomShootingPlanner, GroundTruthModelEnv(env), gt_timed_cost)
+    gt_breakdown(td.clone())
+    gt_timed_cost.timer.seconds = 0.0
+    start = time.perf_counter()
+    gt_breakdown(td.clone())
+    gt_total = time.perf_counter() - start
+    print(
+        f"ground-truth call: {gt_total * 1e3:.1f} ms, of which the pixel cost "
+        f"{gt_timed_cost.timer.seconds * 1e3:.1f} ms and dynamics + TorchRL stepping the rest"
+    )
+
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            wm(td.clone())
+        print("\ntorch.profiler, one world-model call (top operators by self CPU time):")
+        print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=10))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,367 @@
+"""Planning envs: models of the pixel environments that a planner can step in bulk.
+
+A model-predictive planner imagines ``N`` candidate action sequences for each of ``B``
+acting envs, so it needs an environment it can step on a ``[B, N]`` batch of copies of
+the current situation. The two envs here are such models. Both are stateless TorchRL
+:class:`~torchrl.envs.EnvBase` subclasses with ``batch_size=()`` and
+``batch_locked=False`` (any leading shape), and both produce ``pixels``, so one cost
+(for example :class:`~dorp_rl.planners.PixelDistanceCost`) works on either:
+
+- :class:`GroundTruthModelEnv` steps copies of the true configuration ``state`` with the
+  environment's own dynamics and renders them: the "ground-truth model" of the paper.
+- :class:`WorldModelEnv` predicts the next frame from the current frame and the action
+  with a learned video prediction model.
+
+Keys (leading shape ``*B`` arbitrary):
+
+- ``pixels``: uint8 ``[*B, 3, 16, 16]``, the (predicted) frame;
+- ``goal_pixels``: uint8 ``[*B, 3, 16, 16]``, copied unchanged from input to output
+  when present, so that a goal rides along with the rollout;
+- ``state``: int64 configuration (:class:`GroundTruthModelEnv` only);
+- ``action``: int64 ``[*B, 1]`` under a :class:`~torchrl.data.Categorical` spec;
+- ``reward`` (always 0: planners score rollouts with separate cost modules) and
+  ``done`` / ``terminated`` / ``truncated`` (always ``False``: imagined rollouts run for
+  the whole horizon).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
+
+_FRAME = (3, GRID_SIZE, GRID_SIZE)
+
+
+@runtime_checkable
+class FramePredictor(Protocol):
+    """What :class:`WorldModelEnv` needs from a video prediction model."""
+
+    def predict(
+        self, pixels: torch.Tensor, action: torch.Tensor, deterministic: bool = True
+    ) -> torch.Tensor:
+        """Next frames: uint8 ``[N, 3, 16, 16]`` and int64 ``[N, 1]`` -> uint8 ``[N, 3, 16, 16]``."""
+        ...
+
+
+def check_planning_action(
+    action: torch.Tensor, num_actions: int, batch_shape: torch.Size | None = None
+) -> torch.Tensor:
+    """Validates an action tensor int ``[*B, 1]`` in ``[0, num_actions)``; returns int64 ``[*B, 1]``.
+
+    ``batch_shape``, if given, is the expected ``B``.
+
+    Raises:
+        ValueError: naming ``action`` for a non-tensor, a float or bool dtype, a last
+            dimension other than 1, or a value out of range.
+    """
+    if not isinstance(action, torch.Tensor):
+        raise ValueError(f"action must be a torch.Tensor, got {type(action).__name__}.")
+    if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
+        raise ValueError(f"action must be an integer tensor, got dtype {action.dtype}.")
+    if action.shape[-1:] != (1,) or (
+        batch_shape is not None and action.shape[:-1] != torch.Size(batch_shape)
+    ):
+        expected = "*B" if batch_shape is None else ", ".join(map(str, batch_shape))
+        expected = f"[{expected}, 1]" if expected else "[1]"
+        raise ValueError(f"action must have shape {expected}, got {list(action.shape)}.")
+    if action.numel() and ((action < 0).any() or (action >= num_actions).any()):
+        raise ValueError(
+            f"action out of range: expected integers in [0, {num_actions - 1}], got "
+            f"min {int(action.min())} and max {int(action.max())}."
+        )
+    return action.to(torch.int64)
+
+
+def _check_frames(pixels: torch.Tensor, name: str) -> torch.Tensor:
+    if not isinstance(pixels, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(pixels).__name__}.")
+    if pixels.dtype != torch.uint8:
+        raise ValueError(f"{name} must have dtype torch.uint8, got {pixels.dtype}.")
+    if pixels.dim() < 3 or tuple(pixels.shape[-3:]) != _FRAME:
+        raise ValueError(f"{name} must have shape [*B, 3, 16, 16], got {list(pixels.shape)}.")
+    return pixels
+
+
+class _PlanningEnvBase(EnvBase):
+    """Specs and flags shared by the planning envs (``batch_size=()``, any leading shape)."""
+
+    _supports_set_state = True
+
+    def __init__(self, num_actions: int, device: torch.device | str | None) -> None:
+        num_actions = int(num_actions)
+        if num_actions < 1:
+            raise ValueError(f"num_actions must be >= 1, got {num_actions}.")
+        super().__init__(device=torch.device("cpu") if device is None else device, batch_size=())
+        self.__dict__["_batch_locked"] = False
+        self.num_actions = num_actions
+        image = Bounded(low=0, high=255, shape=_FRAME, dtype=torch.uint8, device=self.device)
+        self.observation_spec = Composite(
+            pixels=image, goal_pixels=image.clone(), **self._extra_observation_specs()
+        )
+        self.action_spec = Categorical(num_actions, shape=(1,), dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(1,), dtype=torch.float32)
+        flag = Categorical(2, shape=(1,), dtype=torch.bool)
+        self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone())
+
+    def _extra_observation_specs(self) -> dict:
+        return {}
+
+    def _outputs(
+        self,
+        shape: torch.Size,
+        pixels: torch.Tensor,
+        goal_pixels: torch.Tensor | None,
+        *,
+        reward: bool,
+        **extra,
+    ) -> TensorDict:
+        """The output tensordict: frames, extras, all-``False`` done flags, a zero reward on steps."""
+        false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        out = TensorDict(
+            pixels=pixels,
+            done=false,
+            terminated=false.clone(),
+            truncated=false.clone(),
+            **extra,
+            batch_size=shape,
+            device=self.device,
+        )
+        if reward:
+            out.set("reward", torch.zeros((*shape, 1), dtype=torch.float32, device=self.device))
+        if goal_pixels is not None:
+            out.set("goal_pixels", goal_pixels)
+        return out
+
+
+class GroundTruthModelEnv(_PlanningEnvBase):
+    """The true dynamics of a :class:`~dorp_rl.envs.GridWorldEnv` as a planning model.
+
+    Steps copies of ``state`` with ``env.transition`` and draws them with
+    ``env.render_state``; all of it is vectorised, so a ``[B, N]`` batch of candidates
+    costs no Python loop. The wrapped env is only used for its dynamics and renderer
+    (its own batch size, step limit and goal do not matter), so the acting env itself
+    can be passed.
+
+    ``reset(td, set_state=True)`` starts from ``td["state"]`` (validated) and keeps
+    ``td["goal_pixels"]`` (or renders ``td["goal_state"]``); a plain ``reset()`` samples
+    a random state and goal with the wrapped env's generator (so :meth:`set_seed`
+    reseeds the wrapped env). ``step`` trusts ``state`` (planners feed it from the
+    acting env) and validates ``action``.
+
+    Args:
+        env: the environment whose dynamics to use.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
+        >>> env = ObjectRearrangementEnv(num_objects=2, seed=0)
+        >>> model = GroundTruthModelEnv(env)
+        >>> start = env.reset()
+        >>> td = start.select("state", "pixels", "goal_pixels").expand(3, 5).clone()
+        >>> td["action"] = torch.randint(0, 8, (3, 5, 1))
+        >>> out = model.step(td)["next"]
+        >>> out["pixels"].shape, out["state"].shape
+        (torch.Size([3, 5, 3, 16, 16]), torch.Size([3, 5, 2, 2]))
+    """
+
+    def __init__(self, env: GridWorldEnv) -> None:
+        if not isinstance(env, GridWorldEnv):
+            raise ValueError(
+                f"env must be a dorp_rl.envs.GridWorldEnv (it provides transition and "
+                f"render_state), got {type(env).__name__}."
+            )
+        self.__dict__["_wrapped"] = env  # set before specs are built; registered below
+        super().__init__(env.num_actions, env.device)
+        del self.__dict__["_wrapped"]
+        self.true_env = env
+        self.state_spec = Composite(state=self.observation_spec["state"].clone())
+
+    def _extra_observation_specs(self) -> dict:
+        env = self.__dict__["_wrapped"]
+        low, high = env._state_bounds()
+        return {
+            "state": Bounded(
+                low=low.expand(env.state_shape).clone(),
+                high=high.expand(env.state_shape).clone(),
+                dtype=torch.int64,
+                device=env.device,
+            )
+        }
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.true_env._set_seed(seed)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        env = self.true_env
+        shape = tensordict.batch_size if tensordict is not None else torch.Size([])
+        given = tensordict if (kwargs.get("set_state", False) and tensordict is not None) else None
+        state = given.get("state", None) if given is not None else None
+        if state is None:
+            state = env.sample_states(shape)
+        else:
+            state = env.check_state(state, "state").expand(*shape, *env.state_shape).clone()
+        goal_pixels = given.get("goal_pixels", None) if given is not None else None
+        if goal_pixels is None:
+            goal_state = given.get("goal_state", None) if given is not None else None
+            goal_state = (
+                env.sample_goal_states(shape)
+                if goal_state is None
+                else env.check_state(goal_state, "goal_state").expand(*shape, *env.state_shape)
+            )
+            goal_pixels = env.render_state(goal_state)
+        else:
+            goal_pixels = _check_frames(goal_pixels, "goal_pixels").expand(*shape, *_FRAME).clone()
+        return self._outputs(shape, env.render_state(state), goal_pixels, reward=False, state=state)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        env = self.true_env
+        action = check_planning_action(
+            tensordict.get("action"), self.num_actions, tensordict.batch_size
+        ).squeeze(-1)
+        state = tensordict.get("state", None)
+        if state is None:
+            raise KeyError(
+                "GroundTruthModelEnv.step needs 'state' (the true configuration) in the "
+                "tensordict; the acting env's tensordict holds it."
+            )
+        next_state = env.transition(state, action)
+        return self._outputs(
+            tensordict.batch_size,
+            env.render_state(next_state),
+            tensordict.get("goal_pixels", None),
+            reward=True,
+            state=next_state,
+        )
+
+
+class WorldModelEnv(_PlanningEnvBase):
+    """A video prediction model as a planning env: next ``pixels`` from ``pixels`` and ``action``.
+
+    ``model`` is any object with ``predict(pixels, action, deterministic=True)``
+    mapping uint8 ``[N, 3, 16, 16]`` and int64 ``[N, 1]`` to uint8 ``[N, 3, 16, 16]``
+    (:class:`~dorp_rl.modules.VideoPredictionModel` is one). The env flattens the
+    leading dimensions before calling it and restores them after, optionally in chunks
+    of ``chunk_size`` frames to bound memory (a ``[B, N]`` batch of 50 x 1000 frames is
+    large for a conv net). If ``model`` is an ``nn.Module`` it becomes a submodule, so
+    moving a planner moves it; predictions run under ``torch.no_grad()``.
+
+    ``reset(td, set_state=True)`` starts from ``td["pixels"]`` (and keeps
+    ``td["goal_pixels"]``); a plain ``reset()`` gives black frames.
+
+    Args:
+        model: the frame predictor.
+        num_actions: size of the discrete action space.
+        deterministic: passed to ``model.predict`` (the mode of a stochastic model).
+        chunk_size: at most this many frames per ``predict`` call (``None``: all at once).
+        device: where tensors live (defaults to the model's parameters' device, else CPU).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.envs import WorldModelEnv
+        >>> class StillModel:  # predicts that nothing moves
+        ...     def predict(self, pixels, action, deterministic=True):
+        ...         return pixels.clone()
+        >>> env = WorldModelEnv(StillModel(), num_actions=4)
+        >>> td = TensorDict(
+        ...     pixels=torch.zeros(2, 7, 3, 16, 16, dtype=torch.uint8),
+        ...     action=torch.zeros(2, 7, 1, dtype=torch.int64),
+        ...     batch_size=(2, 7),
+        ... )
+        >>> env.step(td)["next", "pixels"].shape
+        torch.Size([2, 7, 3, 16, 16])
+    """
+
+    def __init__(
+        self,
+        model: FramePredictor,
+        num_actions: int,
+        *,
+        deterministic: bool = True,
+        chunk_size: int | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        if not callable(getattr(model, "predict", None)):
+            raise ValueError(
+                f"model must have a predict(pixels, action, deterministic=True) method, "
+                f"got {type(model).__name__}."
+            )
+        if chunk_size is not None and int(chunk_size) < 1:
+            raise ValueError(f"chunk_size must be >= 1 or None, got {chunk_size}.")
+        if device is None and isinstance(model, torch.nn.Module):
+            param = next(iter(model.parameters()), None)
+            device = param.device if param is not None else None
+        super().__init__(num_actions, device)
+        self.model = model
+        self.deterministic = bool(deterministic)
+        self.chunk_size = None if chunk_size is None else int(chunk_size)
+
+    def _set_seed(self, seed: int | None) -> None:
+        """Nothing to seed: a stochastic model draws from torch's global generator."""
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        shape = tensordict.batch_size if tensordict is not None else torch.Size([])
+        given = tensordict if (kwargs.get("set_state", False) and tensordict is not None) else None
+        black = torch.zeros((*shape, *_FRAME), dtype=torch.uint8, device=self.device)
+        frames = {}
+        for key in ("pixels", "goal_pixels"):
+            value = given.get(key, None) if given is not None else None
+            frames[key] = (
+                black.clone()
+                if value is None
+                else _check_frames(value, key).expand(*shape, *_FRAME).clone()
+            )
+        return self._outputs(shape, frames["pixels"], frames["goal_pixels"], reward=False)
+
+    def predict_frames(self, pixels: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]``, int ``[*B, 1]``."""
+        pixels = _check_frames(pixels, "pixels")
+        shape = pixels.shape[:-3]
+        action = check_planning_action(action, self.num_actions, shape)
+        flat_pixels = pixels.reshape(-1, *_FRAME)
+        flat_action = action.reshape(-1, 1)
+        n = flat_pixels.shape[0]
+        step = n if self.chunk_size is None else self.chunk_size
+        outputs = []
+        with torch.no_grad():
+            for start in range(0, max(n, 1), max(step, 1)):
+                chunk = self.model.predict(
+                    flat_pixels[start : start + step],
+                    flat_action[start : start + step],
+                    deterministic=self.deterministic,
+                )
+                outputs.append(chunk)
+        out = outputs[0] if len(outputs) == 1 else torch.cat(outputs)
+        if (
+            not isinstance(out, torch.Tensor)
+            or out.dtype != torch.uint8
+            or tuple(out.shape) != (n, *_FRAME)
+        ):
+            got = (
+                f"{out.dtype} {list(out.shape)}"
+                if isinstance(out, torch.Tensor)
+                else type(out).__name__
+            )
+            raise ValueError(
+                f"model.predict must return uint8 [{n}, 3, 16, 16] for {n} frames, got {got}."
+            )
+        return out.reshape(*shape, *_FRAME)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        pixels = tensordict.get("pixels", None)
+        if pixels is None:
+            raise KeyError("WorldModelEnv.step needs 'pixels' (the current frame).")
+        action = check_planning_action(
+            tensordict.get("action"), self.num_actions, tensordict.batch_size
+        )
+        next_pixels = self.predict_frames(pixels, action)
+        return self._outputs(
+            tensordict.batch_size, next_pixels, tensordict.get("goal_pixels", None), reward=True
+        )

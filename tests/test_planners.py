@@ -1,0 +1,525 @@
+"""Tests of the discrete MPC planners, the rollout costs and the visual-foresight policy.
+
+Small candidate counts and horizons throughout: each planning call is a few
+milliseconds on the ground-truth model.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.envs import TensorDictPrimer
+
+from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.planners import (
+    CategoricalCEMPlanner,
+    CodeMatchCost,
+    MissingRolloutKeyError,
+    NegativeRewardCost,
+    PixelDistanceCost,
+    RandomShootingPlanner,
+    RolloutCost,
+    SumCost,
+    reduce_steps,
+    select_best,
+)
+from dorp_rl.policies import VisualForesightPolicy
+
+PLANNERS = {
+    "rs": RandomShootingPlanner,
+    "cem": lambda *a, **k: CategoricalCEMPlanner(*a, elite_fraction=0.1, **k),
+}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Tiny tensors on a busy 2-core machine: run single-threaded, restore after."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+class FirstActionCost(RolloutCost):
+    """0 only when the first action is ``target``: a toy cost with one right answer."""
+
+    def __init__(self, target: int = 3) -> None:
+        super().__init__()
+        self.target = target
+        self.in_keys = ["action"]
+        self.reduction = "sum"
+
+    def forward(self, rollout):
+        action = rollout["action"].squeeze(-1)  # [B, N, H]
+        cost = torch.zeros(action.shape, dtype=torch.float32)
+        cost[..., 0] = (action[..., 0] != self.target).float()
+        return cost
+
+
+class DecodingModel:
+    """A perfect 'video model' of 1-object rearrangement: reads the block, moves it, redraws."""
+
+    def __init__(self, env: ObjectRearrangementEnv) -> None:
+        self.env = env
+
+    def predict(self, pixels, action, deterministic=True):
+        occupied = pixels.amax(1) > 0  # [N, 16, 16]
+        rows = occupied.any(-1).to(torch.int64).argmax(-1)
+        cols = occupied.any(-2).to(torch.int64).argmax(-1)
+        state = torch.stack([rows, cols], -1).unsqueeze(-2)  # [N, 1, 2]
+        return self.env.render_state(self.env.transition(state, action.squeeze(-1)))
+
+
+def two_object_env(batch: int = 3, seed: int = 0) -> ObjectRearrangementEnv:
+    return ObjectRearrangementEnv(num_objects=2, batch_size=(batch,), seed=seed)
+
+
+def tasks(env: ObjectRearrangementEnv, states, goals) -> TensorDict:
+    """Resets ``env`` to given start and goal configurations."""
+    td = TensorDict(
+        state=torch.tensor(states), goal_state=torch.tensor(goals), batch_size=(len(states),)
+    )
+    return env.reset(td, set_state=True)
+
+
+# --------------------------------------------------------------------------- #
+# Costs
+# --------------------------------------------------------------------------- #
+def test_pixel_distance_cost_values():
+    goal = torch.zeros(1, 3, 16, 16, dtype=torch.uint8)
+    frames = torch.zeros(1, 2, 3, 3, 16, 16, dtype=torch.uint8)
+    frames[0, 0, 1, 0, 4, 4] = 255  # one channel of one pixel fully on
+    frames[0, 1, 2] = 255  # the whole frame white
+    rollout = TensorDict(
+        {
+            "goal_pixels": goal.view(1, 1, 1, 3, 16, 16).expand(1, 2, 3, 3, 16, 16),
+            ("next", "pixels"): frames,
+        },
+        batch_size=(1, 2, 3),
+    )
+    cost = PixelDistanceCost()(rollout)
+    assert cost.shape == (1, 2, 3) and cost.dtype == torch.float32
+    expected = torch.tensor([[[0.0, 1.0, 0.0], [0.0, 0.0, 768**0.5]]])
+    assert torch.allclose(cost, expected)
+    with pytest.raises(MissingRolloutKeyError, match="goal_pixels"):
+        PixelDistanceCost()(rollout.exclude("goal_pixels"))
+
+
+def test_pixel_distance_cost_with_one_goal_per_row_in_small_chunks():
+    gen = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 256, (3, 4, 5, 3, 16, 16), dtype=torch.uint8, generator=gen)
+    goals = torch.randint(0, 256, (3, 3, 16, 16), dtype=torch.uint8, generator=gen)
+    rollout = TensorDict(
+        {
+            "goal_pixels": goals.view(3, 1, 1, 3, 16, 16).expand(3, 4, 5, 3, 16, 16),
+            ("next", "pixels"): frames,
+        },
+        batch_size=(3, 4, 5),
+    )
+    naive = (frames.double() - goals.view(3, 1, 1, 3, 16, 16).double()) / 255
+    expected = naive.square().flatten(-3).sum(-1).sqrt().float()
+    for chunk_size in (7, 512):
+        cost = PixelDistanceCost(chunk_size=chunk_size)(rollout)
+        assert torch.allclose(cost, expected, atol=1e-4)
+
+
+class CornerEncoder(nn.Module):
+    """Fake 2-one-hot encoder: one-hot i reads channel i of pixel (0, 0) (code = value // 64)."""
+
+    def forward(self, pixels):
+        values = pixels[..., :2, 0, 0].to(torch.int64) // 64  # [*B, 2] in 0..3
+        probs = torch.nn.functional.one_hot(values, 4).float() * 0.9 + 0.025
+        return values, probs
+
+
+def code_rollout(start: tuple[int, int], steps: list[tuple[int, int]], target, mask=None):
+    """A [1, 1, H] rollout whose frames carry the given codes in pixel (0, 0)."""
+
+    def frame(code):
+        f = torch.zeros(3, 16, 16, dtype=torch.uint8)
+        f[0, 0, 0], f[1, 0, 0] = code[0] * 64, code[1] * 64
+        return f
+
+    h = len(steps)
+    data = {
+        "pixels": frame(start).expand(1, 1, h, 3, 16, 16),
+        "subgoal_code": torch.tensor(target).expand(1, 1, h, 2),
+        ("next", "pixels"): torch.stack([frame(c) for c in steps]).view(1, 1, h, 3, 16, 16),
+    }
+    if mask is not None:
+        data["subgoal_onehots"] = torch.tensor(mask).expand(1, 1, h, 2)
+    return TensorDict(data, batch_size=(1, 1, h))
+
+
+def test_code_match_cost_on_chosen_onehots():
+    # Start (0, 0); target code 2 on one-hot 0; one-hot 1 must stay at 0.
+    rollout = code_rollout((0, 0), [(1, 0), (2, 1), (2, 0), (2, 0)], target=(2, 3))
+    cost = CodeMatchCost(CornerEncoder(), onehots=[0])(rollout)[0, 0]
+    assert cost[0] > 0.99 and cost[1] > 0.99  # not there / other one-hot changed
+    assert -1e-3 <= cost[2] <= 0 and torch.isclose(cost[2], cost[3])
+    # All one-hots (onehots=None): (2, 3) is never reached.
+    assert (CodeMatchCost(CornerEncoder())(rollout) > 0.99).all()
+    # Per-row choice through a mask key: one-hot 1 only.
+    rollout = code_rollout((0, 0), [(0, 3), (1, 3)], target=(2, 3), mask=(False, True))
+    cost = CodeMatchCost(CornerEncoder(), onehots="subgoal_onehots")(rollout)[0, 0]
+    assert cost[0] <= 0 and cost[1] > 0.99
+    with pytest.raises(MissingRolloutKeyError, match="subgoal_code"):
+        CodeMatchCost(CornerEncoder())(rollout.exclude("subgoal_code"))
+
+
+def test_code_match_cost_prefers_confident_matches():
+    class Confidence(CornerEncoder):
+        def forward(self, pixels):
+            values, probs = super().forward(pixels)
+            boost = pixels[..., 2, 0, 0].float() / 255  # channel 2 raises the confidence
+            probs = probs * (1 - boost[..., None, None]) + boost[..., None, None] * (
+                torch.nn.functional.one_hot(values, 4).float()
+            )
+            return values, probs
+
+    rollout = code_rollout((0, 0), [(1, 0), (1, 0)], target=(1, 0))
+    rollout["next", "pixels"][0, 0, 1, 2, 0, 0] = 255
+    cost = CodeMatchCost(Confidence())(rollout)[0, 0]
+    assert cost[1] < cost[0] <= 0
+
+
+def test_sum_cost_and_reductions():
+    rollout = code_rollout((0, 0), [(1, 0), (2, 0)], target=(2, 0))
+    rollout["goal_pixels"] = rollout["next", "pixels"][:, :, 1:].expand(1, 1, 2, 3, 16, 16)
+    a, b = CodeMatchCost(CornerEncoder()), PixelDistanceCost()
+    total = SumCost(a, b, weights=(2.0, 0.5))
+    assert torch.allclose(total(rollout), 2 * a(rollout) + 0.5 * b(rollout))
+    assert total.reduction == "min"
+    assert SumCost(a, NegativeRewardCost()).reduction == "sum"
+    assert set(total.in_keys) >= {("next", "pixels"), "goal_pixels", "subgoal_code"}
+    per_step = torch.tensor([[3.0, 1.0, 1.0, 2.0], [0.0, 5.0, 0.0, 0.0]])
+    assert reduce_steps(per_step, "min")[0].tolist() == [1.0, 0.0]
+    assert reduce_steps(per_step, "min")[1].tolist() == [1, 0]
+    assert reduce_steps(per_step, "sum")[0].tolist() == [7.0, 5.0]
+    assert reduce_steps(per_step, "final")[0].tolist() == [2.0, 0.0]
+    # Equal scores: the earliest step wins.
+    assert select_best(torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([[0, 5, 2]])).item() == 2
+
+
+# --------------------------------------------------------------------------- #
+# Planners
+# --------------------------------------------------------------------------- #
+@pytest.mark.parametrize("name", sorted(PLANNERS))
+def test_planner_finds_the_best_action_of_a_toy_cost(name):
+    env = two_object_env()
+    planner = PLANNERS[name](
+        GroundTruthModelEnv(env), FirstActionCost(3), num_candidates=64, horizon=4, seed=0
+    )
+    td = planner(env.reset())
+    assert td["action"].shape == (3, 1) and (td["action"] == 3).all()
+    assert (td["planner_cost"] == 0).all() and (td["planner_plan"][:, 0] == 3).all()
+
+
+@pytest.mark.parametrize("name", sorted(PLANNERS))
+def test_actions_respect_the_spec(name):
+    env = two_object_env(batch=2)
+    planner = PLANNERS[name](
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=32, horizon=4, seed=1
+    )
+    td = env.rollout(5, planner, break_when_any_done=False)
+    assert td["action"].dtype == torch.int64 and td["action"].shape == (2, 5, 1)
+    assert env.action_spec.is_in(td["action"][:, 0])
+    assert ((td["action"] >= 0) & (td["action"] < env.num_actions)).all()
+    assert td["planner_plan"].shape == (2, 5, 4)
+
+
+@pytest.mark.parametrize("name", sorted(PLANNERS))
+def test_rows_do_not_influence_each_other(name):
+    env = two_object_env(batch=3)
+    model = GroundTruthModelEnv(env)
+    states = [[[0, 0], [6, 6]], [[10, 2], [3, 9]], [[12, 12], [0, 8]]]
+    goals = [[[1, 2], [6, 6]], [[10, 4], [3, 9]], [[12, 10], [2, 8]]]
+    td = tasks(env, states, goals)
+
+    def plan(batch):
+        planner = PLANNERS[name](model, PixelDistanceCost(), num_candidates=64, horizon=6, seed=7)
+        return planner(batch.clone())["planner_plan"]
+
+    together = plan(td)
+    alone = plan(td[:1])
+    assert torch.equal(alone[0], together[0])
+    other_goal = td.clone()
+    other_goal["goal_pixels"][1] = other_goal["goal_pixels"][2]
+    changed = plan(other_goal)
+    assert torch.equal(changed[0], together[0]) and torch.equal(changed[2], together[2])
+    assert not torch.equal(changed[1], together[1])  # the change did matter to row 1
+
+
+@pytest.mark.parametrize("name", sorted(PLANNERS))
+def test_same_seed_same_plan(name):
+    env = two_object_env()
+    td = env.reset()
+    model = GroundTruthModelEnv(env)
+
+    def make(seed):
+        return PLANNERS[name](model, PixelDistanceCost(), num_candidates=32, horizon=6, seed=seed)
+
+    first, second = make(11), make(11)
+    a, b = first(td.clone()), second(td.clone())
+    assert torch.equal(a["planner_plan"], b["planner_plan"])
+    again = first(td.clone())  # the generator moved on...
+    first.set_seed(11)  # ...and set_seed rewinds it
+    assert torch.equal(first(td.clone())["planner_plan"], a["planner_plan"])
+    assert again["planner_plan"].shape == a["planner_plan"].shape
+
+
+def test_cem_warm_start_shifts_the_plan():
+    env = two_object_env()
+    td = env.reset()
+    # With warm_start_mix=1 and one iteration every candidate is the shifted plan.
+    planner = CategoricalCEMPlanner(
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(reduction="sum"),
+        num_candidates=16,
+        horizon=6,
+        num_iterations=1,
+        warm_start_mix=1.0,
+        seed=0,
+    )
+    first = planner(td.clone())
+    plan = first["planner_plan"].clone()
+    assert (first["planner_cursor"] == 1).all()
+    second = planner(first.clone())
+    assert torch.equal(second["planner_plan"][:, :-1], plan[:, 1:])
+    assert torch.equal(second["planner_plan"][:, -1], plan[:, -1])  # padded with the last action
+    assert torch.equal(second["action"].squeeze(-1), plan[:, 1])
+    # A new episode (is_init) or warm_start=False drops the previous plan.
+    restarted = first.clone()
+    restarted["is_init"] = torch.ones(3, 1, dtype=torch.bool)
+    fresh = planner(restarted)["planner_plan"]
+    assert not torch.equal(fresh[:, :-1], plan[:, 1:])
+    probs = planner.initial_probs(
+        plan, torch.ones(3, dtype=torch.int64), torch.zeros(3, dtype=torch.bool)
+    )
+    assert torch.allclose(probs, torch.full_like(probs, 1 / 8))
+
+
+def test_cem_initial_probs_with_action_repeat():
+    env = two_object_env()
+    planner = CategoricalCEMPlanner(
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        num_candidates=8,
+        horizon=6,
+        action_repeat=2,
+        warm_start_mix=0.5,
+        seed=0,
+    )
+    plan = torch.tensor([[0, 0, 1, 1, 2, 2]])
+    probs = planner.initial_probs(plan, torch.tensor([2]), torch.tensor([True]))
+    assert probs.shape == (1, 3, 8)
+    assert probs[0].argmax(-1).tolist() == [1, 2, 2]  # shifted by one decision, padded
+    assert torch.allclose(probs.sum(-1), torch.ones(1, 3))
+    assert torch.isclose(probs[0, 0, 1], torch.tensor(0.5 + 0.5 / 8))
+    refit = planner._refit(probs, torch.zeros(1, 4, 3, dtype=torch.int64))
+    assert (refit > 0).all() and torch.allclose(refit.sum(-1), torch.ones(1, 3))
+
+
+def test_action_repeat_repeats_decisions():
+    env = two_object_env()
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=16, horizon=8, action_repeat=2
+    )
+    plan = planner(env.reset())["planner_plan"]
+    assert torch.equal(plan[:, 0::2], plan[:, 1::2])
+
+
+def test_open_loop_emits_the_stored_sequence_then_replans():
+    env = ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=3, terminate_on_success=False)
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(reduction="sum"),
+        num_candidates=16,
+        horizon=4,
+        execution="open_loop",
+        seed=0,
+    )
+    td = env.rollout(6, planner, break_when_any_done=False)
+    plan = td["planner_plan"][:, 0]
+    assert torch.equal(td["action"][:, :4, 0], plan)
+    assert torch.equal(td["planner_plan"][:, :4], plan.unsqueeze(1).expand(2, 4, 4))
+    assert td["planner_cursor"][0, :, 0].tolist() == [1, 2, 3, 4, 1, 2]
+    assert (td["planner_length"] == 4).all()
+    # "min" keeps only the prefix up to the best step.
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(reduction="min"),
+        num_candidates=16,
+        horizon=4,
+        execution="open_loop",
+        seed=0,
+    )
+    out = planner(env.reset())
+    assert ((out["planner_length"] >= 1) & (out["planner_length"] <= 4)).all()
+
+
+def test_unbatched_acting_env():
+    env = ObjectRearrangementEnv(num_objects=1, seed=0)
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=16, horizon=4, seed=0
+    )
+    td = env.rollout(3, planner)
+    assert td["action"].shape[1:] == (1,) and td["planner_plan"].shape[1:] == (4,)
+
+
+def test_same_cost_and_plan_through_a_world_model():
+    """A perfect frame predictor gives the ground-truth model's plan (same seed)."""
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
+    td = env.reset()
+    truth = CategoricalCEMPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=32, horizon=5, seed=3
+    )
+    learned = CategoricalCEMPlanner(
+        WorldModelEnv(DecodingModel(env), num_actions=4),
+        PixelDistanceCost(),
+        num_candidates=32,
+        horizon=5,
+        seed=3,
+    )
+    assert torch.equal(truth(td.clone())["planner_plan"], learned(td.clone())["planner_plan"])
+
+
+def test_code_match_cost_drives_a_planner_to_the_subgoal():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    td = tasks(env, [[[0, 1]]], [[[8, 8]]])
+    # CornerEncoder reads pixel (0, 0): yellow there (block moved left) is code (3, 3).
+    td["subgoal_code"] = torch.tensor([[3, 3]])
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env),
+        CodeMatchCost(CornerEncoder()),
+        num_candidates=64,
+        horizon=4,
+        execution="open_loop",
+        seed=0,
+    )
+    out = planner(td)
+    assert out["action"].item() == 2  # left
+    assert out["planner_cost"].item() < 0 and out["planner_length"].item() == 1
+
+
+def test_code_match_cost_with_the_real_encoder_runs_in_a_planner():
+    from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+
+    encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(8, 8))).train()
+    env = two_object_env(batch=2)
+    td = env.reset()
+    td["subgoal_code"] = torch.zeros(2, 2, dtype=torch.int64)
+    planner = CategoricalCEMPlanner(
+        GroundTruthModelEnv(env),
+        CodeMatchCost(encoder, onehots=[1]),
+        num_candidates=16,
+        horizon=4,
+        action_repeat=2,
+        elite_fraction=0.25,
+        seed=0,
+    )
+    out = planner(td)
+    assert ((out["action"] >= 0) & (out["action"] < 8)).all()
+    assert ((out["planner_cost"] >= -1e-3) & (out["planner_cost"] <= 1)).all()
+    assert encoder.training  # the cost restores the encoder's mode
+
+
+def test_errors():
+    env = two_object_env()
+    model = GroundTruthModelEnv(env)
+    cost = PixelDistanceCost()
+    with pytest.raises(ValueError, match="batch-locked"):
+        RandomShootingPlanner(env, cost)
+    with pytest.raises(ValueError, match="horizon"):
+        RandomShootingPlanner(model, cost, horizon=0)
+    with pytest.raises(ValueError, match="num_candidates"):
+        CategoricalCEMPlanner(model, cost, num_candidates=0)
+    with pytest.raises(ValueError, match="action_repeat must divide horizon"):
+        RandomShootingPlanner(model, cost, horizon=7, action_repeat=2)
+    for fraction in (0.0, 1.5):
+        with pytest.raises(ValueError, match="elite_fraction"):
+            CategoricalCEMPlanner(model, cost, elite_fraction=fraction)
+    with pytest.raises(ValueError, match="execution"):
+        RandomShootingPlanner(model, cost, execution="closed")
+    with pytest.raises(ValueError, match="depth"):
+        RandomShootingPlanner(model, PixelDistanceCost(pixels_key=("next", "depth")))
+    planner = RandomShootingPlanner(model, cost, num_candidates=8, horizon=3)
+    with pytest.raises(ValueError, match="goal_pixels") as info:
+        planner(env.reset().exclude("goal_pixels"))
+    assert isinstance(info.value, MissingRolloutKeyError)
+
+    class WrongShape(FirstActionCost):
+        def forward(self, rollout):
+            return super().forward(rollout).sum(-1)
+
+    with pytest.raises(ValueError, match=r"per-step cost of shape \[3, 8, 3\]"):
+        RandomShootingPlanner(model, WrongShape(), num_candidates=8, horizon=3)(env.reset())
+
+
+def test_make_primer():
+    env = two_object_env(batch=2)
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=8, horizon=5
+    )
+    primer = planner.make_primer()
+    assert isinstance(primer, TensorDictPrimer)
+    assert set(primer.primers.keys()) == set(planner.state_keys)
+    primed = env.append_transform(primer)
+    td = primed.reset()
+    assert td["planner_plan"].shape == (2, 5) and (td["planner_length"] == 0).all()
+
+
+# --------------------------------------------------------------------------- #
+# Visual foresight
+# --------------------------------------------------------------------------- #
+@pytest.mark.parametrize("variant", ["cem", "rs"])
+def test_visual_foresight_reaches_nearby_goals(variant):
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(4,), seed=0)
+    states = [[[5, 5]], [[2, 2]], [[10, 3]], [[0, 12]]]
+    goals = [[[5, 8]], [[4, 3]], [[8, 5]], [[3, 12]]]
+    td = tasks(env, states, goals)
+    policy = VisualForesightPolicy(
+        GroundTruthModelEnv(env), variant, num_candidates=200, horizon=8, seed=0
+    )
+    out = env.rollout(
+        16,
+        policy,
+        tensordict=td,
+        auto_reset=False,
+        break_when_any_done=False,
+        break_when_all_done=True,
+    )
+    assert out["next", "success"].any(1).all()
+
+
+def test_visual_foresight_in_a_collector():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
+    policy = VisualForesightPolicy(
+        GroundTruthModelEnv(env), "rs", num_candidates=32, horizon=4, seed=0
+    )
+    collector = Collector(
+        env, policy, frames_per_batch=8, total_frames=16, auto_register_policy_transforms=True
+    )
+    try:
+        batches = list(collector)
+    finally:
+        collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch["action"].shape == (2, 4, 1)
+        assert ((batch["action"] >= 0) & (batch["action"] < 4)).all()
+        cursor, length = batch["planner_cursor"][..., 0], batch["planner_length"][..., 0]
+        assert ((cursor >= 1) & (cursor <= length)).all()
+    with pytest.raises(ValueError, match="variant"):
+        VisualForesightPolicy(GroundTruthModelEnv(env), "mppi")
+    literal = VisualForesightPolicy(
+        GroundTruthModelEnv(env), "rs", reduction="final", num_candidates=16, horizon=4, seed=0
+    )
+    assert literal.planner.execution == "open_loop" and literal.planner.reduction == "final"
+    assert (literal(env.reset())["planner_length"] == 4).all()  # the whole sequence
+    cem = VisualForesightPolicy(GroundTruthModelEnv(env), "cem").planner
+    assert (cem.num_candidates, cem.num_elites, cem.num_iterations) == (1000, 20, 3)
