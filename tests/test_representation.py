@@ -317,3 +317,13 @@ def test_exclusivity_gradient_reaches_the_extractor():
     assert loss.encoder.extractor[0].weight.grad.abs().sum() > 0
     # the term only looks at the maps: the code head gets no gradient from it
     assert loss.encoder.map_encoder[-1].weight.grad is None
+
+
+def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
+    trainer = RepresentationTrainer(_tiny_config(tmp_path, entanglement_check_after=100))
+    trainer.history = [{"step": s, "map_entanglement": 0.2} for s in range(5)]
+    assert trainer.entanglement_reason(50) is None  # too early in the attempt
+    reason = trainer.entanglement_reason(500)
+    assert reason is not None and "entangled" in reason
+    trainer.history = [{"step": s, "map_entanglement": 0.01} for s in range(5)]
+    assert trainer.entanglement_reason(500) is None

@@ -77,13 +77,22 @@ class RepresentationConfig:
     collapse_check_after: int = 300
     collapse_min_codes: int = 2
     collapse_loss_margin: float = 0.05
+    entanglement_check_after: int = 1000
+    entanglement_threshold: float = 0.04
     max_restarts: int = 3
 
     @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
-        """k-object rearrangement: one-step play transitions, one one-hot per object."""
+        """k-object rearrangement: one-step play transitions, one one-hot per object.
+
+        With several objects the map exclusivity term is on (weight 3): without it most
+        seeds learned one-hots that each follow every object (see docs/RESULTS.md).
+        """
         base = cls(
-            env="rearrangement", num_objects=num_objects, code_size=16 if num_objects == 1 else 32
+            env="rearrangement",
+            num_objects=num_objects,
+            code_size=16 if num_objects == 1 else 32,
+            exclusivity_weight=3.0 if num_objects > 1 else 0.0,
         )
         return replace(base, **overrides)
 
@@ -182,6 +191,11 @@ class RepresentationTrainer:
     from a new seed and training restarts (up to ``max_restarts`` times). If the last
     attempt collapses too, ``train`` still returns, with ``collapsed=True`` in its result
     and a ``RuntimeWarning``: a dead encoder is never returned silently.
+
+    Entanglement (with the exclusivity term on): after ``entanglement_check_after`` steps
+    of an attempt, if the mean ``map_entanglement`` of the last five logged steps is above
+    ``entanglement_threshold``, some object map still follows several objects or none;
+    such attempts rarely recover, so they are restarted the same way.
 
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
@@ -335,6 +349,20 @@ class RepresentationTrainer:
             return f"the loss is flat at log B = {math.log(cfg.batch_size):.3f}"
         return None
 
+    def entanglement_reason(self, attempt_steps: int) -> str | None:
+        """Why the object maps look entangled (``None`` if they do not or it is too early)."""
+        cfg = self.config
+        recent = [h["map_entanglement"] for h in self.history[-5:] if "map_entanglement" in h]
+        if attempt_steps < cfg.entanglement_check_after or len(recent) < 5:
+            return None
+        value = sum(recent) / len(recent)
+        if value > cfg.entanglement_threshold:
+            return (
+                f"the object maps are still entangled (map_entanglement {value:.3f} > "
+                f"{cfg.entanglement_threshold}): some map follows several objects or none"
+            )
+        return None
+
     def _batch(self) -> TensorDict:
         anchor, future, _ = future_pairs(self.buffer.sample(self.config.batch_size))
         return TensorDict(
@@ -352,7 +380,7 @@ class RepresentationTrainer:
         total.backward()
         self.optimizer.step()
         self.step += 1
-        return {k: float(v) for k, v in out.items()}
+        return {k: float(v.detach()) for k, v in out.items()}
 
     def train(self, resume: bool = False) -> dict[str, Any]:
         """Runs to ``config.num_steps`` and returns the final metrics and diagnostics."""
@@ -371,20 +399,6 @@ class RepresentationTrainer:
             while self.step < cfg.num_steps:
                 metrics = self.train_step()
                 reason = self.collapse_reason(metrics, self.step - attempt_start)
-                if reason is not None and self.attempt < cfg.max_restarts:
-                    self.attempt += 1
-                    self.restarts.append(
-                        {"step": self.step, "attempt": self.attempt, "reason": reason}
-                    )
-                    warnings.warn(
-                        f"representation collapsed at step {self.step} ({reason}); re-initialising "
-                        f"encoder and similarity (restart {self.attempt}/{cfg.max_restarts}).",
-                        RuntimeWarning,
-                        stacklevel=2,
-                    )
-                    self.logger.log_scalar("restart", float(self.attempt), step=self.step)
-                    self._build(seed=self._attempt_seed(self.attempt))
-                    attempt_start = self.step
                 if self.step % cfg.log_every == 0:
                     for key, value in metrics.items():
                         self.logger.log_scalar(key, value, step=self.step)
@@ -394,6 +408,21 @@ class RepresentationTrainer:
                             loss=f"{metrics['loss_cpc']:.3f}",
                             codes=f"{metrics['codes_in_batch']:.1f}",
                         )
+                    reason = reason or self.entanglement_reason(self.step - attempt_start)
+                if reason is not None and self.attempt < cfg.max_restarts:
+                    self.attempt += 1
+                    self.restarts.append(
+                        {"step": self.step, "attempt": self.attempt, "reason": reason}
+                    )
+                    warnings.warn(
+                        f"representation restarted at step {self.step} ({reason}); re-initialising "
+                        f"encoder and similarity (restart {self.attempt}/{cfg.max_restarts}).",
+                        RuntimeWarning,
+                        stacklevel=2,
+                    )
+                    self.logger.log_scalar("restart", float(self.attempt), step=self.step)
+                    self._build(seed=self._attempt_seed(self.attempt))
+                    attempt_start = self.step
                 if self.step % cfg.diagnostics_every == 0:
                     diagnostics = self.diagnose()
                 if self.step % cfg.checkpoint_every == 0:

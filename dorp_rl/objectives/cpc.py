@@ -102,7 +102,8 @@ class CPCLoss(LossModule):
     (plus ``loss_usage`` when enabled) and detached metrics: ``accuracy`` (share of
     anchors whose best-scoring candidate is their own future), ``mi_lower_bound``
     (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor codes per one-hot,
-    averaged), ``similarity_scale`` and ``gumbel_temperature``.
+    averaged), ``similarity_scale``, ``gumbel_temperature`` and, with the exclusivity term,
+    ``map_entanglement`` (its unweighted value: near 0 when each map follows one object).
 
     Examples:
         >>> import torch
@@ -224,9 +225,7 @@ class CPCLoss(LossModule):
             # How much each one-hot's object map changes between o_t and o_t+k: dense
             # gradients straight into the extractor, where objects are told apart.
             map_change = (maps[:batch] - maps[batch:]).abs().flatten(-2).sum(-1)  # [B, C]
-            out.set(
-                "loss_exclusivity",
-                self.exclusivity_weight
-                * (change_overlap(map_change) + change_imbalance(map_change)),
-            )
+            entanglement = change_overlap(map_change) + change_imbalance(map_change)
+            out.set("loss_exclusivity", self.exclusivity_weight * entanglement)
+            out.set("map_entanglement", entanglement.detach())
         return out
