@@ -60,33 +60,25 @@ def settings(steps_scale: float) -> dict[str, list[tuple[str, RepresentationConf
         "2obj": [
             (
                 "2obj-dddp",
-                rearr(
-                    2, num_steps=steps(2000), num_frames=100_000, exclusivity_weight=1.0, **RECIPE
-                ),
+                rearr(2, num_steps=steps(1500), num_frames=100_000, **RECIPE),
             )
         ],
         "3obj": [
             (
                 "3obj-dddp",
-                rearr(
-                    3, num_steps=steps(4000), num_frames=150_000, exclusivity_weight=1.0, **RECIPE
-                ),
+                rearr(3, num_steps=steps(2000), num_frames=150_000, **RECIPE),
             )
         ],
         "5obj": [
             (
                 "5obj-dddp",
-                rearr(
-                    5, num_steps=steps(6000), num_frames=200_000, exclusivity_weight=1.0, **RECIPE
-                ),
+                rearr(5, num_steps=steps(3000), num_frames=200_000, **RECIPE),
             )
         ],
         "keywall": [
             (
                 "keywall-dddp",
-                RepresentationConfig.key_wall(
-                    num_steps=steps(3000), ce_temperature=0.1, exclusivity_weight=1.0
-                ),
+                RepresentationConfig.key_wall(num_steps=steps(2000), ce_temperature=0.1),
             ),
         ],
     }

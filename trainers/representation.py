@@ -77,22 +77,24 @@ class RepresentationConfig:
     collapse_check_after: int = 300
     collapse_min_codes: int = 2
     collapse_loss_margin: float = 0.05
-    entanglement_check_after: int = 1000
-    entanglement_threshold: float = 0.04
+    entanglement_check_after: int = 1500
+    entanglement_threshold: float = 0.1
     max_restarts: int = 3
 
     @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
         """k-object rearrangement: one-step play transitions, one one-hot per object.
 
-        With several objects the map exclusivity term is on (weight 3): without it most
-        seeds learned one-hots that each follow every object (see docs/RESULTS.md).
+        With several objects the map exclusivity term is on (weight 3) and the maps compete
+        per pixel (softmax): without them most seeds learned one-hots that each follow
+        several objects (see docs/RESULTS.md).
         """
         base = cls(
             env="rearrangement",
             num_objects=num_objects,
             code_size=16 if num_objects == 1 else 32,
             exclusivity_weight=3.0 if num_objects > 1 else 0.0,
+            map_competition="softmax" if num_objects > 1 else "sigmoid",
         )
         return replace(base, **overrides)
 
@@ -105,7 +107,8 @@ class RepresentationConfig:
             code_size=16,
             num_frames=64_000,
             max_offset=4,
-            exclusivity_weight=1.0,
+            exclusivity_weight=3.0,
+            map_competition="softmax",
         )
         return replace(base, **overrides)
 
@@ -118,7 +121,8 @@ class RepresentationConfig:
             code_size=32,
             num_frames=96_000,
             max_offset=4,
-            exclusivity_weight=1.0,
+            exclusivity_weight=3.0,
+            map_competition="softmax",
         )
         return replace(base, **overrides)
 
