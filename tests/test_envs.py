@@ -245,7 +245,7 @@ def test_unlocked_env_accepts_any_leading_shape(name, shape):
     # Without a state, reset samples one row per leading index.
     fresh = env.reset(TensorDict(batch_size=shape))
     assert fresh["state"].shape == (*shape, *env.state_shape)
-    traj = env.rollout(3, tensordict=fresh, auto_reset=False)
+    traj = env.rollout(3, tensordict=fresh, auto_reset=False, break_when_any_done=False)
     assert traj.batch_size == (*shape, 3)
 
 

@@ -125,8 +125,9 @@ def test_dddp_diagonally_positive_and_dominant(dim, scale, psi, spread, seed, si
     assert (diag > 0).all()
     # each diagonal entry beats every other entry of its row and of its column
     assert (diag > off.max(dim=1).values).all() and (diag > off.max(dim=0).values).all()
-    if sign == "authors":  # their variant is dominant in magnitude too
-        assert (diag > w.masked_fill(torch.eye(dim, dtype=torch.bool), 0).abs().max(1).values).all()
+    if sign == "authors":  # their variant is dominant in magnitude too (ties only where
+        # float32 sigmoids saturate to exactly 0 or 1)
+        assert (diag >= w.masked_fill(torch.eye(dim, dtype=torch.bool), 0).abs().max(1).values).all()
 
 
 def test_similarity_variants_and_errors():
