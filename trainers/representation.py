@@ -77,8 +77,8 @@ class RepresentationConfig:
     collapse_check_after: int = 300
     collapse_min_codes: int = 2
     collapse_loss_margin: float = 0.05
-    entanglement_check_after: int = 1500
-    entanglement_threshold: float = 0.1
+    entanglement_check_after: int = 600
+    entanglement_threshold: float = 0.07
     max_restarts: int = 3
 
     @classmethod
@@ -199,7 +199,8 @@ class RepresentationTrainer:
     Entanglement (with the exclusivity term on): after ``entanglement_check_after`` steps
     of an attempt, if the mean ``map_entanglement`` of the last five logged steps is above
     ``entanglement_threshold``, some object map still follows several objects or none;
-    such attempts rarely recover, so they are restarted the same way.
+    such attempts rarely recover, so they are restarted the same way. ``num_steps``
+    counts the steps of the last attempt: restarts add steps rather than eat the budget.
 
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
@@ -400,7 +401,7 @@ class RepresentationTrainer:
         metrics: dict[str, float] = {}
         diagnostics: dict[str, Any] = {}
         try:
-            while self.step < cfg.num_steps:
+            while self.step - attempt_start < cfg.num_steps:
                 metrics = self.train_step()
                 reason = self.collapse_reason(metrics, self.step - attempt_start)
                 if self.step % cfg.log_every == 0:
