@@ -94,6 +94,7 @@ class ObjectRearrangementEnv(GridWorldEnv):
         self._colours_cpu = colours
         self._check_placeable()
         super().__init__(max_steps=max_steps, **kwargs)
+        self._object_ids = torch.arange(num_objects, device=self.device)
         self.block_shapes = self.block_shapes.to(self.device)
         self.colours = colours.to(self.device)
         # Each frame's 768 bytes seen as 96 int64 words: see render_state.
@@ -207,12 +208,11 @@ class ObjectRearrangementEnv(GridWorldEnv):
         hits = (
             (target.unsqueeze(-2) < others_high) & (others_low < (target + size).unsqueeze(-2))
         ).all(-1)  # [*B, k]
-        hits &= torch.arange(self.num_objects, device=state.device) != obj.unsqueeze(-1)
+        hits &= self._object_ids != obj.unsqueeze(-1)
         ok = inside & ~hits.any(-1)
-        which = (
-            torch.arange(self.num_objects, device=state.device) == obj.unsqueeze(-1)
-        ) & ok.unsqueeze(-1)
-        return torch.where(which.unsqueeze(-1), target.unsqueeze(-2), state)
+        new_corner = torch.where(ok.unsqueeze(-1), target, corner)
+        index = obj[..., None, None].expand(*obj.shape, 1, 2)
+        return state.scatter(-2, index, new_corner.unsqueeze(-2))
 
     def _build_frame_table(self) -> torch.Tensor:
         """uint8 ``[k * 256, 3, 16, 16]``: object ``o`` alone with its top-left at cell ``p``.
@@ -244,7 +244,7 @@ class ObjectRearrangementEnv(GridWorldEnv):
         cell = state[..., 0].clamp(0, GRID_SIZE - 1) * GRID_SIZE + state[..., 1].clamp(
             0, GRID_SIZE - 1
         )
-        offset = torch.arange(self.num_objects, device=state.device) * (GRID_SIZE * GRID_SIZE)
+        offset = self._object_ids * (GRID_SIZE * GRID_SIZE)
         index = (cell + offset).reshape(-1)
         words = self._frame_words.index_select(0, index)
         words = words.view(-1, self.num_objects, words.shape[-1])
