@@ -127,7 +127,9 @@ def test_dddp_diagonally_positive_and_dominant(dim, scale, psi, spread, seed, si
     assert (diag > off.max(dim=1).values).all() and (diag > off.max(dim=0).values).all()
     if sign == "authors":  # their variant is dominant in magnitude too (ties only where
         # float32 sigmoids saturate to exactly 0 or 1)
-        assert (diag >= w.masked_fill(torch.eye(dim, dtype=torch.bool), 0).abs().max(1).values).all()
+        assert (
+            diag >= w.masked_fill(torch.eye(dim, dtype=torch.bool), 0).abs().max(1).values
+        ).all()
 
 
 def test_similarity_variants_and_errors():
@@ -328,3 +330,14 @@ def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
     assert reason is not None and "entangled" in reason
     trainer.history = [{"step": s, "map_entanglement": 0.01} for s in range(5)]
     assert trainer.entanglement_reason(500) is None
+
+
+def test_key_bit_does_not_count_as_collapse():
+    torch.manual_seed(0)
+    encoder = DiscreteCodeEncoder(EncoderConfig(code_sizes=(8, 2), channels=8, mlp_sizes=(32, 32)))
+    loss = CPCLoss(encoder, DDDPSimilarity(16))
+    anchor, future = _pixels(32), _pixels(32, 1)
+    out = loss(TensorDict(pixels=anchor, future_pixels=future, batch_size=[32]))
+    codes = encoder.logits(torch.cat([anchor, future]))[:32].argmax(-1)  # same batch statistics
+    # the minimum is taken over the 8-code one-hot only, never the 2-way bit
+    assert float(out["min_codes_in_batch"]) == float(torch.unique(codes[:, 0]).numel())

@@ -102,7 +102,7 @@ class CPCLoss(LossModule):
     (plus ``loss_usage`` when enabled) and detached metrics: ``accuracy`` (share of
     anchors whose best-scoring candidate is their own future), ``mi_lower_bound``
     (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor codes per one-hot,
-    averaged), ``similarity_scale``, ``gumbel_temperature`` and, with the exclusivity term,
+    averaged), ``min_codes_in_batch`` (the fewest on a one-hot of more than 2 codes), ``similarity_scale``, ``gumbel_temperature`` and, with the exclusivity term,
     ``map_entanglement`` (its unweighted value: near 0 when each map follows one object).
 
     Examples:
@@ -162,6 +162,10 @@ class CPCLoss(LossModule):
         self.ce_temperature = float(ce_temperature)
         self.usage_weight = float(usage_weight)
         self.exclusivity_weight = float(exclusivity_weight)
+        sizes = torch.tensor(encoder.code_sizes)
+        self._wide_onehots = (
+            sizes > 2 if (sizes > 2).any() else torch.ones_like(sizes, dtype=torch.bool)
+        )
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -207,7 +211,8 @@ class CPCLoss(LossModule):
             accuracy=(scores.argmax(1) == labels).float().mean().detach(),
             mi_lower_bound=(math.log(batch) - loss_cpc).detach(),
             codes_in_batch=used.mean(),
-            min_codes_in_batch=used.min(),
+            # 2-way one-hots (key bits) cannot show a collapse: judge the larger ones.
+            min_codes_in_batch=used[self._wide_onehots].min(),
             gumbel_temperature=torch.tensor(self.gumbel_temperature),
             similarity_scale=self.similarity.matrix().diagonal().mean().detach(),
             batch_size=[],
