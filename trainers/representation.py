@@ -5,14 +5,12 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass, fields, replace
-from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
-from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
 from dorp_rl.envs import (
     GridWorldEnv,
@@ -23,6 +21,7 @@ from dorp_rl.envs import (
 )
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.objectives import CPCLoss
+from dorp_rl.trainers.base import Trainer
 
 ENV_NAMES = ("rearrangement", "key-wall", "key-corridor")
 
@@ -178,15 +177,15 @@ def diagnose(
     return result.to_dict() if hasattr(result, "to_dict") else dict(result)
 
 
-class RepresentationTrainer:
+class RepresentationTrainer(Trainer):
     """Trains a :class:`~dorp_rl.modules.DiscreteCodeEncoder` with :class:`~dorp_rl.objectives.CPCLoss`.
 
     Data come from a play buffer (collected, or loaded from ``config.data_dir``) through a
-    :class:`~dorp_rl.data.FuturePairSampler`. The trainer logs to a torchrl CSV logger,
-    shows a tqdm bar, runs ground-truth diagnostics every ``diagnostics_every`` steps and
-    writes a checkpoint (config, weights, optimiser, step, RNG states) every
-    ``checkpoint_every`` steps and at the end; ``train(resume=True)`` continues from the
-    last checkpoint and ends exactly where an uninterrupted run would.
+    :class:`~dorp_rl.data.FuturePairSampler`. Logging, checkpoints and resume follow
+    :class:`~dorp_rl.trainers.Trainer`: a torchrl CSV logger, a tqdm bar, ground-truth
+    diagnostics every ``diagnostics_every`` steps, a checkpoint (config, weights,
+    optimiser, step, RNG states, restarts) every ``checkpoint_every`` steps and at the
+    end; ``train(resume=True)`` ends exactly where an uninterrupted run would.
 
     Collapse: after ``collapse_check_after`` steps of an attempt, if the anchor codes of a
     batch use at most ``collapse_min_codes`` codes on some one-hot, or the loss is still
@@ -212,6 +211,7 @@ class RepresentationTrainer:
     """
 
     kind = "representation"
+    progress_metric = "loss_cpc"
 
     def __init__(
         self,
@@ -220,10 +220,8 @@ class RepresentationTrainer:
         logger: Any | None = None,
     ) -> None:
         config.validate()
-        self.config = config
+        super().__init__(config, config.make_env(batch_size=(config.num_envs,)), logger)
         self.device = torch.device(config.device)
-        self.env = config.make_env(batch_size=(config.num_envs,))
-        self.out_dir = Path(config.out_dir)
         self.sampler = FuturePairSampler(config.min_offset, config.max_offset)
         if buffer is None:
             buffer = collect_play_data(
@@ -237,16 +235,9 @@ class RepresentationTrainer:
                 progress=config.progress,
             )
         self.buffer = buffer
-        self.data_generator = torch.Generator()
         self.buffer.set_rng(self.data_generator)
-        if logger is None:
-            from torchrl.record.loggers import CSVLogger
-
-            logger = CSVLogger(exp_name="logs", log_dir=str(self.out_dir))
-        self.logger = logger
         self.attempt = 0
-        self.step = 0
-        self.history: list[dict[str, float]] = []
+        self.attempt_start = 0
         self.restarts: list[dict[str, Any]] = []
         self._build(seed=config.seed)
 
@@ -289,10 +280,7 @@ class RepresentationTrainer:
         start, floor = cfg.gumbel_temperature_start, cfg.gumbel_temperature
         return float(start * (floor / start) ** frac)
 
-    @property
-    def checkpoint_path(self) -> Path:
-        return self.out_dir / "checkpoints" / "last.pt"
-
+    # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
         return {
             "encoder": self.encoder.state_dict(),
@@ -300,46 +288,33 @@ class RepresentationTrainer:
             "optimizer": self.optimizer.state_dict(),
         }
 
-    def save(self, path: str | Path | None = None) -> Path:
-        """Writes a checkpoint (default: ``<out_dir>/checkpoints/last.pt``)."""
-        return save_checkpoint(
-            path or self.checkpoint_path,
-            kind=self.kind,
-            config=self.config.to_dict(),
-            env_config=self.env.config(),
-            state=self.state_dict(),
-            step=self.step,
-            rng={"torch": torch.get_rng_state(), "data": self.data_generator.get_state()},
-            extra={"attempt": self.attempt, "restarts": self.restarts, "history": self.history},
-        )
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.encoder.load_state_dict(state["encoder"])
+        self.similarity.load_state_dict(state["similarity"])
+        self.optimizer.load_state_dict(state["optimizer"])
 
-    def load(self, path: str | Path | None = None) -> None:
-        """Restores a checkpoint of this trainer (same environment and code sizes)."""
-        payload = load_checkpoint(
-            path or self.checkpoint_path, kind=self.kind, env_config=self.env.config()
-        )
-        stored = RepresentationConfig.from_dict(payload["config"])
-        if stored.code_sizes != self.config.code_sizes:
-            raise ValueError(
-                f"checkpoint has code sizes {stored.code_sizes}, this trainer {self.config.code_sizes}."
-            )
-        extra = payload["extra"]
+    def extra_state(self) -> dict[str, Any]:
+        return {"attempt": self.attempt, "restarts": self.restarts, "history": self.history}
+
+    def load_extra_state(self, extra: dict[str, Any]) -> None:
+        super().load_extra_state(extra)
         self.attempt = int(extra.get("attempt", 0))
-        if self.attempt:
-            self._build(seed=self._attempt_seed(self.attempt))
-        self.encoder.load_state_dict(payload["state"]["encoder"])
-        self.similarity.load_state_dict(payload["state"]["similarity"])
-        self.optimizer.load_state_dict(payload["state"]["optimizer"])
-        self.step = payload["step"]
         self.restarts = list(extra.get("restarts", []))
-        self.history = list(extra.get("history", []))
-        torch.set_rng_state(payload["rng"]["torch"])
-        self.data_generator.set_state(payload["rng"]["data"])
+        self.attempt_start = self.restarts[-1]["step"] if self.restarts else 0
+        if self.attempt:  # the weights to load belong to the restarted attempt's modules
+            self._build(seed=self._attempt_seed(self.attempt))
+
+    def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
+        stored_sizes = RepresentationConfig.from_dict(stored).code_sizes
+        if stored_sizes != self.config.code_sizes:
+            raise ValueError(
+                f"checkpoint has code sizes {stored_sizes}, this trainer {self.config.code_sizes}."
+            )
 
     def _attempt_seed(self, attempt: int) -> int:
         return self.config.seed + 7919 * attempt
 
-    # ------------------------------------------------------------------ #
+    # ------------------------------------------------------------------ collapse
     def collapse_reason(self, metrics: dict[str, float], attempt_steps: int) -> str | None:
         """Why the current attempt looks collapsed (``None`` if it does not)."""
         cfg = self.config
@@ -368,6 +343,30 @@ class RepresentationTrainer:
             )
         return None
 
+    def after_step(self, metrics: dict[str, float], logged: bool) -> None:
+        """Restarts a collapsed or entangled attempt (see the class docstring)."""
+        cfg = self.config
+        reason = self.collapse_reason(metrics, self.step - self.attempt_start)
+        if logged:
+            reason = reason or self.entanglement_reason(self.step - self.attempt_start)
+        if reason is None or self.attempt >= cfg.max_restarts:
+            return
+        self.attempt += 1
+        self.restarts.append({"step": self.step, "attempt": self.attempt, "reason": reason})
+        warnings.warn(
+            f"representation restarted at step {self.step} ({reason}); re-initialising "
+            f"encoder and similarity (restart {self.attempt}/{cfg.max_restarts}).",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+        self.logger.log_scalar("restart", float(self.attempt), step=self.step)
+        self._build(seed=self._attempt_seed(self.attempt))
+        self.attempt_start = self.step
+
+    def done(self) -> bool:
+        return self.step - self.attempt_start >= self.config.num_steps
+
+    # ------------------------------------------------------------------ steps
     def _batch(self) -> TensorDict:
         anchor, future, _ = future_pairs(self.buffer.sample(self.config.batch_size))
         return TensorDict(
@@ -388,59 +387,16 @@ class RepresentationTrainer:
         return {k: float(v.detach()) for k, v in out.items()}
 
     def train(self, resume: bool = False) -> dict[str, Any]:
-        """Runs to ``config.num_steps`` and returns the final metrics and diagnostics."""
-        cfg = self.config
-        if resume and self.checkpoint_path.exists():
-            self.load()
-        bar = None
-        if cfg.progress:
-            from tqdm.auto import tqdm
+        """Runs ``config.num_steps`` steps of the last attempt; returns metrics and diagnostics.
 
-            bar = tqdm(total=cfg.num_steps, initial=self.step, desc="representation")
-        attempt_start = self.restarts[-1]["step"] if self.restarts else 0
-        metrics: dict[str, float] = {}
-        diagnostics: dict[str, Any] = {}
-        try:
-            while self.step - attempt_start < cfg.num_steps:
-                metrics = self.train_step()
-                reason = self.collapse_reason(metrics, self.step - attempt_start)
-                if self.step % cfg.log_every == 0:
-                    for key, value in metrics.items():
-                        self.logger.log_scalar(key, value, step=self.step)
-                    self.history.append({"step": self.step, **metrics})
-                    if bar is not None:
-                        bar.set_postfix(
-                            loss=f"{metrics['loss_cpc']:.3f}",
-                            codes=f"{metrics['codes_in_batch']:.1f}",
-                        )
-                    reason = reason or self.entanglement_reason(self.step - attempt_start)
-                if reason is not None and self.attempt < cfg.max_restarts:
-                    self.attempt += 1
-                    self.restarts.append(
-                        {"step": self.step, "attempt": self.attempt, "reason": reason}
-                    )
-                    warnings.warn(
-                        f"representation restarted at step {self.step} ({reason}); re-initialising "
-                        f"encoder and similarity (restart {self.attempt}/{cfg.max_restarts}).",
-                        RuntimeWarning,
-                        stacklevel=2,
-                    )
-                    self.logger.log_scalar("restart", float(self.attempt), step=self.step)
-                    self._build(seed=self._attempt_seed(self.attempt))
-                    attempt_start = self.step
-                if self.step % cfg.diagnostics_every == 0:
-                    diagnostics = self.diagnose()
-                if self.step % cfg.checkpoint_every == 0:
-                    self.save()
-                if bar is not None:
-                    bar.update(1)
-        finally:
-            if bar is not None:
-                bar.close()
-        self.save()
-        if not diagnostics or cfg.num_steps % cfg.diagnostics_every != 0:
-            diagnostics = self.diagnose() if cfg.diagnostics_every <= cfg.num_steps else {}
-        final_reason = self.collapse_reason(metrics, self.step - attempt_start) if metrics else None
+        The result also holds ``attempt``, ``restarts`` and ``collapsed`` (the last
+        attempt still looks collapsed; a ``RuntimeWarning`` says so too).
+        """
+        result = super().train(resume=resume)
+        metrics = result["metrics"]
+        final_reason = (
+            self.collapse_reason(metrics, self.step - self.attempt_start) if metrics else None
+        )
         if final_reason is not None:
             warnings.warn(
                 f"representation still collapsed after {self.attempt} restart(s): {final_reason}.",
@@ -448,23 +404,24 @@ class RepresentationTrainer:
                 stacklevel=2,
             )
         return {
-            "step": self.step,
+            **result,
             "attempt": self.attempt,
             "restarts": self.restarts,
             "collapsed": final_reason is not None,
-            "metrics": metrics,
-            "diagnostics": diagnostics,
+            "diagnostics": result["evaluation"],
         }
 
-    def diagnose(self) -> dict[str, Any]:
-        """Runs the ground-truth diagnostics now and logs their scalar entries."""
-        result = diagnose(
+    @property
+    def evaluate_every(self) -> int:
+        return self.config.diagnostics_every
+
+    def evaluate(self) -> dict[str, Any]:
+        """The ground-truth diagnostics of the current encoder (see :func:`diagnose`)."""
+        return diagnose(
             self.config.make_env(),
             self.encoder,
             num_samples=self.config.diagnostics_samples,
             seed=self.config.seed,
         )
-        for key, value in result.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                self.logger.log_scalar(f"diag/{key}", float(value), step=self.step)
-        return result
+
+    diagnose = evaluate

@@ -1,4 +1,4 @@
-"""Models as TensorDict-friendly modules: the discrete code encoder and similarity matrices."""
+"""Models as TensorDict-friendly modules: code encoder, similarity matrices, video prediction model."""
 
 from dorp_rl.modules.encoder import DiscreteCodeEncoder, EncoderConfig, check_pixels
 from dorp_rl.modules.similarity import (
@@ -8,6 +8,11 @@ from dorp_rl.modules.similarity import (
     IdentitySimilarity,
     make_similarity,
 )
+from dorp_rl.modules.video import (
+    VideoModelConfig,
+    VideoPredictionModel,
+    palette_from_frames,
+)
 
 __all__ = [
     "DDDPSimilarity",
@@ -16,6 +21,9 @@ __all__ = [
     "FullSimilarity",
     "IdentitySimilarity",
     "SIMILARITIES",
+    "VideoModelConfig",
+    "VideoPredictionModel",
     "check_pixels",
     "make_similarity",
+    "palette_from_frames",
 ]

@@ -1,5 +1,6 @@
-"""Losses (torchrl LossModules): CPCLoss."""
+"""Losses (torchrl LossModules): CPCLoss, VideoPredictionLoss."""
 
 from dorp_rl.objectives.cpc import CPCLoss, standardize_codes
+from dorp_rl.objectives.video import VideoPredictionLoss
 
-__all__ = ["CPCLoss", "standardize_codes"]
+__all__ = ["CPCLoss", "VideoPredictionLoss", "standardize_codes"]

@@ -1,0 +1,90 @@
+"""Open-loop accuracy of a video prediction model over 1..H steps."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+from dorp_rl.modules.video import FRAME_SHAPE, VideoPredictionModel
+
+
+@torch.no_grad()
+def open_loop_accuracy(
+    model: VideoPredictionModel,
+    sequences: TensorDictBase,
+    *,
+    deterministic: bool = True,
+    chunk_size: int = 256,
+    generator: torch.Generator | None = None,
+) -> dict[str, Any]:
+    """Rolls ``model`` open loop from o_t over each window and scores every step.
+
+    A predicted frame is *exact* when it equals the renderer's frame of the true
+    configuration, all 3 x 16 x 16 values (the frames in play data are the renderer's).
+
+    Args:
+        model: a :class:`~dorp_rl.modules.VideoPredictionModel`.
+        sequences: ``[N, H]`` windows of a :class:`~dorp_rl.data.SequenceSampler`:
+            ``pixels`` (only ``[:, 0]`` is read), ``action`` ``[N, H, 1]`` and
+            ``("next", "pixels")`` ``[N, H, 3, 16, 16]``.
+        deterministic: use the prior mean of the latent (the planning mode).
+        chunk_size: windows per forward pass.
+        generator: random generator for latent draws when not ``deterministic``.
+
+    Returns:
+        ``exact_accuracy`` and ``pixel_mse`` (on values in [0, 1]), each a list of H
+        floats (step 1..H), ``exact_accuracy_last`` (step H), ``num_sequences`` and
+        ``horizon``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
+        >>> palette = torch.tensor([[0, 0, 0], [255, 255, 0]], dtype=torch.uint8)
+        >>> model = VideoPredictionModel(4, palette, VideoModelConfig.small())
+        >>> frames = torch.zeros(2, 3, 3, 16, 16, dtype=torch.uint8)
+        >>> windows = TensorDict(pixels=frames, action=torch.zeros(2, 3, 1, dtype=torch.int64),
+        ...                      next=TensorDict(pixels=frames, batch_size=[2, 3]), batch_size=[2, 3])
+        >>> len(open_loop_accuracy(model, windows)["exact_accuracy"])
+        3
+    """
+    if sequences.batch_dims != 2:
+        raise ValueError(
+            f"sequences must be [N, H] windows (a SequenceSampler sample), got batch shape "
+            f"{list(sequences.shape)}."
+        )
+    n, horizon = sequences.shape
+    target = sequences.get(("next", "pixels"))
+    if target.dtype != torch.uint8 or tuple(target.shape[2:]) != FRAME_SHAPE:
+        raise ValueError(
+            f"('next', 'pixels') must be uint8 [N, H, 3, 16, 16], got {target.dtype} "
+            f"{list(target.shape)}."
+        )
+    device = model.palette.device
+    was_training = model.training
+    model.eval()
+    exact = torch.zeros(horizon, dtype=torch.float64)
+    squared = torch.zeros(horizon, dtype=torch.float64)
+    try:
+        for start in range(0, n, chunk_size):
+            window = sequences[start : start + chunk_size]
+            first = window[:, 0].get("pixels").to(device)
+            actions = window.get("action").to(device)
+            pred = model.rollout(first, actions, deterministic=deterministic, generator=generator)
+            true = window.get(("next", "pixels")).to(device)
+            exact += (pred == true).flatten(2).all(-1).double().sum(0).cpu()
+            diff = (pred.float() - true.float()) / 255.0
+            squared += diff.pow(2).flatten(2).mean(-1).double().sum(0).cpu()
+    finally:
+        model.train(was_training)
+    exact /= n
+    squared /= n
+    return {
+        "exact_accuracy": exact.tolist(),
+        "pixel_mse": squared.tolist(),
+        "exact_accuracy_last": float(exact[-1]),
+        "num_sequences": n,
+        "horizon": horizon,
+    }

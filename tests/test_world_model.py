@@ -1,0 +1,255 @@
+"""Video prediction model, its loss, open-loop metrics and WorldModelTrainer."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from dorp_rl.data import SequenceSampler, collect_play_data
+from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.eval import open_loop_accuracy
+from dorp_rl.modules import VideoModelConfig, VideoPredictionModel, palette_from_frames
+from dorp_rl.objectives import VideoPredictionLoss
+from dorp_rl.objectives.video import gaussian_kl
+from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer
+
+
+@pytest.fixture(scope="module")
+def env() -> ObjectRearrangementEnv:
+    return ObjectRearrangementEnv(num_objects=2, batch_size=(16,), seed=0)
+
+
+@pytest.fixture(scope="module")
+def windows(env: ObjectRearrangementEnv) -> TensorDict:
+    buffer = collect_play_data(env, 512, seed=0, trajectory_length=8, sampler=SequenceSampler(4))
+    return buffer.sample(64)
+
+
+@pytest.fixture(scope="module")
+def model(env: ObjectRearrangementEnv, windows: TensorDict) -> VideoPredictionModel:
+    torch.manual_seed(0)
+    palette = palette_from_frames(windows["pixels"])
+    return VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small())
+
+
+def tiny_config(tmp_path, **overrides) -> WorldModelConfig:
+    base = WorldModelConfig.rearrangement(
+        1,
+        num_steps=6,
+        num_frames=512,
+        num_envs=16,
+        horizon=3,
+        trajectory_length=4,
+        eval_frames=128,
+        eval_sequences=16,
+        model_preset="small",
+        batch_size=8,
+        log_every=2,
+        checkpoint_every=3,
+        eval_every=3,
+        progress=False,
+        out_dir=str(tmp_path / "wm"),
+    )
+    return dataclasses.replace(base, **overrides)
+
+
+# ------------------------------------------------------------------ palette and model
+def test_palette_is_black_first_and_complete(windows: TensorDict) -> None:
+    palette = palette_from_frames(windows["pixels"])
+    assert palette.dtype == torch.uint8 and palette.shape == (3, 3)  # black + 2 blocks
+    assert palette[0].tolist() == [0, 0, 0]
+    with pytest.raises(ValueError, match="uint8"):
+        palette_from_frames(windows["pixels"].float())
+    noise = torch.randint(0, 256, (4, 3, 16, 16), dtype=torch.uint8)
+    with pytest.raises(ValueError, match="max_colours"):
+        palette_from_frames(noise)
+
+
+def test_predictions_have_the_right_shapes_and_only_palette_colours(
+    model: VideoPredictionModel, windows: TensorDict
+) -> None:
+    pixels = windows[:, 0]["pixels"]
+    action = windows[:, 0]["action"]
+    logits = model.logits(pixels, action)
+    assert logits.shape == (64, model.num_colours, 16, 16) and logits.dtype == torch.float32
+    frame = model.predict(pixels, action)
+    assert frame.dtype == torch.uint8 and frame.shape == pixels.shape
+    colours = {tuple(c) for c in frame.movedim(1, -1).reshape(-1, 3).tolist()}
+    assert colours <= {tuple(c) for c in model.palette.tolist()}
+    frames = model.rollout(pixels, windows["action"])
+    assert frames.shape == (64, 4, 3, 16, 16)
+    # the first rollout step is the one-step prediction
+    assert torch.equal(frames[:, 0], frame)
+
+
+def test_stochastic_mode_uses_the_latent_and_is_seeded(
+    env: ObjectRearrangementEnv, windows: TensorDict
+) -> None:
+    torch.manual_seed(1)
+    palette = palette_from_frames(windows["pixels"])
+    model = VideoPredictionModel(
+        env.num_actions, palette, VideoModelConfig.small(latent_dim=3, prior="learned")
+    )
+    pixels, action = windows[:, 0]["pixels"], windows[:, 0]["action"]
+    z = torch.randn(64, 3) * 5
+    # the latent reaches the prediction (FiLM and input channels)
+    assert not torch.allclose(model.logits(pixels, action, z), model.logits(pixels, action))
+    a = model.predict(
+        pixels, action, deterministic=False, generator=torch.Generator().manual_seed(3)
+    )
+    b = model.predict(
+        pixels, action, deterministic=False, generator=torch.Generator().manual_seed(3)
+    )
+    assert torch.equal(a, b)
+    assert torch.equal(model.predict(pixels, action), model.predict(pixels, action))
+
+
+def test_bad_inputs_name_what_was_expected(
+    model: VideoPredictionModel, windows: TensorDict
+) -> None:
+    pixels, action = windows[:, 0]["pixels"], windows[:, 0]["action"]
+    with pytest.raises(ValueError, match="uint8"):
+        model.predict(pixels.float(), action)
+    with pytest.raises(ValueError, match=r"\[N, 3, 16, 16\]"):
+        model.predict(pixels[:, :, :8], action)
+    with pytest.raises(ValueError, match=r"in \[0, 8\)"):
+        model.predict(pixels, action + 8)
+    with pytest.raises(ValueError, match="integer"):
+        model.predict(pixels, action.float())
+    with pytest.raises(ValueError, match=r"\[64, 1\]"):
+        model.predict(pixels, action[:10])
+    with pytest.raises(ValueError, match=r"\[N, H, 1\]"):
+        model.rollout(pixels, action)
+    with pytest.raises(ValueError, match="distinct"):
+        VideoPredictionModel(8, torch.zeros(2, 3, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="preset"):
+        VideoModelConfig.preset("huge")
+
+
+def test_as_tensordict_module_handles_any_leading_shape(
+    model: VideoPredictionModel, windows: TensorDict
+) -> None:
+    module = model.as_tensordict_module()
+    td = TensorDict(pixels=windows["pixels"], action=windows["action"], batch_size=[64, 4])
+    out = module(td)
+    assert out["next", "pixels"].shape == (64, 4, 3, 16, 16)
+    assert torch.equal(
+        out["next", "pixels"][:, 1], model.predict(td[:, 1]["pixels"], td[:, 1]["action"])
+    )
+
+
+# ------------------------------------------------------------------ loss
+def test_gaussian_kl_is_zero_only_for_equal_distributions() -> None:
+    mean, std = torch.randn(5, 3), torch.rand(5, 3) + 0.1
+    assert torch.allclose(gaussian_kl(mean, std, mean, std), torch.zeros(5, 3), atol=1e-6)
+    assert bool((gaussian_kl(mean + 1.0, std, mean, std) > 0).all())
+    assert bool((gaussian_kl(mean, std * 2, mean, std) > 0).all())
+
+
+def test_loss_outputs_and_missing_key(model: VideoPredictionModel, windows: TensorDict) -> None:
+    loss = VideoPredictionLoss(model, open_loop_length=2)
+    out = loss(windows)
+    assert {"loss_reconstruction", "loss_kl", "frame_accuracy", "pixel_accuracy"} <= set(out.keys())
+    assert out["loss_reconstruction"].requires_grad
+    assert not out["frame_accuracy"].requires_grad
+    with pytest.raises(KeyError, match="action"):
+        loss(windows.exclude("action"))
+    with pytest.raises(ValueError, match="open_loop_length"):
+        VideoPredictionLoss(model, open_loop_length=0)
+
+
+def test_loss_falls_on_a_tiny_dataset(env: ObjectRearrangementEnv, windows: TensorDict) -> None:
+    torch.manual_seed(0)
+    palette = palette_from_frames(windows["pixels"])
+    model = VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small())
+    loss = VideoPredictionLoss(model, open_loop_length=1)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    batch = windows[:16]
+    first = float(loss(batch)["loss_reconstruction"].detach())
+    for _ in range(60):
+        out = loss(batch)
+        optimizer.zero_grad()
+        (out["loss_reconstruction"] + out["loss_kl"]).backward()
+        optimizer.step()
+    last = loss(batch)
+    assert float(last["loss_reconstruction"].detach()) < 0.5 * first
+    assert float(last["pixel_accuracy"]) > 0.95
+
+
+# ------------------------------------------------------------------ metrics
+def test_open_loop_accuracy_matches_a_manual_count(
+    model: VideoPredictionModel, windows: TensorDict
+) -> None:
+    result = open_loop_accuracy(model, windows, chunk_size=10)
+    frames = model.rollout(windows[:, 0]["pixels"], windows["action"])
+    exact = (frames == windows["next", "pixels"]).flatten(2).all(-1).float().mean(0)
+    assert result["horizon"] == 4 and result["num_sequences"] == 64
+    assert torch.allclose(torch.tensor(result["exact_accuracy"]), exact)
+    assert result["exact_accuracy_last"] == pytest.approx(float(exact[-1]))
+    # a frame equal to the truth has zero error: the copy model is exact where nothing moved
+    assert all(0.0 <= m <= 1.0 for m in result["pixel_mse"])
+    with pytest.raises(ValueError, match=r"\[N, H\]"):
+        open_loop_accuracy(model, windows[:, 0])
+
+
+# ------------------------------------------------------------------ trainer
+def test_trainer_schedules_and_evaluation(tmp_path) -> None:
+    trainer = WorldModelTrainer(tiny_config(tmp_path, num_steps=10, open_loop_ramp=0.5))
+    assert trainer.open_loop_length_at(0) == 1
+    assert trainer.open_loop_length_at(5) == 3  # ramp ends at half of 10 steps
+    assert trainer.lr_at(0) == pytest.approx(2e-3) and trainer.lr_at(10) == pytest.approx(1e-4)
+    result = trainer.train()
+    assert result["step"] == 10
+    assert len(result["evaluation"]["exact_accuracy"]) == 3
+    assert (tmp_path / "wm" / "checkpoints" / "last.pt").exists()
+    assert (tmp_path / "wm" / "logs").exists()
+
+
+def test_resume_equals_uninterrupted_run(tmp_path) -> None:
+    full = WorldModelTrainer(tiny_config(tmp_path / "a"))
+    full.train()
+    first = WorldModelTrainer(tiny_config(tmp_path / "b", num_steps=6))
+    # interrupted after the checkpoint at step 3
+    while first.step < 3:
+        first.train_step()
+    first.save()
+    resumed = WorldModelTrainer(tiny_config(tmp_path / "b"))
+    resumed.train(resume=True)
+    assert resumed.step == 6
+    for name, value in full.model.state_dict().items():
+        assert torch.equal(value, resumed.model.state_dict()[name]), name
+
+
+def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
+    trainer = WorldModelTrainer(tiny_config(tmp_path, num_steps=3))
+    trainer.train()
+    path = trainer.checkpoint_path
+    other = WorldModelTrainer(tiny_config(tmp_path / "copy", num_steps=3))
+    other.load(path)
+    assert other.step == 3
+    for name, value in trainer.model.state_dict().items():
+        assert torch.equal(value, other.model.state_dict()[name])
+    two_objects = WorldModelTrainer(tiny_config(tmp_path / "two", num_objects=2))
+    with pytest.raises(ValueError, match="another environment"):
+        two_objects.load(path)
+    bigger = WorldModelTrainer(tiny_config(tmp_path / "big", model_preset="default"))
+    with pytest.raises(ValueError, match="video model"):
+        bigger.load(path)
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="corrupted"):
+        other.load(broken)
+
+
+def test_config_validation_names_the_field(tmp_path) -> None:
+    with pytest.raises(ValueError, match="trajectory_length"):
+        WorldModelTrainer(tiny_config(tmp_path, trajectory_length=2))
+    with pytest.raises(ValueError, match="feedback"):
+        tiny_config(tmp_path, feedback="teacher").validate()
+    with pytest.raises(ValueError, match="unknown WorldModelConfig fields"):
+        WorldModelConfig.from_dict({"num_stepz": 3})
+    cfg = tiny_config(tmp_path)
+    assert WorldModelConfig.from_dict(cfg.to_dict()) == cfg

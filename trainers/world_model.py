@@ -1,0 +1,263 @@
+"""WorldModelTrainer: trains the video prediction model on play-data windows."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import TensorDictReplayBuffer
+
+from dorp_rl.config import ConfigMixin
+from dorp_rl.data import SequenceSampler, collect_play_data
+from dorp_rl.envs import ENV_NAMES, GridWorldEnv, make_env
+from dorp_rl.eval.world_model import open_loop_accuracy
+from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
+from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
+from dorp_rl.trainers.base import Trainer
+
+#: seed offset of the held-out play data used for evaluation
+HELD_OUT_SEED_OFFSET = 100_003
+
+
+@dataclass
+class WorldModelConfig(ConfigMixin):
+    """Everything that defines a world-model run (a CleanRL-style flat dataclass).
+
+    Play data are random-action trajectories of ``trajectory_length`` steps (for
+    rearrangement a fresh random configuration starts each one); the model trains on
+    windows of ``horizon`` steps. The open-loop length (steps the model feeds on its own
+    predictions before restarting from the true frame) grows linearly from 1 to
+    ``horizon`` over the first ``open_loop_ramp`` share of the steps: pure one-step
+    training first, full open-loop rollouts after.
+
+    Use :meth:`rearrangement`, :meth:`key_wall` or :meth:`key_corridor`, then override
+    fields with :func:`dataclasses.replace`.
+    """
+
+    # environment and play data
+    env: str = "rearrangement"
+    num_objects: int = 3
+    num_frames: int = 100_000
+    num_envs: int = 64
+    trajectory_length: int = 16
+    horizon: int = 14
+    data_dir: str | None = None
+    eval_frames: int = 8_000
+    eval_sequences: int = 512
+    # model
+    model_preset: str = "default"
+    latent_dim: int = 4
+    prior: str = "fixed"
+    # loss
+    feedback: str = "straight_through"
+    kl_weight: float = 1.0
+    free_bits: float = 0.0
+    deterministic_fraction: float = 0.5
+    open_loop_ramp: float = 0.5
+    # optimisation
+    batch_size: int = 32
+    lr: float = 2e-3
+    lr_final: float = 1e-4
+    grad_clip: float = 1.0
+    num_steps: int = 6000
+    # bookkeeping
+    seed: int = 0
+    device: str = "cpu"
+    out_dir: str = "outputs/world_model"
+    log_every: int = 50
+    eval_every: int = 1000
+    checkpoint_every: int = 500
+    progress: bool = True
+
+    @classmethod
+    def rearrangement(cls, num_objects: int = 3, **overrides: Any) -> WorldModelConfig:
+        """k-object rearrangement: 16-step random-action trajectories, 14-step windows."""
+        return replace(cls(env="rearrangement", num_objects=num_objects), **overrides)
+
+    @classmethod
+    def key_wall(cls, **overrides: Any) -> WorldModelConfig:
+        """Key-wall: windows from the 1000-step random walks of the play data."""
+        return replace(cls(env="key-wall", trajectory_length=1000), **overrides)
+
+    @classmethod
+    def key_corridor(cls, **overrides: Any) -> WorldModelConfig:
+        """Key-corridor: windows from the 1500-step random walks of the play data."""
+        return replace(cls(env="key-corridor", trajectory_length=1500), **overrides)
+
+    def validate(self) -> None:
+        if self.env not in ENV_NAMES:
+            raise ValueError(f"env must be one of {ENV_NAMES}, got {self.env!r}.")
+        for name in (
+            "num_steps",
+            "batch_size",
+            "num_frames",
+            "horizon",
+            "log_every",
+            "checkpoint_every",
+            "eval_every",
+            "eval_sequences",
+        ):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}.")
+        if self.trajectory_length < self.horizon:
+            raise ValueError(
+                f"trajectory_length ({self.trajectory_length}) must be >= horizon "
+                f"({self.horizon}): windows never cross a trajectory boundary."
+            )
+        if self.feedback not in FEEDBACK_MODES:
+            raise ValueError(f"feedback must be one of {FEEDBACK_MODES}, got {self.feedback!r}.")
+        if not 0.0 <= self.open_loop_ramp <= 1.0:
+            raise ValueError(f"open_loop_ramp must be in [0, 1], got {self.open_loop_ramp}.")
+        VideoModelConfig.preset(self.model_preset)  # raises on an unknown preset
+
+    def make_env(self, **kwargs: Any) -> GridWorldEnv:
+        """The environment this config trains on."""
+        return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
+
+    def model_config(self) -> VideoModelConfig:
+        return VideoModelConfig.preset(
+            self.model_preset, latent_dim=self.latent_dim, prior=self.prior
+        )
+
+
+class WorldModelTrainer(Trainer):
+    """Trains a :class:`~dorp_rl.modules.VideoPredictionModel` with :class:`~dorp_rl.objectives.VideoPredictionLoss`.
+
+    Play data (collected, or loaded from ``config.data_dir``) are sampled as windows of
+    ``horizon`` steps by a :class:`~dorp_rl.data.SequenceSampler`; held-out play data
+    from another seed give ``eval_sequences`` fixed windows on which
+    :func:`~dorp_rl.eval.world_model.open_loop_accuracy` is measured every
+    ``eval_every`` steps and at the end. The palette is read off the play data. Adam
+    with a cosine learning-rate decay from ``lr`` to ``lr_final`` and gradient-norm
+    clipping. Logging, checkpoints and ``train(resume=True)`` follow
+    :class:`~dorp_rl.trainers.Trainer`.
+
+    Examples:
+        >>> from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer
+        >>> cfg = WorldModelConfig.rearrangement(1, num_steps=5, num_frames=640, horizon=3,
+        ...     trajectory_length=4, eval_frames=256, eval_sequences=8, model_preset="small",
+        ...     progress=False, out_dir="/tmp/dorp_doc_world_model")
+        >>> result = WorldModelTrainer(cfg).train()
+        >>> result["step"], len(result["evaluation"]["exact_accuracy"])
+        (5, 3)
+    """
+
+    kind = "world_model"
+    progress_metric = "loss_reconstruction"
+
+    def __init__(
+        self,
+        config: WorldModelConfig,
+        buffer: TensorDictReplayBuffer | None = None,
+        eval_buffer: TensorDictReplayBuffer | None = None,
+        logger: Any | None = None,
+    ) -> None:
+        config.validate()
+        super().__init__(config, config.make_env(batch_size=(config.num_envs,)), logger)
+        self.device = torch.device(config.device)
+        if buffer is None:
+            buffer = collect_play_data(
+                self.env,
+                config.num_frames,
+                directory=config.data_dir,
+                seed=config.seed,
+                trajectory_length=config.trajectory_length,
+                sampler=SequenceSampler(config.horizon),
+                batch_size=config.batch_size,
+                progress=config.progress,
+            )
+        if eval_buffer is None:
+            eval_buffer = collect_play_data(
+                self.env,
+                config.eval_frames,
+                seed=config.seed + HELD_OUT_SEED_OFFSET,
+                trajectory_length=config.trajectory_length,
+                sampler=SequenceSampler(config.horizon),
+            )
+        self.buffer = buffer
+        self.buffer.set_rng(self.data_generator)
+        eval_generator = torch.Generator().manual_seed(config.seed)
+        eval_buffer.set_rng(eval_generator)
+        self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
+        torch.manual_seed(config.seed)
+        self.data_generator.manual_seed(config.seed + 1)
+        palette = palette_from_frames(buffer[: min(len(buffer), 20_000)]["pixels"])
+        self.model = VideoPredictionModel(self.env.num_actions, palette, config.model_config()).to(
+            self.device
+        )
+        self.loss = VideoPredictionLoss(
+            self.model,
+            open_loop_length=1,
+            feedback=config.feedback,
+            kl_weight=config.kl_weight,
+            free_bits=config.free_bits,
+            deterministic_fraction=config.deterministic_fraction,
+        )
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+
+    # ------------------------------------------------------------------ schedules
+    def open_loop_length_at(self, step: int) -> int:
+        """1 at step 0, growing linearly to ``horizon`` at ``open_loop_ramp * num_steps``."""
+        cfg = self.config
+        ramp = cfg.open_loop_ramp * cfg.num_steps
+        frac = 1.0 if ramp <= 0 else min(1.0, step / ramp)
+        return max(1, min(cfg.horizon, 1 + int(frac * (cfg.horizon - 1) + 1e-9)))
+
+    def lr_at(self, step: int) -> float:
+        """Cosine decay from ``lr`` to ``lr_final`` over ``num_steps``."""
+        cfg = self.config
+        frac = min(1.0, step / cfg.num_steps)
+        return cfg.lr_final + 0.5 * (cfg.lr - cfg.lr_final) * (1.0 + math.cos(math.pi * frac))
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+    def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
+        stored_model = WorldModelConfig.from_dict(stored).model_config()
+        if stored_model != self.config.model_config():
+            raise ValueError(
+                f"checkpoint holds a video model with {stored_model}, this trainer builds "
+                f"{self.config.model_config()}."
+            )
+
+    # ------------------------------------------------------------------ steps
+    def train_step(self) -> dict[str, float]:
+        """One gradient step on a batch of windows; returns the detached metrics."""
+        self.loss.open_loop_length = self.open_loop_length_at(self.step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr_at(self.step)
+        batch = self.buffer.sample(self.config.batch_size).to(self.device)
+        out = self.loss(batch)
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
+        self.optimizer.step()
+        self.step += 1
+        metrics = {k: float(v.detach()) for k, v in out.items()}
+        metrics["grad_norm"] = float(grad_norm)
+        metrics["lr"] = self.optimizer.param_groups[0]["lr"]
+        return metrics
+
+    @property
+    def evaluate_every(self) -> int:
+        return self.config.eval_every
+
+    @property
+    def evaluate_at_end(self) -> bool:
+        return True
+
+    def evaluate(self) -> dict[str, Any]:
+        """Open-loop accuracy on the held-out windows (deterministic mode)."""
+        result = open_loop_accuracy(self.model, self.eval_windows)
+        for h in sorted({1, (result["horizon"] + 1) // 2, result["horizon"]}):
+            result[f"exact_accuracy_step{h}"] = result["exact_accuracy"][h - 1]
+        return result
