@@ -8,12 +8,9 @@ sequences of ``horizon`` steps, pixel-L2 cost to the goal, one acting env) throu
 - ``ground truth``: :class:`~dorp_rl.envs.GroundTruthModelEnv` (true dynamics and
   renderer of ``ObjectRearrangementEnv``);
 - ``world model``: :class:`~dorp_rl.envs.WorldModelEnv` wrapping the project's
-  ``VideoPredictionModel`` if ``from dorp_rl.modules import VideoPredictionModel``
-  works and the model can be built for the env, else a stand-in conv net of the size
-  REFERENCE.md describes (frame folded to an 8x8 grid of 12 channels, action one-hot
-  as input channels and FiLM, residual dilated 3x3 convs, per-pixel scores over the
-  palette turned back into a frame by a max-mask and a 1x1 conv; ~65k parameters by
-  default, untrained: latency does not depend on the weights);
+  :class:`~dorp_rl.modules.VideoPredictionModel`, trained (``--checkpoint``, a
+  ``WorldModelTrainer`` checkpoint) or freshly initialised at a preset's size
+  (``--preset``; latency does not depend on the weights);
 - ``bare forward``: the model's ``predict`` on the same frames, ``horizon`` calls of
   ``num_candidates`` frames each, nothing else: the floor a planner through this model
   cannot beat. ``bare forward x1`` is one call on all ``num_candidates * horizon``
@@ -36,10 +33,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import inspect
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
@@ -47,88 +44,22 @@ from torch import nn
 
 from dorp_rl.envs import ObjectRearrangementEnv
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
 from dorp_rl.planners import CategoricalCEMPlanner, PixelDistanceCost, RandomShootingPlanner
+from dorp_rl.trainers import load_video_model
 
 GOAL_SECONDS = 1.0
 
 
-class StandInVideoModel(nn.Module):
-    """Deterministic conv video model of the size REFERENCE.md measured (untrained).
-
-    Frame ``[N, 3, 16, 16]`` -> pixel-unshuffle to ``[N, 12, 8, 8]`` -> concat action
-    one-hot -> 3x3 conv to ``width`` -> ``blocks`` residual blocks (dilated 3x3 conv,
-    FiLM from the action, ReLU) -> 1x1 conv to ``4 * P`` palette scores ->
-    pixel-shuffle to ``[N, P, 16, 16]``; a copy path adds the input frame's palette
-    one-hot. The predicted frame is the max-scoring palette colour per pixel, drawn by
-    a 1x1 conv with the palette as weights.
-    """
-
-    def __init__(
-        self, num_actions: int, palette: torch.Tensor, width: int = 44, blocks: int = 3
-    ) -> None:
-        super().__init__()
-        self.num_actions = num_actions
-        self.register_buffer("palette", palette.float() / 255.0)  # [P, 3]
-        p = palette.shape[0]
-        self.inp = nn.Conv2d(12 + num_actions, width, 3, padding=1)
-        self.blocks = nn.ModuleList(
-            nn.Conv2d(width, width, 3, padding=d, dilation=d) for d in [1, 2, 4, 1][:blocks]
-        )
-        self.film = nn.Linear(num_actions, 2 * width * blocks)
-        self.out = nn.Conv2d(width, 4 * p, 1)
-        self.copy_gain = nn.Parameter(torch.tensor(4.0))
-
-    def forward(self, frames: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Palette scores ``[N, P, 16, 16]`` from float frames and int64 actions ``[N, 1]``."""
-        n = frames.shape[0]
-        onehot = nn.functional.one_hot(action.squeeze(-1), self.num_actions).float()
-        x = nn.functional.pixel_unshuffle(frames, 2)
-        x = torch.cat([x, onehot.view(n, -1, 1, 1).expand(n, -1, 8, 8)], 1)
-        h = torch.relu(self.inp(x))
-        film = self.film(onehot).view(n, len(self.blocks), 2, -1, 1, 1)
-        for i, conv in enumerate(self.blocks):
-            h = h + torch.relu(conv(h) * (1 + film[:, i, 0]) + film[:, i, 1])
-        scores = nn.functional.pixel_shuffle(self.out(h), 2)
-        # Copy path: the input frame's own colour per pixel (distance to the palette).
-        distance = (frames.unsqueeze(1) - self.palette.view(1, -1, 3, 1, 1)).abs().sum(2)
-        return scores - self.copy_gain * distance
-
-    @torch.no_grad()
-    def predict(
-        self, pixels: torch.Tensor, action: torch.Tensor, deterministic: bool = True
-    ) -> torch.Tensor:
-        scores = self(pixels.float() / 255.0, action)
-        mask = (scores == scores.amax(1, keepdim=True)).float()
-        frame = nn.functional.conv2d(mask, self.palette.t().reshape(3, -1, 1, 1))
-        return (frame.clamp(0, 1) * 255).round().to(torch.uint8)
-
-
 def build_model(env: ObjectRearrangementEnv, args: argparse.Namespace) -> tuple[nn.Module, str]:
-    """The project's VideoPredictionModel if it imports and builds, else the stand-in."""
-    reason = "--model standin"
-    if args.model != "standin":
-        try:
-            from dorp_rl.modules import VideoPredictionModel  # type: ignore[attr-defined]
-
-            params = inspect.signature(VideoPredictionModel).parameters
-            offer = {
-                "num_actions": env.num_actions,
-                "num_objects": env.num_objects,
-                "colours": env.colours,
-                "palette": env.colours,
-            }
-            kwargs = {k: v for k, v in offer.items() if k in params}
-            model = VideoPredictionModel(**kwargs)
-            if not callable(getattr(model, "predict", None)):
-                raise TypeError("it has no predict method")
-            return model.eval(), f"VideoPredictionModel({', '.join(kwargs)})"
-        except Exception as error:  # noqa: BLE001 - any failure means: fall back
-            reason = f"VideoPredictionModel unavailable ({type(error).__name__}: {error})"
-            if args.model == "real":
-                raise
+    """The trained model of ``--checkpoint``, or an untrained one of ``--preset``'s size."""
+    if args.checkpoint is not None:
+        model = load_video_model(args.checkpoint, env)
+        return model, f"VideoPredictionModel from {args.checkpoint}"
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours])
-    model = StandInVideoModel(env.num_actions, palette, args.width, args.blocks).eval()
-    return model, f"stand-in conv net ({reason})"
+    config = VideoModelConfig.preset(args.preset)
+    model = VideoPredictionModel(env.num_actions, palette, config).eval()
+    return model, f"VideoPredictionModel, {args.preset} preset (untrained)"
 
 
 def median_seconds(fn: Callable[[], object], repeats: int) -> float:
@@ -181,9 +112,8 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=14)
     parser.add_argument("--objects", type=int, default=3, help="blocks in the rearrangement env")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--model", choices=("auto", "real", "standin"), default="auto")
-    parser.add_argument("--width", type=int, default=44, help="stand-in conv width")
-    parser.add_argument("--blocks", type=int, default=3, help="stand-in residual blocks (<= 4)")
+    parser.add_argument("--checkpoint", type=Path, default=None, help="a world-model checkpoint")
+    parser.add_argument("--preset", choices=("small", "default"), default="default")
     parser.add_argument("--cem", action="store_true", help="also time CEM (3 iterations)")
     parser.add_argument("--profile", action="store_true", help="torch.profiler top operators")
     args = parser.parse_args()

@@ -22,7 +22,7 @@ from dorp_rl.modules import (
     IdentitySimilarity,
 )
 from dorp_rl.objectives import CPCLoss
-from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer, load_encoder
 
 
 def _pixels(n: int, seed: int = 0) -> torch.Tensor:
@@ -231,6 +231,9 @@ def test_checkpoint_round_trip(tmp_path):
     assert other.step == trainer.step
     for a, b in zip(trainer.similarity.parameters(), other.similarity.parameters(), strict=True):
         assert torch.equal(a, b)
+    encoder = load_encoder(trainer.checkpoint_path, env=trainer.env)
+    assert not encoder.training
+    assert torch.equal(encoder.encode(pixels), trainer.encoder.encode(pixels))
 
 
 def test_resume_equals_uninterrupted_run(tmp_path):

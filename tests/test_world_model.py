@@ -14,7 +14,7 @@ from dorp_rl.eval import open_loop_accuracy
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives import VideoPredictionLoss
 from dorp_rl.objectives.video import gaussian_kl
-from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer
+from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer, load_encoder, load_video_model
 
 
 @pytest.fixture(scope="module")
@@ -105,6 +105,31 @@ def test_stochastic_mode_uses_the_latent_and_is_seeded(
     )
     assert torch.equal(a, b)
     assert torch.equal(model.predict(pixels, action), model.predict(pixels, action))
+
+
+def test_advection_moves_each_colour_by_its_own_kernel(
+    env: ObjectRearrangementEnv, windows: TensorDict
+) -> None:
+    """An untrained model copies the frame; a kernel head set to "first colour down,
+    second colour right" moves exactly those blocks and fills the background in."""
+    torch.manual_seed(0)
+    palette = palette_from_frames(windows["pixels"])
+    model = VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small())
+    state = torch.tensor([[[4, 4], [10, 8]]])
+    pixels = env.render_state(state)
+    action = torch.zeros(1, 1, dtype=torch.int64)
+    assert torch.equal(model.predict(pixels, action), pixels)
+    colour = [model.palette_index(env.render_state(state))[0, r, c] for r, c in state[0].tolist()]
+    bias = torch.full((model.num_colours, 9), -30.0)
+    bias[:, 4] = 30.0  # identity for every colour ...
+    bias[colour[0]] = torch.tensor([-30.0] * 7 + [30.0, -30.0])  # ... tap (2, 1): down
+    bias[colour[1]] = torch.tensor([-30.0] * 5 + [30.0] + [-30.0] * 3)  # tap (1, 2): right
+    with torch.no_grad():
+        model.kernel_head.bias.copy_(bias.flatten())
+        model.head.weight.zero_()
+        model.head.bias.zero_()
+    expected = env.render_state(torch.tensor([[[5, 4], [10, 9]]]))
+    assert torch.equal(model.predict(pixels, action), expected)
 
 
 def test_bad_inputs_name_what_was_expected(
@@ -204,6 +229,12 @@ def test_trainer_schedules_and_evaluation(tmp_path) -> None:
     result = trainer.train()
     assert result["step"] == 10
     assert len(result["evaluation"]["exact_accuracy"]) == 3
+    # eval_every=3: evaluations at steps 3, 6 and 9, and one at the end
+    assert [row["step"] for row in trainer.evaluations] == [3, 6, 9, 10]
+    assert (
+        trainer.evaluations[-1]["exact_accuracy_last"]
+        == result["evaluation"]["exact_accuracy_last"]
+    )
     assert (tmp_path / "wm" / "checkpoints" / "last.pt").exists()
     assert (tmp_path / "wm" / "logs").exists()
 
@@ -232,6 +263,15 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
     assert other.step == 3
     for name, value in trainer.model.state_dict().items():
         assert torch.equal(value, other.model.state_dict()[name])
+    loaded = load_video_model(path, env=trainer.env)
+    assert not loaded.training
+    pixels = trainer.eval_windows[:, 0]["pixels"]
+    action = trainer.eval_windows[:, 0]["action"]
+    assert torch.equal(loaded.predict(pixels, action), trainer.model.predict(pixels, action))
+    with pytest.raises(ValueError, match="another environment"):
+        load_video_model(path, env=ObjectRearrangementEnv(num_objects=2))
+    with pytest.raises(ValueError, match="'world_model'"):
+        load_encoder(path)
     two_objects = WorldModelTrainer(tiny_config(tmp_path / "two", num_objects=2))
     with pytest.raises(ValueError, match="another environment"):
         two_objects.load(path)

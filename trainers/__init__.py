@@ -6,8 +6,9 @@ from dorp_rl.trainers.representation import (
     RepresentationConfig,
     RepresentationTrainer,
     diagnose,
+    load_encoder,
 )
-from dorp_rl.trainers.world_model import WorldModelConfig, WorldModelTrainer
+from dorp_rl.trainers.world_model import WorldModelConfig, WorldModelTrainer, load_video_model
 
 __all__ = [
     "ENV_NAMES",
@@ -17,4 +18,6 @@ __all__ = [
     "WorldModelConfig",
     "WorldModelTrainer",
     "diagnose",
+    "load_encoder",
+    "load_video_model",
 ]

@@ -48,6 +48,8 @@ class Trainer:
         self.logger = logger
         self.step = 0
         self.history: list[dict[str, float]] = []
+        #: the scalar results of every evaluation, with the step it was made at
+        self.evaluations: list[dict[str, float]] = []
         self.last_evaluation: dict[str, Any] = {}
 
     # ------------------------------------------------------------------ hooks
@@ -83,10 +85,11 @@ class Trainer:
 
     def extra_state(self) -> dict[str, Any]:
         """JSON-like state saved with checkpoints besides the state dicts."""
-        return {"history": self.history}
+        return {"history": self.history, "evaluations": self.evaluations}
 
     def load_extra_state(self, extra: dict[str, Any]) -> None:
         self.history = list(extra.get("history", []))
+        self.evaluations = list(extra.get("evaluations", []))
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         """Raises ``ValueError`` if a stored config cannot be loaded into this trainer."""
@@ -133,6 +136,14 @@ class Trainer:
             if isinstance(value, (int, float)) and not isinstance(value, bool):
                 self.logger.log_scalar(f"{prefix}{key}", float(value), step=self.step)
 
+    def _evaluate_and_log(self) -> None:
+        self.last_evaluation = self.evaluate()
+        self.log_metrics(self.last_evaluation, prefix="eval/")
+        scalars = {
+            k: float(v) for k, v in self.last_evaluation.items() if isinstance(v, (int, float))
+        }
+        self.evaluations.append({"step": self.step, **scalars})
+
     def train(self, resume: bool = False) -> dict[str, Any]:
         """Trains until :meth:`done` and returns the last metrics and evaluation.
 
@@ -162,8 +173,7 @@ class Trainer:
                         )
                 self.after_step(metrics, logged)
                 if self.step % self.evaluate_every == 0:
-                    self.last_evaluation = self.evaluate()
-                    self.log_metrics(self.last_evaluation, prefix="eval/")
+                    self._evaluate_and_log()
                     evaluated_at = self.step
                 if self.step % cfg.checkpoint_every == 0:
                     self.save()
@@ -174,6 +184,5 @@ class Trainer:
                 bar.close()
         self.save()
         if evaluated_at != self.step and self.evaluate_at_end:
-            self.last_evaluation = self.evaluate()
-            self.log_metrics(self.last_evaluation, prefix="eval/")
+            self._evaluate_and_log()
         return {"step": self.step, "metrics": metrics, "evaluation": self.last_evaluation}

@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
+from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
 from dorp_rl.envs import (
     GridWorldEnv,
@@ -124,6 +126,13 @@ class RepresentationConfig:
             map_competition="softmax",
         )
         return replace(base, **overrides)
+
+    def encoder_config(self) -> EncoderConfig:
+        """The encoder this config trains (preset, code sizes, map competition)."""
+        preset = EncoderConfig.small if self.encoder_preset == "small" else EncoderConfig.authors
+        enc_cfg = preset(self.code_sizes)
+        enc_cfg.map_competition = self.map_competition
+        return enc_cfg
 
     @property
     def code_sizes(self) -> tuple[int, ...]:
@@ -246,10 +255,7 @@ class RepresentationTrainer(Trainer):
         """(Re-)creates encoder, similarity, loss and optimiser from ``seed``."""
         cfg = self.config
         torch.manual_seed(seed)
-        preset = EncoderConfig.small if cfg.encoder_preset == "small" else EncoderConfig.authors
-        enc_cfg = preset(cfg.code_sizes)
-        enc_cfg.map_competition = cfg.map_competition
-        self.encoder = DiscreteCodeEncoder(enc_cfg).to(self.device)
+        self.encoder = DiscreteCodeEncoder(cfg.encoder_config()).to(self.device)
         sim_kwargs: dict[str, Any] = {}
         if cfg.similarity == "dddp":
             sim_kwargs = {"alpha": cfg.alpha, "sign": cfg.dddp_sign}
@@ -294,7 +300,7 @@ class RepresentationTrainer(Trainer):
         self.optimizer.load_state_dict(state["optimizer"])
 
     def extra_state(self) -> dict[str, Any]:
-        return {"attempt": self.attempt, "restarts": self.restarts, "history": self.history}
+        return {**super().extra_state(), "attempt": self.attempt, "restarts": self.restarts}
 
     def load_extra_state(self, extra: dict[str, Any]) -> None:
         super().load_extra_state(extra)
@@ -425,3 +431,25 @@ class RepresentationTrainer(Trainer):
         )
 
     diagnose = evaluate
+
+
+def load_encoder(
+    path: str | Path, env: GridWorldEnv | None = None, device: str | torch.device = "cpu"
+) -> DiscreteCodeEncoder:
+    """The trained encoder of a representation checkpoint, in eval mode.
+
+    Args:
+        path: a checkpoint written by :class:`RepresentationTrainer`.
+        env: if given, the checkpoint must come from this environment.
+        device: where to put the encoder.
+
+    Raises:
+        ValueError: a corrupted file, another kind of checkpoint or another environment.
+    """
+    payload = load_checkpoint(
+        path, kind="representation", env_config=None if env is None else env.config()
+    )
+    cfg = RepresentationConfig.from_dict(payload["config"])
+    encoder = DiscreteCodeEncoder(cfg.encoder_config())
+    encoder.load_state_dict(payload["state"]["encoder"])
+    return encoder.to(device).eval()

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
+from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.config import ConfigMixin
 from dorp_rl.data import SequenceSampler, collect_play_data
 from dorp_rl.envs import ENV_NAMES, GridWorldEnv, make_env
@@ -261,3 +263,27 @@ class WorldModelTrainer(Trainer):
         for h in sorted({1, (result["horizon"] + 1) // 2, result["horizon"]}):
             result[f"exact_accuracy_step{h}"] = result["exact_accuracy"][h - 1]
         return result
+
+
+def load_video_model(
+    path: str | Path, env: GridWorldEnv | None = None, device: str | torch.device = "cpu"
+) -> VideoPredictionModel:
+    """The trained video model of a world-model checkpoint, in eval mode.
+
+    Args:
+        path: a checkpoint written by :class:`WorldModelTrainer`.
+        env: if given, the checkpoint must come from this environment.
+        device: where to put the model.
+
+    Raises:
+        ValueError: a corrupted file, another kind of checkpoint or another environment.
+    """
+    payload = load_checkpoint(
+        path, kind=WorldModelTrainer.kind, env_config=None if env is None else env.config()
+    )
+    cfg = WorldModelConfig.from_dict(payload["config"])
+    state = payload["state"]["model"]
+    num_actions = make_env(cfg.env, num_objects=cfg.num_objects).num_actions
+    model = VideoPredictionModel(num_actions, state["palette"], cfg.model_config())
+    model.load_state_dict(state)
+    return model.to(device).eval()

@@ -15,9 +15,13 @@ Layout of one prediction step (measured on this 2-core CPU, see ``REFERENCE.md``
    (FiLM) by the action and ``z`` and by a global max-pool of its own features, so that
    a fact seen anywhere (e.g. "the block to move touches an obstacle on that side")
    reaches every cell in one block;
-3. a 1x1 conv gives ``4 K`` scores per cell, unfolded to ``[N, K, 16, 16]``, plus a copy
-   path: a learned gain times the input frame's own one-hot (so "nothing changes" is
-   the easy default);
+3. a 1x1 conv gives ``4 K`` scores per cell, unfolded to ``[N, K, 16, 16]``, plus an
+   advection path in the spirit of SV2P's CDNA: from the pooled trunk features, one
+   softmax 3x3 kernel per palette colour moves that colour's map by at most one pixel;
+   the background (the first palette colour, black in every dorp-rl env) is what the
+   moved colours leave free. A learned gain times this advected frame is added to the
+   scores, so "each object moves as a whole, or not at all" is the easy default and
+   "nothing changes" is where training starts (the kernels start at the identity);
 4. frames come back by palette lookup of the per-pixel argmax.
 
 The latent variable follows SV2P: at training time ``z`` is drawn from a posterior
@@ -111,7 +115,10 @@ class VideoModelConfig:
         latent_dim: size of the latent ``z`` (0: a deterministic model).
         prior: ``"fixed"`` (``N(0, I)``) or ``"learned"`` (``p(z | o_t, a_t)``).
         latent_channels: width of the posterior / prior conv nets.
-        copy_init: initial gain of the copy path (score added to the input's colour).
+        copy_init: initial gain of the advection path (score added to the advected
+            input colours).
+        advection: move each colour's map by a predicted 3x3 kernel (CDNA-style) before
+            the copy path; ``False`` copies the input frame unchanged.
 
     Use :meth:`small` (fast, for planning with thousands of candidates) or
     :meth:`default` (more accurate), then override fields.
@@ -124,6 +131,7 @@ class VideoModelConfig:
     prior: str = "fixed"
     latent_channels: int = 16
     copy_init: float = 2.0
+    advection: bool = True
 
     @classmethod
     def small(cls, **overrides: Any) -> VideoModelConfig:
@@ -185,12 +193,12 @@ class _ResidualBlock(nn.Module):
     def forward(self, h: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         u = self.conv(F.relu(h))
         gamma, beta = self.film(cond)[..., :, None, None].chunk(2, dim=1)
-        u = F.relu(u * (1.0 + gamma) + beta)
+        u = F.relu(torch.addcmul(beta, u, 1.0 + gamma))
         v = self.mix(u)
         if self.context is not None:
             # What the action-modulated features saw anywhere on the grid gates the update.
             gamma, beta = self.context(u.amax(dim=(-2, -1)))[..., :, None, None].chunk(2, dim=1)
-            v = v * (1.0 + gamma) + beta
+            return torch.addcmul(h + beta, v, 1.0 + gamma)
         return h + v
 
 
@@ -283,6 +291,15 @@ class VideoPredictionModel(nn.Module):
         )
         self.head = nn.Conv2d(c, grid, 1)
         self.copy_gain = nn.Parameter(torch.tensor(float(config.copy_init)))
+        if config.advection:
+            self.kernel_head = nn.Linear(2 * c + a + d, k * 9)
+            nn.init.zeros_(self.kernel_head.weight)
+            with torch.no_grad():  # start at the identity kernel (centre tap)
+                self.kernel_head.bias.copy_(
+                    torch.zeros(k, 9).index_fill_(1, torch.tensor([4]), 6.0).flatten()
+                )
+        else:
+            self.kernel_head = None
         self.posterior_net = _GaussianNet(2 * grid + a, config.latent_channels, d) if d else None
         self.prior_net = (
             _GaussianNet(grid + a, config.latent_channels, d)
@@ -397,7 +414,27 @@ class VideoPredictionModel(nn.Module):
         for block in self.blocks:
             h = block(h, cond)
         out = F.pixel_shuffle(self.head(F.relu(h)), 2)
+        if self.kernel_head is not None:
+            probs = self._advect(probs, h, cond)
         return out + self.copy_gain * probs
+
+    def _advect(self, probs: torch.Tensor, h: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """Moves each colour map by its own predicted 3x3 kernel: ``[N, K, 16, 16]`` -> same.
+
+        Kernel tap ``(i, j)`` takes the value from ``(row + 1 - i, column + 1 - j)``'s
+        neighbour, i.e. moves the map by ``(i - 1, j - 1)``. The background channel is
+        recomputed as what the other colours leave uncovered.
+        """
+        n, k = probs.shape[:2]
+        pooled = torch.cat([h.mean(dim=(-2, -1)), h.amax(dim=(-2, -1)), cond], dim=-1)
+        kernels = self.kernel_head(F.relu(pooled)).view(n, k, 9).softmax(-1)
+        # One depthwise conv over all N * K maps; conv2d correlates, so tap (i, j) of the
+        # flipped kernel reads the neighbour at (1 - i, 1 - j).
+        weight = kernels.view(n * k, 1, 3, 3).flip(-2, -1)
+        moved = F.conv2d(probs.reshape(1, n * k, 16, 16), weight, padding=1, groups=n * k)
+        moved = moved.view(n, k, 16, 16)
+        background = (1.0 - moved[:, 1:].sum(1, keepdim=True)).clamp(0.0, 1.0)
+        return torch.cat([background, moved[:, 1:]], dim=1)
 
     def prior(self, probs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Prior ``(mean, std)`` of ``z``, each ``[N, D]``: ``N(0, I)`` or ``p(z | o_t, a_t)``."""
