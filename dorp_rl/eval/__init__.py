@@ -1,4 +1,4 @@
-"""Evaluation: ground-truth diagnostics of learned codes, open-loop accuracy of world models."""
+"""Evaluation: code diagnostics, open-loop accuracy of world models, task sets and the harness."""
 
 from dorp_rl.eval.diagnostics import (
     best_assignment,
@@ -10,14 +10,17 @@ from dorp_rl.eval.diagnostics import (
     rearrangement_diagnostics,
     sample_rearrangement_states,
 )
+from dorp_rl.eval.tasks import evaluate_policy, make_task_set
 from dorp_rl.eval.world_model import open_loop_accuracy
 
 __all__ = [
     "best_assignment",
     "connected_fraction",
     "encode_pixels",
+    "evaluate_policy",
     "key_room_code_maps",
     "key_room_diagnostics",
+    "make_task_set",
     "open_loop_accuracy",
     "rearrangement_code_maps",
     "rearrangement_diagnostics",

@@ -21,7 +21,7 @@ Layout of one prediction step (measured on this 2-core CPU, see ``REFERENCE.md``
    the background (the first palette colour, black in every dorp-rl env) is what the
    moved colours leave free. A learned gain times this advected frame is added to the
    scores, so "each object moves as a whole, or not at all" is the easy default and
-   "nothing changes" is where training starts (the kernels start at the identity);
+   "nothing changes" is where training starts (the kernels start near the identity);
 4. frames come back by palette lookup of the per-pixel argmax.
 
 The latent variable follows SV2P: at training time ``z`` is drawn from a posterior
@@ -130,7 +130,7 @@ class VideoModelConfig:
     latent_dim: int = 4
     prior: str = "fixed"
     latent_channels: int = 16
-    copy_init: float = 2.0
+    copy_init: float = 4.0
     advection: bool = True
 
     @classmethod
@@ -294,9 +294,11 @@ class VideoPredictionModel(nn.Module):
         if config.advection:
             self.kernel_head = nn.Linear(2 * c + a + d, k * 9)
             nn.init.zeros_(self.kernel_head.weight)
-            with torch.no_grad():  # start at the identity kernel (centre tap)
+            # Centre tap ~0.5 at the start: the argmax frame is still a copy, yet every
+            # tap gets gradient (from a saturated softmax the kernels never learn to move).
+            with torch.no_grad():
                 self.kernel_head.bias.copy_(
-                    torch.zeros(k, 9).index_fill_(1, torch.tensor([4]), 6.0).flatten()
+                    torch.zeros(k, 9).index_fill_(1, torch.tensor([4]), 2.0).flatten()
                 )
         else:
             self.kernel_head = None

@@ -1,0 +1,168 @@
+"""Seeded task sets and the evaluation harness: success rate and steps of a policy.
+
+A task is a start ``state`` and a ``goal_state``; a task set is a TensorDict of them
+(``[num_tasks]``), drawn from the environment's own start and goal distributions with
+a fixed seed, so every method is measured on the same tasks. :func:`evaluate_policy`
+runs a policy on every task with ``env.rollout`` (success = exact equality with the goal
+within the step limit) and reports the steps next to the lower bound of each task.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from dorp_rl.envs.grid_base import GridWorldEnv
+
+
+def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDict:
+    """``num_tasks`` start/goal pairs drawn with ``seed`` from ``env``'s distributions.
+
+    Tasks whose start already equals the goal are redrawn. The env's own generator is
+    left as it was.
+
+    Returns:
+        TensorDict ``[num_tasks]`` with ``state``, ``goal_state`` (int64) and
+        ``lower_bound`` (int64 ``[num_tasks]``, :meth:`~GridWorldEnv.lower_bound_steps`).
+
+    Examples:
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.eval import make_task_set
+        >>> tasks = make_task_set(ObjectRearrangementEnv(num_objects=2), 5, seed=0)
+        >>> tasks["state"].shape, bool((tasks["lower_bound"] > 0).all())
+        (torch.Size([5, 2, 2]), True)
+    """
+    if int(num_tasks) < 1:
+        raise ValueError(f"num_tasks must be >= 1, got {num_tasks}.")
+    saved = env.rng.get_state()
+    env.rng.manual_seed(int(seed))
+    try:
+        shape = torch.Size([int(num_tasks)])
+        state = env.sample_states(shape)
+        goal = env.sample_goal_states(shape)
+        for _ in range(100):
+            same = env.lower_bound_steps(state, goal) == 0
+            if not bool(same.any()):
+                break
+            goal[same] = env.sample_goal_states(torch.Size([int(same.sum())]))
+        else:
+            raise RuntimeError("could not draw goals different from their starts.")
+    finally:
+        env.rng.set_state(saved)
+    return TensorDict(
+        state=state,
+        goal_state=goal,
+        lower_bound=env.lower_bound_steps(state, goal).reshape(shape).to(torch.int64),
+        batch_size=shape,
+    )
+
+
+def evaluate_policy(
+    env: GridWorldEnv,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    tasks: TensorDictBase,
+    *,
+    max_steps: int | None = None,
+    tasks_per_rollout: int = 1,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Runs ``policy`` on every task and returns success and step figures.
+
+    Tasks run ``tasks_per_rollout`` at a time (one batched ``env.rollout``, stopped
+    when all of them are done): batching is faster with cheap policies, one at a time
+    wastes no planning on tasks already solved.
+
+    Args:
+        env: the acting env; it must take ``tasks_per_rollout`` rows (an env with
+            ``batch_size=(n,)`` needs ``tasks_per_rollout == n``; ``batch_size=()``
+            with ``batch_locked=False`` takes any).
+        policy: a TensorDict policy (e.g. a planner-based policy).
+        tasks: from :func:`make_task_set`.
+        max_steps: step limit per task (default: ``env.max_steps``).
+        tasks_per_rollout: tasks per batched rollout.
+        progress: show a tqdm bar over tasks.
+
+    Returns:
+        ``success`` (bool list per task), ``steps`` (int list: steps until success, or
+        the limit), ``success_rate``, ``mean_steps`` (over successful tasks, ``nan`` if
+        none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``.
+    """
+    limit = int(max_steps or env.max_steps)
+    if limit < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+    if tasks_per_rollout < 1:
+        raise ValueError(f"tasks_per_rollout must be >= 1, got {tasks_per_rollout}.")
+    for key in ("state", "goal_state"):
+        if key not in tasks.keys():
+            raise ValueError(
+                f"tasks must hold {key!r} (see make_task_set), got {list(tasks.keys())}."
+            )
+    n = tasks.shape[0]
+    locked = env.batch_locked and env.batch_size != torch.Size([])
+    if locked and env.batch_size != torch.Size([tasks_per_rollout]):
+        raise ValueError(
+            f"env has batch_size {tuple(env.batch_size)} but tasks_per_rollout is "
+            f"{tasks_per_rollout}: give an env with batch_size=({tasks_per_rollout},) or "
+            "batch_size=() and batch_locked=False."
+        )
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, desc="tasks")
+    success: list[bool] = []
+    steps: list[int] = []
+    start = time.perf_counter()
+    for first in range(0, n, tasks_per_rollout):
+        chunk = tasks[first : first + tasks_per_rollout]
+        rows = chunk.shape[0]
+        if locked and rows != tasks_per_rollout:  # pad the last chunk with repeats
+            chunk = torch.cat([chunk, chunk[:1].expand(tasks_per_rollout - rows)], 0)
+        given = TensorDict(
+            state=chunk["state"], goal_state=chunk["goal_state"], batch_size=chunk.shape
+        ).to(env.device)
+        td = env.reset(given, set_state=True)
+        rollout = env.rollout(
+            limit,
+            policy,
+            tensordict=td,
+            auto_reset=False,
+            break_when_any_done=False,
+            break_when_all_done=True,
+        )
+        done = rollout["next", "done"].squeeze(-1)[:rows]  # [rows, T]
+        won = rollout["next", "success"].squeeze(-1)[:rows]
+        t = done.shape[-1]
+        first_done = torch.where(
+            done.any(-1),
+            done.float().argmax(-1),
+            torch.full_like(done[:, 0], t - 1, dtype=torch.int64),
+        )
+        won_at_end = won.gather(-1, first_done[:, None]).squeeze(-1) & done.any(-1)
+        for row in range(rows):
+            success.append(bool(won_at_end[row]))
+            steps.append(int(first_done[row]) + 1 if success[-1] else limit)
+        if bar is not None:
+            bar.update(rows)
+    if bar is not None:
+        bar.close()
+    ok = torch.tensor(success)
+    bound = tasks["lower_bound"].float() if "lower_bound" in tasks.keys() else None
+    return {
+        "num_tasks": n,
+        "success": success,
+        "steps": steps,
+        "success_rate": float(ok.float().mean()),
+        "mean_steps": float(torch.tensor(steps, dtype=torch.float)[ok].mean())
+        if ok.any()
+        else float("nan"),
+        "mean_lower_bound": float(bound[ok].mean())
+        if bound is not None and ok.any()
+        else float("nan"),
+        "max_steps": limit,
+        "seconds": time.perf_counter() - start,
+    }
