@@ -132,6 +132,19 @@ def test_advection_moves_each_colour_by_its_own_kernel(
     assert torch.equal(model.predict(pixels, action), expected)
 
 
+def test_collision_features_see_blocked_moves(env: ObjectRearrangementEnv) -> None:
+    palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours])
+    model = VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small())
+    # block 0 in the top-left corner, block 1 right below it
+    pixels = env.render_state(torch.tensor([[[0, 0], [2, 0]]]))
+    features = model._collisions(model.frame_probs(pixels)).view(3, 2, 9)  # colour, kind, tap
+    up, down, left, right, stay = 1, 7, 3, 5, 4
+    overlap, lost = features[1, 0], features[1, 1]
+    assert overlap[down] == 0.5 and overlap[[up, left, right, stay]].eq(0).all()
+    assert lost[up] == 0.5 and lost[left] == 0.25 and lost[[down, right, stay]].eq(0).all()
+    assert features[2, 0, up] == 0.5 and features[2, 1].sum() == features[2, 1, [3, 6, 0]].sum()
+
+
 def test_bad_inputs_name_what_was_expected(
     model: VideoPredictionModel, windows: TensorDict
 ) -> None:

@@ -19,7 +19,9 @@ Layout of one prediction step (measured on this 2-core CPU, see ``REFERENCE.md``
    advection path in the spirit of SV2P's CDNA: from the pooled trunk features, one
    softmax 3x3 kernel per palette colour moves that colour's map by at most one pixel;
    the background (the first palette colour, black in every dorp-rl env) is what the
-   moved colours leave free. A learned gain times this advected frame is added to the
+   moved colours leave free. The kernel head also reads, per colour and shift, how
+   much the colour would overlap other colours or leave the frame (blocked moves are
+   the hard case of these worlds). A learned gain times this advected frame is added to the
    scores, so "each object moves as a whole, or not at all" is the easy default and
    "nothing changes" is where training starts (the kernels start near the identity);
 4. frames come back by palette lookup of the per-pixel argmax.
@@ -119,6 +121,9 @@ class VideoModelConfig:
             input colours).
         advection: move each colour's map by a predicted 3x3 kernel (CDNA-style) before
             the copy path; ``False`` copies the input frame unchanged.
+        collision_features: give the kernel head, for every colour and shift, how much
+            of the colour would overlap other colours or leave the frame (see
+            :meth:`VideoPredictionModel._collisions`).
 
     Use :meth:`small` (fast, for planning with thousands of candidates) or
     :meth:`default` (more accurate), then override fields.
@@ -132,6 +137,7 @@ class VideoModelConfig:
     latent_channels: int = 16
     copy_init: float = 4.0
     advection: bool = True
+    collision_features: bool = True
 
     @classmethod
     def small(cls, **overrides: Any) -> VideoModelConfig:
@@ -292,7 +298,8 @@ class VideoPredictionModel(nn.Module):
         self.head = nn.Conv2d(c, grid, 1)
         self.copy_gain = nn.Parameter(torch.tensor(float(config.copy_init)))
         if config.advection:
-            self.kernel_head = nn.Linear(2 * c + a + d, k * 9)
+            collision = 2 * k * 9 if config.collision_features else 0
+            self.kernel_head = nn.Linear(2 * c + a + d + collision, k * 9)
             nn.init.zeros_(self.kernel_head.weight)
             # Centre tap ~0.5 at the start: the argmax frame is still a copy, yet every
             # tap gets gradient (from a saturated softmax the kernels never learn to move).
@@ -428,8 +435,10 @@ class VideoPredictionModel(nn.Module):
         recomputed as what the other colours leave uncovered.
         """
         n, k = probs.shape[:2]
-        pooled = torch.cat([h.mean(dim=(-2, -1)), h.amax(dim=(-2, -1)), cond], dim=-1)
-        kernels = self.kernel_head(F.relu(pooled)).view(n, k, 9).softmax(-1)
+        features = [F.relu(h.mean(dim=(-2, -1))), F.relu(h.amax(dim=(-2, -1))), cond]
+        if self.config.collision_features:
+            features.append(self._collisions(probs))
+        kernels = self.kernel_head(torch.cat(features, dim=-1)).view(n, k, 9).softmax(-1)
         # One depthwise conv over all N * K maps; conv2d correlates, so tap (i, j) of the
         # flipped kernel reads the neighbour at (1 - i, 1 - j).
         weight = kernels.view(n * k, 1, 3, 3).flip(-2, -1)
@@ -437,6 +446,28 @@ class VideoPredictionModel(nn.Module):
         moved = moved.view(n, k, 16, 16)
         background = (1.0 - moved[:, 1:].sum(1, keepdim=True)).clamp(0.0, 1.0)
         return torch.cat([background, moved[:, 1:]], dim=1)
+
+    @staticmethod
+    def _collisions(probs: torch.Tensor) -> torch.Tensor:
+        """What each colour would run into if moved by each of the 9 shifts: ``[N, 2 * K * 9]``.
+
+        For colour ``c`` and shift ``t`` (kernel tap order): the share of ``c``'s mass that
+        would land on another non-background colour, and the share that would leave the
+        frame. Zero for a free move; the kernel head reads them linearly, so "objects do
+        not pass through each other or the border" is one weight away.
+        """
+        n, k = probs.shape[:2]
+        mass = probs.sum(dim=(-2, -1)).clamp(min=1.0)  # [N, K]
+        others = (1.0 - probs[:, :1] - probs).clamp(min=0.0)  # [N, K, 16, 16]
+        padded = F.pad(probs, (1, 1, 1, 1))
+        overlap, lost = [], []
+        for i in range(3):
+            for j in range(3):
+                shifted = padded[:, :, 2 - i : 18 - i, 2 - j : 18 - j]
+                overlap.append((shifted * others).sum(dim=(-2, -1)))
+                lost.append(probs.sum(dim=(-2, -1)) - shifted.sum(dim=(-2, -1)))
+        out = torch.stack(overlap + lost, dim=-1) / mass[..., None]  # [N, K, 18]
+        return out.reshape(n, -1)
 
     def prior(self, probs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Prior ``(mean, std)`` of ``z``, each ``[N, D]``: ``N(0, I)`` or ``p(z | o_t, a_t)``."""
