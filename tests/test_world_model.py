@@ -306,3 +306,23 @@ def test_config_validation_names_the_field(tmp_path) -> None:
         WorldModelConfig.from_dict({"num_stepz": 3})
     cfg = tiny_config(tmp_path)
     assert WorldModelConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_the_video_model_plugs_into_a_planning_env_and_planner(
+    env: ObjectRearrangementEnv, model: VideoPredictionModel
+) -> None:
+    from dorp_rl.envs import WorldModelEnv
+    from dorp_rl.planners import PixelDistanceCost, RandomShootingPlanner
+
+    planning_env = WorldModelEnv(model, env.num_actions)
+    planner = RandomShootingPlanner(
+        planning_env, PixelDistanceCost(), num_candidates=16, horizon=3, seed=0
+    )
+    td = env.reset()
+    action = planner(td.clone())["action"]
+    assert action.shape == (16, 1) and action.dtype == torch.int64
+    assert bool(env.action_spec.is_in(action))
+    # the imagined frames are the model's own rollout
+    rollout = planner.imagine(td[:2].clone(), torch.zeros(2, 1, 3, dtype=torch.int64))
+    expected = model.rollout(td[:2]["pixels"], torch.zeros(2, 3, 1, dtype=torch.int64))
+    assert torch.equal(rollout["next", "pixels"].reshape(2, 3, 3, 16, 16), expected)
