@@ -344,3 +344,18 @@ def test_key_bit_does_not_count_as_collapse():
     codes = encoder.logits(torch.cat([anchor, future]))[:32].argmax(-1)  # same batch statistics
     # the minimum is taken over the 8-code one-hot only, never the 2-way bit
     assert float(out["min_codes_in_batch"]) == float(torch.unique(codes[:, 0]).numel())
+
+
+def test_a_one_by_one_extractor_sees_each_pixel_alone():
+    torch.manual_seed(0)
+    encoder = DiscreteCodeEncoder(EncoderConfig(code_sizes=(16, 2), kernel_size=1, channels=8))
+    encoder.eval()
+    pixels = _pixels(2)
+    changed = pixels.clone()
+    changed[:, :, 3, 5] = 255 - changed[:, :, 3, 5]
+    diff = (encoder.object_maps(pixels) - encoder.object_maps(changed)).abs().sum(dim=(0, 1))
+    assert diff[3, 5] > 0
+    diff[3, 5] = 0
+    assert diff.max() == 0  # no other pixel of any map moved
+    with pytest.raises(ValueError, match="kernel_size"):
+        DiscreteCodeEncoder(EncoderConfig(code_sizes=(4,), kernel_size=2))

@@ -49,6 +49,7 @@ class RepresentationConfig:
     code_size: int = 32
     encoder_preset: str = "small"
     map_competition: str = "sigmoid"
+    extractor_kernel_size: int = 3
     # loss
     similarity: str = "dddp"
     dddp_sign: str = "paper"
@@ -132,6 +133,7 @@ class RepresentationConfig:
         preset = EncoderConfig.small if self.encoder_preset == "small" else EncoderConfig.authors
         enc_cfg = preset(self.code_sizes)
         enc_cfg.map_competition = self.map_competition
+        enc_cfg.kernel_size = self.extractor_kernel_size
         return enc_cfg
 
     @property

@@ -18,7 +18,11 @@ class EncoderConfig:
         code_sizes: number of codes of each one-hot, e.g. ``(32, 32)`` for two objects
             or ``(16, 2)`` for key rooms (agent one-hot plus a 2-way key bit).
         channels: width of the object extractor's convolutions.
-        conv_layers: number of hidden 3x3 conv + BatchNorm + ReLU layers.
+        conv_layers: number of hidden conv + BatchNorm + ReLU layers.
+        kernel_size: the extractor's conv kernel size (odd). 3 is the authors'; 1 makes
+            the extractor a per-pixel colour classifier, so that a map holds only the
+            pixels of its own object and nothing of what lies next to it (key rooms:
+            the agent map cannot see the key or the door).
         mlp_sizes: hidden widths of the shared per-map encoder; the last is followed by
             LayerNorm and ReLU, as in the authors' release.
         input_scale: pixels in ``[0, 1]`` are multiplied by this (the authors used 10).
@@ -30,6 +34,7 @@ class EncoderConfig:
     code_sizes: tuple[int, ...] = (32,)
     channels: int = 32
     conv_layers: int = 3
+    kernel_size: int = 3
     mlp_sizes: tuple[int, ...] = (512, 512)
     input_scale: float = 10.0
     map_competition: str = "sigmoid"
@@ -99,17 +104,20 @@ class DiscreteCodeEncoder(nn.Module):
         self.code_sizes = sizes
         self.num_onehots = len(sizes)
         self.max_codes = max(sizes)
+        k = int(config.kernel_size)
+        if k < 1 or k % 2 == 0:
+            raise ValueError(f"kernel_size must be an odd int >= 1, got {config.kernel_size}.")
         layers: list[nn.Module] = []
         in_channels = 3
         for _ in range(config.conv_layers):
             layers += [
-                nn.Conv2d(in_channels, config.channels, 3, padding=1),
+                nn.Conv2d(in_channels, config.channels, k, padding=k // 2),
                 nn.BatchNorm2d(config.channels),
                 nn.ReLU(),
             ]
             in_channels = config.channels
         extra = 1 if config.map_competition == "softmax" else 0
-        layers.append(nn.Conv2d(in_channels, self.num_onehots + extra, 3, padding=1))
+        layers.append(nn.Conv2d(in_channels, self.num_onehots + extra, k, padding=k // 2))
         self.extractor = nn.Sequential(*layers)
         mlp: list[nn.Module] = []
         width = 16 * 16
