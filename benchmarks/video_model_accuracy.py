@@ -80,7 +80,7 @@ def main() -> None:
     for h, (acc, mse) in enumerate(
         zip(evaluation["exact_accuracy"], evaluation["pixel_mse"], strict=True), start=1
     ):
-        print(f"  {h:4d}   {acc:.3f}   {mse:9.2f}")
+        print(f"  {h:4d}   {acc:.3f}   {mse:9.5f}")
     last = evaluation["exact_accuracy_last"]
     print(
         f"{name}: {evaluation['horizon']}-step exact accuracy {last:.3f} "
