@@ -241,6 +241,38 @@ class GroundTruthModelEnv(_PlanningEnvBase):
         )
 
 
+_HASH_WEIGHTS: dict[torch.device, torch.Tensor] = {}
+
+
+def _distinct_pairs(
+    pixels: torch.Tensor, action: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The distinct (frame, action) rows, and ``inverse`` with ``rows[inverse] == input``.
+
+    Rows are grouped by a 64-bit hash of their bytes (one pass, no row sort); the groups
+    are then checked row by row, so a hash collision never merges different rows (it
+    falls back to no deduplication, ``inverse=None``).
+    """
+    n = pixels.shape[0]
+    words = pixels.reshape(n, -1).contiguous().view(torch.int64)  # [n, 96]
+    weights = _HASH_WEIGHTS.get(pixels.device)
+    if weights is None or weights.shape[0] != words.shape[1] + 1:
+        gen = torch.Generator().manual_seed(0x5EED)
+        weights = torch.randint(-(2**62), 2**62, (words.shape[1] + 1,), generator=gen) | 1
+        weights = _HASH_WEIGHTS.setdefault(pixels.device, weights.to(pixels.device))
+    key = (words * weights[:-1]).sum(-1) + action.reshape(n).long() * weights[-1]
+    unique, inverse = torch.unique(key, return_inverse=True)
+    first = torch.full((unique.shape[0],), n, dtype=torch.long, device=key.device)
+    first.scatter_reduce_(0, inverse, torch.arange(n, device=key.device), reduce="amin")
+    rep_pixels, rep_action = pixels[first], action[first]
+    same = (rep_pixels[inverse] == pixels).flatten(1).all(-1) & (
+        rep_action[inverse] == action
+    ).flatten(1).all(-1)
+    if not bool(same.all()):
+        return pixels, action, None
+    return rep_pixels, rep_action, inverse
+
+
 class WorldModelEnv(_PlanningEnvBase):
     """A video prediction model as a planning env: next ``pixels`` from ``pixels`` and ``action``.
 
@@ -260,6 +292,11 @@ class WorldModelEnv(_PlanningEnvBase):
         num_actions: size of the discrete action space.
         deterministic: passed to ``model.predict`` (the mode of a stochastic model).
         chunk_size: at most this many frames per ``predict`` call (``None``: all at once).
+        deduplicate: predict each distinct (frame, action) pair once and copy the result
+            to its duplicates (default: on in deterministic mode, where it gives the same
+            frames). Planning repeats pairs a lot: at the first imagined step all N
+            candidates share one frame, so there are at most ``num_actions`` pairs;
+            candidates also share prefixes and blocked moves leave frames unchanged.
         device: where tensors live (defaults to the model's parameters' device, else CPU).
 
     Examples:
@@ -286,6 +323,7 @@ class WorldModelEnv(_PlanningEnvBase):
         *,
         deterministic: bool = True,
         chunk_size: int | None = None,
+        deduplicate: bool | None = None,
         device: torch.device | str | None = None,
     ) -> None:
         if not callable(getattr(model, "predict", None)):
@@ -302,6 +340,12 @@ class WorldModelEnv(_PlanningEnvBase):
         self.model = model
         self.deterministic = bool(deterministic)
         self.chunk_size = None if chunk_size is None else int(chunk_size)
+        if deduplicate and not self.deterministic:
+            raise ValueError(
+                "deduplicate=True needs deterministic=True: a stochastic model gives "
+                "different frames for equal inputs."
+            )
+        self.deduplicate = self.deterministic if deduplicate is None else bool(deduplicate)
 
     def _set_seed(self, seed: int | None) -> None:
         """Nothing to seed: a stochastic model draws from torch's global generator."""
@@ -327,6 +371,9 @@ class WorldModelEnv(_PlanningEnvBase):
         action = check_planning_action(action, self.num_actions, shape)
         flat_pixels = pixels.reshape(-1, *_FRAME)
         flat_action = action.reshape(-1, 1)
+        inverse = None
+        if self.deduplicate and flat_pixels.shape[0] > 1:
+            flat_pixels, flat_action, inverse = _distinct_pairs(flat_pixels, flat_action)
         n = flat_pixels.shape[0]
         step = n if self.chunk_size is None else self.chunk_size
         outputs = []
@@ -352,6 +399,8 @@ class WorldModelEnv(_PlanningEnvBase):
             raise ValueError(
                 f"model.predict must return uint8 [{n}, 3, 16, 16] for {n} frames, got {got}."
             )
+        if inverse is not None:
+            out = out[inverse]
         return out.reshape(*shape, *_FRAME)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -216,3 +216,30 @@ def test_construction_errors():
         env.step(td)
     with pytest.raises(KeyError, match="pixels"):
         env.step(td.exclude("pixels"))
+
+
+def test_world_model_env_predicts_each_distinct_pair_once():
+    from dorp_rl.envs import ObjectRearrangementEnv, WorldModelEnv
+
+    class CountingModel:
+        """Shifts frames by the action (a deterministic toy) and counts predicted rows."""
+
+        rows = 0
+
+        def predict(self, pixels, action, deterministic=True):
+            CountingModel.rows += pixels.shape[0]
+            return torch.roll(pixels, shifts=1, dims=-1) + action.view(-1, 1, 1, 1).to(torch.uint8)
+
+    true = ObjectRearrangementEnv(2, batch_size=(), batch_locked=False, seed=0)
+    frames = true.render_state(true.sample_states((3,)))
+    pixels = frames[torch.tensor([0, 1, 0, 2, 1, 0, 0, 0])]  # 3 distinct frames
+    action = torch.tensor([[1], [1], [1], [0], [1], [2], [1], [1]])  # 4 distinct pairs
+    td = TensorDict(pixels=pixels, action=action, batch_size=[8])
+    plain = WorldModelEnv(CountingModel(), 8, deduplicate=False).step(td.clone())
+    assert CountingModel.rows == 8
+    CountingModel.rows = 0
+    deduped = WorldModelEnv(CountingModel(), 8).step(td.clone())
+    assert CountingModel.rows == 4
+    assert torch.equal(deduped["next", "pixels"], plain["next", "pixels"])
+    with pytest.raises(ValueError, match="deterministic"):
+        WorldModelEnv(CountingModel(), 8, deterministic=False, deduplicate=True)
