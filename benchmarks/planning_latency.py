@@ -10,7 +10,9 @@ sequences of ``horizon`` steps, pixel-L2 cost to the goal, one acting env) throu
 - ``world model``: :class:`~dorp_rl.envs.WorldModelEnv` wrapping the project's
   :class:`~dorp_rl.modules.VideoPredictionModel`, trained (``--checkpoint``, a
   ``WorldModelTrainer`` checkpoint) or freshly initialised at a preset's size
-  (``--preset``; latency does not depend on the weights);
+  (``--preset``; latency does not depend on the weights). The env predicts each
+  distinct (frame, action) pair once; ``no dedup`` is the same call predicting every
+  candidate's frame;
 - ``bare forward``: the model's ``predict`` on the same frames, ``horizon`` calls of
   ``num_candidates`` frames each, nothing else: the floor a planner through this model
   cannot beat. ``bare forward x1`` is one call on all ``num_candidates * horizon``
@@ -142,6 +144,13 @@ def main() -> None:
     wm_env = WorldModelEnv(model, env.num_actions)
     wm = planner(RandomShootingPlanner, wm_env)
     rows.append(("RS call, world model", median_seconds(lambda: wm(td.clone()), args.repeats)))
+    wm_plain = planner(
+        RandomShootingPlanner, WorldModelEnv(model, env.num_actions, deduplicate=False)
+    )
+    no_dedup = (
+        "RS call, world model, no dedup",
+        median_seconds(lambda: wm_plain(td.clone()), args.repeats),
+    )
     frames = td["pixels"].expand(n, 3, 16, 16).contiguous()
     actions = torch.randint(0, env.num_actions, (n, 1))
 
@@ -158,6 +167,7 @@ def main() -> None:
             median_seconds(lambda: model.predict(all_frames, all_actions), args.repeats),
         )
     )
+    rows.append(no_dedup)
     if args.cem:
         cem_gt = planner(CategoricalCEMPlanner, GroundTruthModelEnv(env))
         cem_wm = planner(CategoricalCEMPlanner, wm_env)
