@@ -2,7 +2,8 @@
 
 For each number of objects, planning model and variant, runs
 :class:`~dorp_rl.policies.VisualForesightPolicy` (pixel L2 to the goal image, 1000
-candidates x 14 steps, executed open loop as the paper) on the same ``--tasks`` tasks
+candidates x 14 steps; by default the best full sequence by its last frame is executed
+open loop, the paper's description of VF) on the same ``--tasks`` tasks
 of :func:`~dorp_rl.eval.make_task_set` through :func:`~dorp_rl.eval.evaluate_policy`,
 and prints success rate, mean steps of the successful tasks next to their mean lower
 bound (sum of Manhattan distances), and the wall-clock, with the paper's Table 1 figure
@@ -52,6 +53,13 @@ def main() -> None:
     parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help="'{k}': objects")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0, help="planner seed")
+    parser.add_argument(
+        "--reduction",
+        choices=["final", "min"],
+        default="final",
+        help="final: score the last frame, execute the whole sequence (the paper's VF); "
+        "min: score the closest frame, execute up to it (the authors' goal step)",
+    )
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     if args.threads:
@@ -59,7 +67,8 @@ def main() -> None:
 
     print(
         f"{args.tasks} tasks (seed {args.task_seed}), {args.candidates} candidates x "
-        f"{args.horizon} steps, open loop; torch threads {torch.get_num_threads()}"
+        f"{args.horizon} steps, open loop, reduction {args.reduction!r}; "
+        f"torch threads {torch.get_num_threads()}"
     )
     print(
         f"{'objects':>7s} {'model':>5s} {'variant':>7s} {'success':>7s} {'paper':>5s} "
@@ -83,6 +92,7 @@ def main() -> None:
                     num_candidates=args.candidates,
                     horizon=args.horizon,
                     seed=args.seed,
+                    reduction=args.reduction,
                 )
                 result = evaluate_policy(
                     env,
