@@ -44,6 +44,14 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", choices=["rs", "cem"], default=["rs", "cem"])
     parser.add_argument("--tasks", type=int, default=50)
     parser.add_argument("--task-seed", type=int, default=0)
+    parser.add_argument(
+        "--task-slice",
+        nargs=2,
+        type=int,
+        default=None,
+        metavar=("START", "STOP"),
+        help="run only tasks[START:STOP] of the --tasks set (to split a run across processes)",
+    )
     parser.add_argument("--candidates", type=int, default=1000)
     parser.add_argument("--horizon", type=int, default=14)
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
@@ -78,6 +86,8 @@ def main() -> None:
     for k in args.objects:
         env = ObjectRearrangementEnv(num_objects=k, batch_size=(), batch_locked=False, seed=0)
         tasks = make_task_set(env, args.tasks, seed=args.task_seed)
+        if args.task_slice is not None:
+            tasks = tasks[args.task_slice[0] : args.task_slice[1]]
         for model_name in args.models:
             if model_name == "gt":
                 planning_env = GroundTruthModelEnv(env)
@@ -109,7 +119,16 @@ def main() -> None:
                     f"{result['seconds'] / 60:7.1f}",
                     flush=True,
                 )
-                results.append({"objects": k, "model": model_name, "variant": variant, **result})
+                results.append(
+                    {
+                        "objects": k,
+                        "model": model_name,
+                        "variant": variant,
+                        "task_seed": args.task_seed,
+                        "task_slice": args.task_slice,
+                        **result,
+                    }
+                )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2))
