@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -13,23 +13,16 @@ from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint
+from dorp_rl.config import ConfigMixin
 from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
-from dorp_rl.envs import (
-    GridWorldEnv,
-    KeyCorridorEnv,
-    KeyRoomEnv,
-    KeyWallEnv,
-    ObjectRearrangementEnv,
-)
+from dorp_rl.envs import ENV_NAMES, GridWorldEnv, KeyRoomEnv, make_env
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.trainers.base import Trainer
 
-ENV_NAMES = ("rearrangement", "key-wall", "key-corridor")
-
 
 @dataclass
-class RepresentationConfig:
+class RepresentationConfig(ConfigMixin):
     """Everything that defines a representation run (a CleanRL-style flat dataclass).
 
     Use the presets :meth:`rearrangement`, :meth:`key_wall` and :meth:`key_corridor`, then
@@ -155,23 +148,7 @@ class RepresentationConfig:
 
     def make_env(self, **kwargs: Any) -> GridWorldEnv:
         """The environment this config trains on."""
-        if self.env == "rearrangement":
-            return ObjectRearrangementEnv(
-                num_objects=self.num_objects, device=self.device, **kwargs
-            )
-        cls = KeyWallEnv if self.env == "key-wall" else KeyCorridorEnv
-        return cls(device=self.device, **kwargs)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> RepresentationConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown RepresentationConfig fields {unknown}.")
-        return cls(**values)
+        return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
 
 
 def diagnose(

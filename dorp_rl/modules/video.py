@@ -34,13 +34,15 @@ The deterministic mode uses the prior mean.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torch import nn
+
+from dorp_rl.config import ConfigMixin
 
 FRAME_SHAPE = (3, 16, 16)
 
@@ -106,7 +108,7 @@ def check_palette(palette: torch.Tensor) -> torch.Tensor:
 
 # --------------------------------------------------------------------------- config
 @dataclass
-class VideoModelConfig:
+class VideoModelConfig(ConfigMixin):
     """Sizes of :class:`VideoPredictionModel`.
 
     Attributes:
@@ -167,22 +169,6 @@ class VideoModelConfig:
             raise ValueError(f"latent_dim must be >= 0, got {self.latent_dim}.")
         if self.prior not in ("fixed", "learned"):
             raise ValueError(f"prior must be 'fixed' or 'learned', got {self.prior!r}.")
-
-    def to_dict(self) -> dict[str, Any]:
-        out = asdict(self)
-        out["dilations"] = list(self.dilations)
-        return out
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> VideoModelConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown VideoModelConfig fields {unknown}.")
-        values = dict(values)
-        if "dilations" in values:
-            values["dilations"] = tuple(int(d) for d in values["dilations"])
-        return cls(**values)
 
 
 # --------------------------------------------------------------------------- blocks
