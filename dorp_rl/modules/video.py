@@ -443,7 +443,8 @@ class VideoPredictionModel(nn.Module):
         not pass through each other or the border" is one weight away.
         """
         n, k = probs.shape[:2]
-        mass = probs.sum(dim=(-2, -1)).clamp(min=1.0)  # [N, K]
+        total = probs.sum(dim=(-2, -1))  # [N, K]
+        mass = total.clamp(min=1.0)
         others = (1.0 - probs[:, :1] - probs).clamp(min=0.0)  # [N, K, 16, 16]
         padded = F.pad(probs, (1, 1, 1, 1))
         overlap, lost = [], []
@@ -451,7 +452,7 @@ class VideoPredictionModel(nn.Module):
             for j in range(3):
                 shifted = padded[:, :, 2 - i : 18 - i, 2 - j : 18 - j]
                 overlap.append((shifted * others).sum(dim=(-2, -1)))
-                lost.append(probs.sum(dim=(-2, -1)) - shifted.sum(dim=(-2, -1)))
+                lost.append(total - shifted.sum(dim=(-2, -1)))
         out = torch.stack(overlap + lost, dim=-1) / mass[..., None]  # [N, K, 18]
         return out.reshape(n, -1)
 
