@@ -78,7 +78,7 @@ def settings(steps_scale: float) -> dict[str, list[tuple[str, RepresentationConf
         "keywall": [
             (
                 "keywall-dddp",
-                RepresentationConfig.key_wall(num_steps=steps(2000), ce_temperature=0.1),
+                RepresentationConfig.key_wall(num_steps=steps(6000)),
             ),
         ],
     }
@@ -95,10 +95,11 @@ def verdict(name: str, diag: dict[str, Any]) -> str:
         ok = (
             diag["key_bit_change_fraction"] >= 0.95
             and diag["agent_onehot_unchanged_fraction"] >= 0.95
+            and diag["codes_used"] >= 8
             and min(diag["connected_fraction_without_key"], diag["connected_fraction_with_key"])
             >= 0.95
         )
-        return f"goal key bit >=0.95, agent one-hot still, connected: {'met' if ok else 'NOT met'}"
+        return f"goal key bit >=0.95, agent one-hot still >=0.95, >=8 agent codes, connected >=0.95: {'met' if ok else 'NOT met'}"
     ok = diag["selectivity"] >= 0.9 and diag["min_purity"] >= 0.9 and diag["min_codes_used"] >= 8
     return f"goal sel>=0.9, purity>=0.9, >=8 codes: {'met' if ok else 'NOT met'}"
 

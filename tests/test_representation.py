@@ -180,8 +180,29 @@ def test_loss_optional_terms_and_keys():
     assert float(out["loss_exclusivity"].detach()) >= 0
 
 
+def test_sparsity_term_shrinks_the_object_maps():
+    torch.manual_seed(0)
+    loss = _loss(sparsity_weight=1.0)
+    td = TensorDict(pixels=_pixels(8), future_pixels=_pixels(8, seed=3), batch_size=[8])
+    out = loss(td)
+    maps = loss.encoder.object_maps(torch.cat([td["pixels"], td["future_pixels"]]))
+    assert float(out["loss_sparsity"].detach()) == pytest.approx(
+        float(maps.detach().mean()), rel=1e-5
+    )
+    first_mass = float(out["map_mass"])
+    opt = torch.optim.Adam(loss.encoder.extractor.parameters(), lr=1e-2)
+    for _ in range(30):
+        out = loss(td)
+        opt.zero_grad()
+        out["loss_sparsity"].backward()
+        opt.step()
+    assert float(out["map_mass"]) < 0.5 * first_mass
+
+
 def test_loss_errors():
     loss = _loss()
+    with pytest.raises(ValueError, match="sparsity_weight must be >= 0"):
+        CPCLoss(loss.encoder, DDDPSimilarity(16), sparsity_weight=-1.0)
     with pytest.raises(ValueError, match="same shape"):
         loss(TensorDict(pixels=_pixels(4), future_pixels=_pixels(5), batch_size=[]))
     with pytest.raises(ValueError, match="dim"):
@@ -268,6 +289,20 @@ def test_healthy_metrics_are_not_collapse(tmp_path):
     trainer = RepresentationTrainer(_tiny_config(tmp_path))
     assert trainer.collapse_reason({"min_codes_in_batch": 9.0, "loss_cpc": 2.0}, 10**6) is None
     assert trainer.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 2.0}, 0) is None
+
+
+def test_one_noisy_batch_is_not_a_flat_loss(tmp_path):
+    trainer = RepresentationTrainer(_tiny_config(tmp_path, collapse_check_after=0))
+    log_b = math.log(trainer.config.batch_size)
+    noisy = {"min_codes_in_batch": 9.0, "loss_cpc": log_b + 0.5}
+    trainer.history = [{"step": s, "loss_cpc": 2.0} for s in range(1, 6)]
+    assert trainer.collapse_reason(noisy, 10**6) is None
+    trainer.history = [{"step": s, "loss_cpc": log_b} for s in range(1, 6)]
+    assert "flat" in trainer.collapse_reason(noisy, 10**6)
+    trainer.attempt_start = 5  # a restarted attempt does not inherit the old history
+    assert "flat" in trainer.collapse_reason(noisy, 10**6)
+    trainer.history = [{"step": s, "loss_cpc": 2.0} for s in range(1, 6)]
+    assert "flat" in trainer.collapse_reason(noisy, 10**6)
 
 
 def test_checkpoint_from_another_env_or_corrupted(tmp_path):

@@ -97,12 +97,18 @@ class CPCLoss(LossModule):
         usage_weight: weight of an optional code-usage term,
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
             collapse onto a few codes (0 disables it).
+        sparsity_weight: weight of an optional term, the mean value of the object maps,
+            that drives each map to zero away from its object. In key rooms it keeps the
+            key and the door out of the agent's map, whose code otherwise flips with the
+            key at the borders of code regions (see docs/RESULTS.md).
 
-    Reads ``pixels`` (o_t) and ``future_pixels`` (o_{t+k}) and returns ``loss_cpc``
-    (plus ``loss_usage`` when enabled) and detached metrics: ``accuracy`` (share of
-    anchors whose best-scoring candidate is their own future), ``mi_lower_bound``
-    (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor codes per one-hot,
-    averaged), ``min_codes_in_batch`` (the fewest on a one-hot of more than 2 codes), ``similarity_scale``, ``gumbel_temperature`` and, with the exclusivity term,
+    Reads ``pixels`` (o_t) and ``future_pixels`` (o_{t+k}) and returns ``loss_cpc`` (plus
+    ``loss_usage``, ``loss_exclusivity`` and ``loss_sparsity`` when enabled) and detached
+    metrics: ``accuracy`` (share of anchors whose best-scoring candidate is their own
+    future), ``mi_lower_bound`` (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor
+    codes per one-hot, averaged), ``min_codes_in_batch`` (the fewest on a one-hot of more
+    than 2 codes), ``similarity_scale``, ``gumbel_temperature``, ``map_mass`` (summed
+    object-map values per one-hot, averaged) and, with the exclusivity term,
     ``map_entanglement`` (its unweighted value: near 0 when each map follows one object).
 
     Examples:
@@ -143,6 +149,7 @@ class CPCLoss(LossModule):
         ce_temperature: float = 0.1,
         usage_weight: float = 0.0,
         exclusivity_weight: float = 0.0,
+        sparsity_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if gumbel_side not in ("positive", "anchor"):
@@ -162,6 +169,12 @@ class CPCLoss(LossModule):
         self.ce_temperature = float(ce_temperature)
         self.usage_weight = float(usage_weight)
         self.exclusivity_weight = float(exclusivity_weight)
+        if usage_weight < 0 or exclusivity_weight < 0 or sparsity_weight < 0:
+            raise ValueError(
+                "usage_weight, exclusivity_weight and sparsity_weight must be >= 0, got "
+                f"{usage_weight}, {exclusivity_weight}, {sparsity_weight}."
+            )
+        self.sparsity_weight = float(sparsity_weight)
         sizes = torch.tensor(encoder.code_sizes)
         self._wide_onehots = (
             sizes > 2 if (sizes > 2).any() else torch.ones_like(sizes, dtype=torch.bool)
@@ -226,6 +239,9 @@ class CPCLoss(LossModule):
             out.set(
                 "loss_usage", self.usage_weight * (max_entropy.to(entropy.device) - entropy).mean()
             )
+        if self.sparsity_weight > 0:
+            out.set("loss_sparsity", self.sparsity_weight * maps.mean())
+        out.set("map_mass", maps.detach().flatten(-2).sum(-1).mean())
         if self.exclusivity_weight > 0 and encoder_has_pairs(probs):
             # How much each one-hot's object map changes between o_t and o_t+k: dense
             # gradients straight into the extractor, where objects are told apart.
