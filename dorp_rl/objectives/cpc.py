@@ -98,9 +98,9 @@ class CPCLoss(LossModule):
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
             collapse onto a few codes (0 disables it).
         sparsity_weight: weight of an optional term, the mean value of the object maps,
-            that drives each map to zero away from its object. In key rooms it keeps the
-            key and the door out of the agent's map, whose code otherwise flips with the
-            key at the borders of code regions (see docs/RESULTS.md).
+            that drives each map to zero away from its object. In key rooms it shrinks
+            what the key and the door leave in the agent's map, which otherwise flips the
+            agent's code with the key at the borders of code regions (docs/RESULTS.md).
 
     Reads ``pixels`` (o_t) and ``future_pixels`` (o_{t+k}) and returns ``loss_cpc`` (plus
     ``loss_usage``, ``loss_exclusivity`` and ``loss_sparsity`` when enabled) and detached
