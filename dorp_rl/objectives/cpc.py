@@ -167,13 +167,13 @@ class CPCLoss(LossModule):
         self.gumbel_side = gumbel_side
         self.gumbel_temperature = float(gumbel_temperature)
         self.ce_temperature = float(ce_temperature)
-        self.usage_weight = float(usage_weight)
-        self.exclusivity_weight = float(exclusivity_weight)
         if usage_weight < 0 or exclusivity_weight < 0 or sparsity_weight < 0:
             raise ValueError(
                 "usage_weight, exclusivity_weight and sparsity_weight must be >= 0, got "
                 f"{usage_weight}, {exclusivity_weight}, {sparsity_weight}."
             )
+        self.usage_weight = float(usage_weight)
+        self.exclusivity_weight = float(exclusivity_weight)
         self.sparsity_weight = float(sparsity_weight)
         sizes = torch.tensor(encoder.code_sizes)
         self._wide_onehots = (
