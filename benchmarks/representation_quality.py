@@ -161,7 +161,7 @@ def main() -> None:
                 write_diagnostic_plots(trainer.env, trainer.encoder.encode, out_dir / "plots")
                 line = (
                     f"{name:14s} seed {seed}  {seconds:6.0f}s  steps {result['step']}  "
-                    f"restarts {result['attempt']}  collapsed {result['collapsed']}  {summarize(name, diag)}  "
+                    f"restarts {len(result['restarts'])}  collapsed {result['collapsed']}  {summarize(name, diag)}  "
                     f"-> {verdict(name, diag)}"
                 )
                 print(line, flush=True)

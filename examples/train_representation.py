@@ -53,7 +53,9 @@ def main() -> None:
     trainer = RepresentationTrainer(make_config(args))
     result = trainer.train(resume=args.resume)
     diag = result["diagnostics"]
-    print(f"steps {result['step']}, restarts {result['attempt']}, collapsed {result['collapsed']}")
+    print(
+        f"steps {result['step']}, restarts {len(result['restarts'])}, collapsed {result['collapsed']}"
+    )
     if args.env == "rearrangement":
         print(f"codes used per one-hot: {diag['codes_used']}")
         print(f"selectivity {diag['selectivity']:.3f}, purity {diag['purity']}")

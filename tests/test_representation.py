@@ -299,7 +299,7 @@ def test_one_noisy_batch_is_not_a_flat_loss(tmp_path):
     assert trainer.collapse_reason(noisy, 10**6) is None
     trainer.history = [{"step": s, "loss_cpc": log_b} for s in range(1, 6)]
     assert "flat" in trainer.collapse_reason(noisy, 10**6)
-    trainer.attempt_start = 5  # a restarted attempt does not inherit the old history
+    trainer.history_start = 5  # a restarted attempt does not inherit the old history
     assert "flat" in trainer.collapse_reason(noisy, 10**6)
     trainer.history = [{"step": s, "loss_cpc": 2.0} for s in range(1, 6)]
     assert "flat" in trainer.collapse_reason(noisy, 10**6)
@@ -362,11 +362,14 @@ def test_exclusivity_gradient_reaches_the_extractor():
 
 def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
     trainer = RepresentationTrainer(_tiny_config(tmp_path, entanglement_check_after=100))
-    trainer.history = [{"step": s, "map_entanglement": 0.2} for s in range(5)]
+    trainer.history = [{"step": s, "map_entanglement": 0.2} for s in range(1, 6)]
     assert trainer.entanglement_reason(50) is None  # too early in the attempt
     reason = trainer.entanglement_reason(500)
     assert reason is not None and "entangled" in reason
-    trainer.history = [{"step": s, "map_entanglement": 0.01} for s in range(5)]
+    trainer.history_start = 5  # a restarted attempt does not inherit the old history
+    assert trainer.entanglement_reason(500) is None
+    trainer.history_start = 0
+    trainer.history = [{"step": s, "map_entanglement": 0.01} for s in range(1, 6)]
     assert trainer.entanglement_reason(500) is None
 
 
@@ -394,3 +397,64 @@ def test_a_one_by_one_extractor_sees_each_pixel_alone():
     assert diff.max() == 0  # no other pixel of any map moved
     with pytest.raises(ValueError, match="kernel_size"):
         DiscreteCodeEncoder(EncoderConfig(code_sizes=(4,), kernel_size=2))
+
+
+# ---------------------------------------------------------------- screening
+def test_screening_continues_the_lowest_loss_candidate(tmp_path):
+    cfg = _tiny_config(
+        tmp_path, num_candidates=3, candidate_steps=6, num_steps=6, log_every=1, lr=3e-3
+    )
+    trainer = RepresentationTrainer(cfg)
+    result = trainer.train()
+    candidates = result["candidates"]
+    assert [c["attempt"] for c in candidates] == [0, 1, 2]
+    assert len({c["loss"] for c in candidates}) == 3  # three different initialisations
+    # num_steps == candidate_steps: the run ends on the chosen candidate, unchanged.
+    assert result["step"] == 18
+    best = min(candidates, key=lambda c: c["loss"])
+    assert trainer.attempt == best["attempt"]
+    stored = load_checkpoint(best["path"], kind="representation")["state"]["encoder"]
+    for name, value in trainer.encoder.state_dict().items():
+        assert torch.equal(value, stored[name]), name
+
+
+def test_screening_scores_the_second_half_of_each_candidate(tmp_path):
+    cfg = _tiny_config(tmp_path, num_candidates=2, candidate_steps=6, num_steps=9, log_every=1)
+    trainer = RepresentationTrainer(cfg)
+    result = trainer.train()
+    assert result["step"] == 6 + 9  # the chosen candidate's 6 steps count towards num_steps
+    for candidate in result["candidates"]:
+        end = candidate["step"]
+        half = [h["loss_cpc"] for h in trainer.history if end - 3 < h["step"] <= end]
+        assert candidate["loss"] == pytest.approx(sum(half) / len(half))
+
+
+def test_resume_during_screening_equals_uninterrupted_run(tmp_path):
+    overrides = dict(num_candidates=2, candidate_steps=6, num_steps=10, checkpoint_every=1)
+    full = RepresentationTrainer(_tiny_config(tmp_path / "a", **overrides))
+    full.train()
+
+    interrupted = RepresentationTrainer(_tiny_config(tmp_path / "b", **overrides))
+    original_step = interrupted.train_step
+
+    def crash_in_second_candidate():
+        if interrupted.step == 8:
+            raise KeyboardInterrupt
+        return original_step()
+
+    interrupted.train_step = crash_in_second_candidate
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.train()
+    resumed = RepresentationTrainer(_tiny_config(tmp_path / "b", **overrides))
+    result = resumed.train(resume=True)
+    assert result["step"] == full.step == 16
+    assert [c["loss"] for c in result["candidates"]] == [c["loss"] for c in full.candidates]
+    for a, b in zip(
+        full.encoder.state_dict().values(), resumed.encoder.state_dict().values(), strict=True
+    ):
+        assert torch.equal(a, b)
+
+
+def test_screening_config_is_validated(tmp_path):
+    with pytest.raises(ValueError, match="candidate_steps"):
+        RepresentationTrainer(_tiny_config(tmp_path, num_candidates=2, candidate_steps=13))

@@ -86,6 +86,9 @@ class RepresentationConfig(ConfigMixin):
     entanglement_check_after: int = 600
     entanglement_threshold: float = 0.07
     max_restarts: int = 3
+    # initialisation screening
+    num_candidates: int = 1
+    candidate_steps: int = 1000
 
     @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
@@ -159,6 +162,15 @@ class RepresentationConfig(ConfigMixin):
         for name in ("num_steps", "batch_size", "num_frames", "log_every", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}.")
+        screening = self.num_candidates > 1
+        if self.num_candidates < 1 or (
+            screening and not 1 <= self.candidate_steps <= self.num_steps
+        ):
+            raise ValueError(
+                "need num_candidates >= 1 and, to screen, 1 <= candidate_steps <= num_steps; got "
+                f"num_candidates={self.num_candidates}, candidate_steps={self.candidate_steps}, "
+                f"num_steps={self.num_steps}."
+            )
         if self.encoder_preset not in ("small", "authors"):
             raise ValueError(
                 f"encoder_preset must be 'small' or 'authors', got {self.encoder_preset!r}."
@@ -207,6 +219,17 @@ class RepresentationTrainer(Trainer):
     such attempts rarely recover, so they are restarted the same way. ``num_steps``
     counts the steps of the last attempt: restarts add steps rather than eat the budget.
 
+    Screening (``num_candidates > 1``): some initialisations end in a poor local optimum
+    that longer training does not leave (key-wall: the agent one-hot also codes the key
+    in some seeds), and such runs end with a higher contrastive loss. The trainer then
+    first trains ``num_candidates`` initialisations for ``candidate_steps`` steps each,
+    scores each by the mean ``loss_cpc`` of the logged steps of its second half, and
+    continues only the lowest (the others' checkpoints stay in
+    ``<out_dir>/checkpoints/candidate<i>.pt``). No ground truth is used. The chosen
+    candidate's steps count towards ``num_steps``; the others add
+    ``(num_candidates - 1) * candidate_steps`` steps. The result lists every candidate
+    with its score under ``candidates``.
+
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
         >>> cfg = RepresentationConfig.rearrangement(1, num_steps=20, num_frames=2000,
@@ -243,8 +266,11 @@ class RepresentationTrainer(Trainer):
         self.buffer = buffer
         self.buffer.set_rng(self.data_generator)
         self.attempt = 0
+        self.inits = 1
         self.attempt_start = 0
+        self.history_start = 0
         self.restarts: list[dict[str, Any]] = []
+        self.candidates: list[dict[str, Any]] = []
         self._build(seed=config.seed)
 
     # ------------------------------------------------------------------ #
@@ -298,13 +324,25 @@ class RepresentationTrainer(Trainer):
         self.optimizer.load_state_dict(state["optimizer"])
 
     def extra_state(self) -> dict[str, Any]:
-        return {**super().extra_state(), "attempt": self.attempt, "restarts": self.restarts}
+        return {
+            **super().extra_state(),
+            "attempt": self.attempt,
+            "inits": self.inits,
+            "attempt_start": self.attempt_start,
+            "history_start": self.history_start,
+            "restarts": self.restarts,
+            "candidates": self.candidates,
+        }
 
     def load_extra_state(self, extra: dict[str, Any]) -> None:
         super().load_extra_state(extra)
         self.attempt = int(extra.get("attempt", 0))
+        self.inits = int(extra.get("inits", self.attempt + 1))
         self.restarts = list(extra.get("restarts", []))
-        self.attempt_start = self.restarts[-1]["step"] if self.restarts else 0
+        self.candidates = list(extra.get("candidates", []))
+        fallback = self.restarts[-1]["step"] if self.restarts else 0
+        self.attempt_start = int(extra.get("attempt_start", fallback))
+        self.history_start = int(extra.get("history_start", fallback))
         if self.attempt:  # the weights to load belong to the restarted attempt's modules
             self._build(seed=self._attempt_seed(self.attempt))
 
@@ -346,14 +384,18 @@ class RepresentationTrainer(Trainer):
         recent = [
             h["loss_cpc"]
             for h in self.history[-window:]
-            if h["step"] > self.attempt_start and "loss_cpc" in h
+            if h["step"] > self.history_start and "loss_cpc" in h
         ]
         return sum(recent) / len(recent) if recent else float(metrics["loss_cpc"])
 
     def entanglement_reason(self, attempt_steps: int) -> str | None:
         """Why the object maps look entangled (``None`` if they do not or it is too early)."""
         cfg = self.config
-        recent = [h["map_entanglement"] for h in self.history[-5:] if "map_entanglement" in h]
+        recent = [
+            h["map_entanglement"]
+            for h in self.history[-5:]
+            if h["step"] > self.history_start and "map_entanglement" in h
+        ]
         if attempt_steps < cfg.entanglement_check_after or len(recent) < 5:
             return None
         value = sum(recent) / len(recent)
@@ -364,28 +406,67 @@ class RepresentationTrainer(Trainer):
             )
         return None
 
-    def after_step(self, metrics: dict[str, float], logged: bool) -> None:
-        """Restarts a collapsed or entangled attempt (see the class docstring)."""
+    def _new_init(self) -> None:
+        """Re-initialises encoder, similarity and optimiser from the next attempt seed."""
+        self.attempt = self.inits
+        self.inits += 1
+        self._build(seed=self._attempt_seed(self.attempt))
+        self.attempt_start = self.history_start = self.step
+
+    @property
+    def screening(self) -> bool:
+        """Whether candidates are still being trained (see the class docstring)."""
+        n = self.config.num_candidates
+        return n > 1 and len(self.candidates) < n
+
+    def _end_candidate(self) -> None:
+        """Scores the current candidate; starts the next one or continues the best."""
         cfg = self.config
+        half = self.attempt_start + cfg.candidate_steps // 2
+        losses = [h["loss_cpc"] for h in self.history if h["step"] > half and "loss_cpc" in h]
+        score = sum(losses) / len(losses) if losses else float(self.history[-1]["loss_cpc"])
+        path = self.checkpoint_path.with_name(f"candidate{len(self.candidates)}.pt")
+        self.save(path)
+        self.candidates.append(
+            {"attempt": self.attempt, "step": self.step, "loss": score, "path": str(path)}
+        )
+        self.logger.log_scalar("candidate_loss", score, step=self.step)
+        if self.screening:
+            self._new_init()
+            return
+        best = min(self.candidates, key=lambda c: c["loss"])
+        if best["attempt"] != self.attempt:
+            self.attempt = best["attempt"]
+            self._build(seed=self._attempt_seed(self.attempt))
+            payload = load_checkpoint(best["path"], kind=self.kind, env_config=self.env.config())
+            self.load_state_dict(payload["state"])
+        self.attempt_start = self.step - cfg.candidate_steps
+        self.history_start = self.step
+
+    def after_step(self, metrics: dict[str, float], logged: bool) -> None:
+        """Screens candidates, restarts a collapsed or entangled attempt (see the class docstring)."""
+        cfg = self.config
+        if self.screening:
+            if self.step - self.attempt_start >= cfg.candidate_steps:
+                self._end_candidate()
+            return
         reason = self.collapse_reason(metrics, self.step - self.attempt_start)
         if logged:
             reason = reason or self.entanglement_reason(self.step - self.attempt_start)
-        if reason is None or self.attempt >= cfg.max_restarts:
+        if reason is None or len(self.restarts) >= cfg.max_restarts:
             return
-        self.attempt += 1
+        self._new_init()
         self.restarts.append({"step": self.step, "attempt": self.attempt, "reason": reason})
         warnings.warn(
             f"representation restarted at step {self.step} ({reason}); re-initialising "
-            f"encoder and similarity (restart {self.attempt}/{cfg.max_restarts}).",
+            f"encoder and similarity (restart {len(self.restarts)}/{cfg.max_restarts}).",
             RuntimeWarning,
             stacklevel=4,
         )
-        self.logger.log_scalar("restart", float(self.attempt), step=self.step)
-        self._build(seed=self._attempt_seed(self.attempt))
-        self.attempt_start = self.step
+        self.logger.log_scalar("restart", float(len(self.restarts)), step=self.step)
 
     def done(self) -> bool:
-        return self.step - self.attempt_start >= self.config.num_steps
+        return not self.screening and self.step - self.attempt_start >= self.config.num_steps
 
     # ------------------------------------------------------------------ steps
     def _batch(self) -> TensorDict:
@@ -420,7 +501,8 @@ class RepresentationTrainer(Trainer):
         )
         if final_reason is not None:
             warnings.warn(
-                f"representation still collapsed after {self.attempt} restart(s): {final_reason}.",
+                f"representation still collapsed after {len(self.restarts)} restart(s): "
+                f"{final_reason}.",
                 RuntimeWarning,
                 stacklevel=2,
             )
@@ -428,6 +510,7 @@ class RepresentationTrainer(Trainer):
             **result,
             "attempt": self.attempt,
             "restarts": self.restarts,
+            "candidates": self.candidates,
             "collapsed": final_reason is not None,
             "diagnostics": result["evaluation"],
         }
