@@ -14,6 +14,7 @@ from tensordict import TensorDict
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.eval import code_information
 from dorp_rl.modules import (
     DDDPSimilarity,
     DiscreteCodeEncoder,
@@ -400,7 +401,7 @@ def test_a_one_by_one_extractor_sees_each_pixel_alone():
 
 
 # ---------------------------------------------------------------- screening
-def test_screening_continues_the_lowest_loss_candidate(tmp_path):
+def test_screening_continues_the_highest_scoring_candidate(tmp_path):
     cfg = _tiny_config(
         tmp_path, num_candidates=3, candidate_steps=6, num_steps=6, log_every=1, lr=3e-3
     )
@@ -408,25 +409,26 @@ def test_screening_continues_the_lowest_loss_candidate(tmp_path):
     result = trainer.train()
     candidates = result["candidates"]
     assert [c["attempt"] for c in candidates] == [0, 1, 2]
-    assert len({c["loss"] for c in candidates}) == 3  # three different initialisations
+    assert len({c["score"] for c in candidates}) == 3  # three different initialisations
     # num_steps == candidate_steps: the run ends on the chosen candidate, unchanged.
     assert result["step"] == 18
-    best = min(candidates, key=lambda c: c["loss"])
+    best = max(candidates, key=lambda c: c["score"])
     assert trainer.attempt == best["attempt"]
+    assert trainer.screening_score() == pytest.approx(best["score"])
     stored = load_checkpoint(best["path"], kind="representation")["state"]["encoder"]
     for name, value in trainer.encoder.state_dict().items():
         assert torch.equal(value, stored[name]), name
 
 
-def test_screening_scores_the_second_half_of_each_candidate(tmp_path):
+def test_screening_continues_the_chosen_candidate_to_num_steps(tmp_path):
     cfg = _tiny_config(tmp_path, num_candidates=2, candidate_steps=6, num_steps=9, log_every=1)
     trainer = RepresentationTrainer(cfg)
     result = trainer.train()
     assert result["step"] == 6 + 9  # the chosen candidate's 6 steps count towards num_steps
     for candidate in result["candidates"]:
         end = candidate["step"]
-        half = [h["loss_cpc"] for h in trainer.history if end - 3 < h["step"] <= end]
-        assert candidate["loss"] == pytest.approx(sum(half) / len(half))
+        last = [h["loss_cpc"] for h in trainer.history if end - 5 < h["step"] <= end]
+        assert candidate["loss"] == pytest.approx(sum(last) / len(last))
 
 
 def test_resume_during_screening_equals_uninterrupted_run(tmp_path):
@@ -448,7 +450,7 @@ def test_resume_during_screening_equals_uninterrupted_run(tmp_path):
     resumed = RepresentationTrainer(_tiny_config(tmp_path / "b", **overrides))
     result = resumed.train(resume=True)
     assert result["step"] == full.step == 16
-    assert [c["loss"] for c in result["candidates"]] == [c["loss"] for c in full.candidates]
+    assert [c["score"] for c in result["candidates"]] == [c["score"] for c in full.candidates]
     for a, b in zip(
         full.encoder.state_dict().values(), resumed.encoder.state_dict().values(), strict=True
     ):
@@ -458,3 +460,31 @@ def test_resume_during_screening_equals_uninterrupted_run(tmp_path):
 def test_screening_config_is_validated(tmp_path):
     with pytest.raises(ValueError, match="candidate_steps"):
         RepresentationTrainer(_tiny_config(tmp_path, num_candidates=2, candidate_steps=13))
+
+
+def test_code_information_separates_factorized_from_redundant_codes():
+    generator = torch.Generator().manual_seed(0)
+    a = torch.randint(0, 4, (20000,), generator=generator)
+    b = torch.randint(0, 4, (20000,), generator=generator)
+    independent = code_information(torch.stack([a, b], -1))
+    assert independent["entropy"][0] == pytest.approx(math.log(4), abs=0.01)
+    assert independent["mutual_information"][0][1] < 0.01
+    assert independent["unique_information"] == pytest.approx(2 * math.log(4), abs=0.02)
+    redundant = code_information(torch.stack([a, a], -1))
+    assert redundant["mutual_information"][0][1] == pytest.approx(math.log(4), abs=0.01)
+    assert abs(redundant["unique_information"]) < 1e-9
+    constant = code_information(torch.zeros(100, 2, dtype=torch.long))
+    assert constant["unique_information"] == 0.0
+
+
+@pytest.mark.parametrize(
+    "codes, match",
+    [
+        (torch.zeros(10), "shape"),
+        (torch.zeros(10, 2), "integer"),
+        (-torch.ones(10, 2, dtype=torch.long), ">= 0"),
+    ],
+)
+def test_code_information_rejects_bad_codes(codes, match):
+    with pytest.raises(ValueError, match=match):
+        code_information(codes)

@@ -16,6 +16,7 @@ from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.config import ConfigMixin
 from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
 from dorp_rl.envs import ENV_NAMES, GridWorldEnv, KeyRoomEnv, make_env
+from dorp_rl.eval.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.trainers.base import Trainer
@@ -89,6 +90,7 @@ class RepresentationConfig(ConfigMixin):
     # initialisation screening
     num_candidates: int = 1
     candidate_steps: int = 1000
+    screening_frames: int = 8192
 
     @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
@@ -220,15 +222,16 @@ class RepresentationTrainer(Trainer):
     counts the steps of the last attempt: restarts add steps rather than eat the budget.
 
     Screening (``num_candidates > 1``): some initialisations end in a poor local optimum
-    that longer training does not leave (key-wall: the agent one-hot also codes the key
-    in some seeds), and such runs end with a higher contrastive loss. The trainer then
+    that longer training does not leave (key-wall: the agent one-hot also codes the key,
+    or uses few codes), with no higher contrastive loss to show it. The trainer then
     first trains ``num_candidates`` initialisations for ``candidate_steps`` steps each,
-    scores each by the mean ``loss_cpc`` of the logged steps of its second half, and
-    continues only the lowest (the others' checkpoints stay in
-    ``<out_dir>/checkpoints/candidate<i>.pt``). No ground truth is used. The chosen
-    candidate's steps count towards ``num_steps``; the others add
+    scores each by :func:`~dorp_rl.eval.code_information`'s ``unique_information`` of
+    its codes on ``screening_frames`` evenly spaced stored play frames (the one-hots'
+    entropies minus what pairs of them share; no ground truth), and continues only the
+    highest (the others' checkpoints stay in ``<out_dir>/checkpoints/candidate<i>.pt``).
+    The chosen candidate's steps count towards ``num_steps``; the others add
     ``(num_candidates - 1) * candidate_steps`` steps. The result lists every candidate
-    with its score under ``candidates``.
+    with its score and loss under ``candidates``.
 
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
@@ -419,28 +422,40 @@ class RepresentationTrainer(Trainer):
         n = self.config.num_candidates
         return n > 1 and len(self.candidates) < n
 
-    def _end_candidate(self) -> None:
+    def screening_score(self) -> float:
+        """Label-free ``unique_information`` (nats) of the codes of evenly spaced stored play frames."""
+        stored = len(self.buffer)
+        count = min(stored, self.config.screening_frames)
+        index = torch.linspace(0, stored - 1, count).round().long()
+        pixels = self.buffer.storage[index]["pixels"]
+        codes = self.encoder.encode(pixels.reshape(-1, *pixels.shape[-3:]))
+        return float(code_information(codes)["unique_information"])
+
+    def _end_candidate(self, metrics: dict[str, float]) -> None:
         """Scores the current candidate; starts the next one or continues the best."""
-        cfg = self.config
-        half = self.attempt_start + cfg.candidate_steps // 2
-        losses = [h["loss_cpc"] for h in self.history if h["step"] > half and "loss_cpc" in h]
-        score = sum(losses) / len(losses) if losses else float(self.history[-1]["loss_cpc"])
+        score = self.screening_score()
         path = self.checkpoint_path.with_name(f"candidate{len(self.candidates)}.pt")
         self.save(path)
         self.candidates.append(
-            {"attempt": self.attempt, "step": self.step, "loss": score, "path": str(path)}
+            {
+                "attempt": self.attempt,
+                "step": self.step,
+                "score": score,
+                "loss": self.recent_loss(metrics),
+                "path": str(path),
+            }
         )
-        self.logger.log_scalar("candidate_loss", score, step=self.step)
+        self.logger.log_scalar("candidate_score", score, step=self.step)
         if self.screening:
             self._new_init()
             return
-        best = min(self.candidates, key=lambda c: c["loss"])
+        best = max(self.candidates, key=lambda c: c["score"])
         if best["attempt"] != self.attempt:
             self.attempt = best["attempt"]
             self._build(seed=self._attempt_seed(self.attempt))
             payload = load_checkpoint(best["path"], kind=self.kind, env_config=self.env.config())
             self.load_state_dict(payload["state"])
-        self.attempt_start = self.step - cfg.candidate_steps
+        self.attempt_start = self.step - self.config.candidate_steps
         self.history_start = self.step
 
     def after_step(self, metrics: dict[str, float], logged: bool) -> None:
@@ -448,7 +463,7 @@ class RepresentationTrainer(Trainer):
         cfg = self.config
         if self.screening:
             if self.step - self.attempt_start >= cfg.candidate_steps:
-                self._end_candidate()
+                self._end_candidate(metrics)
             return
         reason = self.collapse_reason(metrics, self.step - self.attempt_start)
         if logged:

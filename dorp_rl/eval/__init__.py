@@ -1,5 +1,6 @@
 """Evaluation: code diagnostics, open-loop accuracy of world models, task sets and the harness."""
 
+from dorp_rl.eval.code_information import code_information
 from dorp_rl.eval.diagnostics import (
     best_assignment,
     connected_fraction,
@@ -15,6 +16,7 @@ from dorp_rl.eval.world_model import open_loop_accuracy
 
 __all__ = [
     "best_assignment",
+    "code_information",
     "connected_fraction",
     "encode_pixels",
     "evaluate_policy",
