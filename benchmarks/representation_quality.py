@@ -95,11 +95,12 @@ def verdict(name: str, diag: dict[str, Any]) -> str:
         ok = (
             diag["key_bit_change_fraction"] >= 0.95
             and diag["agent_onehot_unchanged_fraction"] >= 0.95
+            and diag["move_selectivity"] >= 0.95
             and diag["codes_used"] >= 8
             and min(diag["connected_fraction_without_key"], diag["connected_fraction_with_key"])
             >= 0.95
         )
-        return f"goal key bit >=0.95, agent one-hot still >=0.95, >=8 agent codes, connected >=0.95: {'met' if ok else 'NOT met'}"
+        return f"goal key bit >=0.95, agent one-hot still >=0.95, key bit still on moves >=0.95, >=8 agent codes, connected >=0.95: {'met' if ok else 'NOT met'}"
     ok = diag["selectivity"] >= 0.9 and diag["min_purity"] >= 0.9 and diag["min_codes_used"] >= 8
     return f"goal sel>=0.9, purity>=0.9, >=8 codes: {'met' if ok else 'NOT met'}"
 
@@ -159,8 +160,12 @@ def main() -> None:
                 diag = trainer.diagnose()
                 seconds = time.perf_counter() - start
                 write_diagnostic_plots(trainer.env, trainer.encoder.encode, out_dir / "plots")
+                screened = ""
+                if result["candidates"]:
+                    scores = " ".join(f"{c['score']:.2f}" for c in result["candidates"])
+                    screened = f"candidate scores [{scores}] chose {trainer.attempt}  "
                 line = (
-                    f"{name:14s} seed {seed}  {seconds:6.0f}s  steps {result['step']}  "
+                    f"{name:14s} seed {seed}  {seconds:6.0f}s  steps {result['step']}  {screened}"
                     f"restarts {len(result['restarts'])}  collapsed {result['collapsed']}  {summarize(name, diag)}  "
                     f"-> {verdict(name, diag)}"
                 )
@@ -172,6 +177,8 @@ def main() -> None:
                         "seconds": seconds,
                         "steps": result["step"],
                         "restarts": result["restarts"],
+                        "candidates": result["candidates"],
+                        "chosen_attempt": trainer.attempt,
                         "collapsed": result["collapsed"],
                         "final_loss": result["metrics"].get("loss_cpc"),
                         "diagnostics": {k: v for k, v in diag.items() if k != "code_maps"},
