@@ -33,6 +33,9 @@ def make_config(args: argparse.Namespace) -> RepresentationConfig:
         config = RepresentationConfig.key_corridor(similarity=args.similarity, **common)
     if args.steps:
         config.num_steps = args.steps
+        config.candidate_steps = min(config.candidate_steps, args.steps)
+    if args.candidates:
+        config.num_candidates = args.candidates
     config.diagnostics_every = max(config.num_steps // 4, 1)
     return config
 
@@ -45,6 +48,12 @@ def main() -> None:
     parser.add_argument("--num-objects", type=int, default=1, help="rearrangement only")
     parser.add_argument("--similarity", default="dddp", choices=["dddp", "full", "identity"])
     parser.add_argument("--steps", type=int, default=None, help="default: 800, or the preset's")
+    parser.add_argument(
+        "--candidates",
+        type=int,
+        default=None,
+        help="initialisations screened before training one (default: the preset's; key-wall 6)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", type=Path, default=Path("outputs/representation_1obj"))
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
@@ -56,6 +65,9 @@ def main() -> None:
     print(
         f"steps {result['step']}, restarts {len(result['restarts'])}, collapsed {result['collapsed']}"
     )
+    if result["candidates"]:
+        scores = ", ".join(f"{c['score']:.2f}" for c in result["candidates"])
+        print(f"candidate code information (nats): {scores}; continued attempt {trainer.attempt}")
     if args.env == "rearrangement":
         print(f"codes used per one-hot: {diag['codes_used']}")
         print(f"selectivity {diag['selectivity']:.3f}, purity {diag['purity']}")

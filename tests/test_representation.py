@@ -411,7 +411,7 @@ def test_screening_continues_the_highest_scoring_candidate(tmp_path):
     assert [c["attempt"] for c in candidates] == [0, 1, 2]
     assert len({c["score"] for c in candidates}) == 3  # three different initialisations
     # num_steps == candidate_steps: the run ends on the chosen candidate, unchanged.
-    assert result["step"] == 18
+    assert result["step"] == trainer.planned_steps == 18
     best = max(candidates, key=lambda c: c["score"])
     assert trainer.attempt == best["attempt"]
     assert trainer.screening_score() == pytest.approx(best["score"])

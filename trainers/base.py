@@ -80,6 +80,11 @@ class Trainer:
     def done(self) -> bool:
         return self.step >= self.config.num_steps
 
+    @property
+    def planned_steps(self) -> int:
+        """Steps the progress bar expects (restarts may add more)."""
+        return self.config.num_steps
+
     def after_step(self, metrics: dict[str, float], logged: bool) -> None:
         """Called after every step (after logging): restarts, schedules, ..."""
 
@@ -157,7 +162,8 @@ class Trainer:
         if cfg.progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=cfg.num_steps, initial=min(self.step, cfg.num_steps), desc=self.kind)
+            total = self.planned_steps
+            bar = tqdm(total=total, initial=min(self.step, total), desc=self.kind)
         metrics: dict[str, float] = {}
         evaluated_at = -1
         try:

@@ -484,6 +484,12 @@ class RepresentationTrainer(Trainer):
         )
         self.logger.log_scalar("restart", float(len(self.restarts)), step=self.step)
 
+    @property
+    def planned_steps(self) -> int:
+        cfg = self.config
+        screened = (cfg.num_candidates - 1) * cfg.candidate_steps if cfg.num_candidates > 1 else 0
+        return cfg.num_steps + screened
+
     def done(self) -> bool:
         return not self.screening and self.step - self.attempt_start >= self.config.num_steps
 
