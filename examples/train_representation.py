@@ -52,7 +52,7 @@ def main() -> None:
         "--candidates",
         type=int,
         default=None,
-        help="initialisations screened before training one (default: the preset's; key-wall 6)",
+        help="screen this many initialisations by label-free code information first (default 1)",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", type=Path, default=Path("outputs/representation_1obj"))
