@@ -134,6 +134,13 @@ def main() -> None:
     parser.add_argument(
         "--threads", type=int, default=None, help="torch threads (default: torch's)"
     )
+    parser.add_argument(
+        "--candidates",
+        type=int,
+        default=1,
+        help="screen this many initialisations per run by label-free code information",
+    )
+    parser.add_argument("--candidate-steps", type=int, default=1000)
     parser.add_argument("--out-dir", type=Path, default=Path("outputs/representation_quality"))
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
@@ -154,6 +161,12 @@ def main() -> None:
                 cfg = replace(
                     base, seed=seed, out_dir=str(out_dir), progress=False, diagnostics_every=10**9
                 )
+                if args.candidates > 1:
+                    cfg = replace(
+                        cfg,
+                        num_candidates=args.candidates,
+                        candidate_steps=max(1, int(args.candidate_steps * args.steps_scale)),
+                    )
                 start = time.perf_counter()
                 trainer = RepresentationTrainer(cfg)
                 result = trainer.train()

@@ -118,7 +118,7 @@ class RepresentationConfig(ConfigMixin):
         to zero away from their object, so that the key and the door leak less into the
         agent's map. The agent one-hot still follows the key or uses few codes in some
         seeds (2 of 5 met the goal). Screening initialisations (``num_candidates``) did
-        not make it reliable either (2 of 4 measured seeds met it at 3x the steps); see
+        not make it reliable either (2 of 5 seeds met it at 3x the steps); see
         docs/RESULTS.md, "key-wall".
         """
         base = cls(
@@ -234,8 +234,8 @@ class RepresentationTrainer(Trainer):
     The chosen candidate's steps count towards ``num_steps``; the others add
     ``(num_candidates - 1) * candidate_steps`` steps. The result lists every candidate
     with its score and loss under ``candidates``. The score is a proxy, not a guarantee:
-    on key-wall (12 candidates of 1000 steps) the chosen run met the goal in 2 of 4
-    seeds, and the highest-scoring final run of those four was one that missed it
+    on key-wall (12 candidates of 1000 steps) the chosen run met the goal in 2 of 5
+    seeds, as without screening, and the highest-scoring final run was one that missed it
     (docs/RESULTS.md, "key-wall"); no preset turns it on.
 
     Examples:
