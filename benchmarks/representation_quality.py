@@ -176,7 +176,8 @@ def main() -> None:
                 screened = ""
                 if result["candidates"]:
                     scores = " ".join(f"{c['score']:.2f}" for c in result["candidates"])
-                    screened = f"candidate scores [{scores}] chose {trainer.attempt}  "
+                    chosen = result["chosen_candidate"]["attempt"]
+                    screened = f"candidate scores [{scores}] chose {chosen}  "
                 line = (
                     f"{name:14s} seed {seed}  {seconds:6.0f}s  steps {result['step']}  {screened}"
                     f"restarts {len(result['restarts'])}  collapsed {result['collapsed']}  {summarize(name, diag)}  "
@@ -191,7 +192,7 @@ def main() -> None:
                         "steps": result["step"],
                         "restarts": result["restarts"],
                         "candidates": result["candidates"],
-                        "chosen_attempt": trainer.attempt,
+                        "chosen_candidate": result["chosen_candidate"],
                         "collapsed": result["collapsed"],
                         "final_loss": result["metrics"].get("loss_cpc"),
                         "diagnostics": {k: v for k, v in diag.items() if k != "code_maps"},

@@ -67,7 +67,8 @@ def main() -> None:
     )
     if result["candidates"]:
         scores = ", ".join(f"{c['score']:.2f}" for c in result["candidates"])
-        print(f"candidate code information (nats): {scores}; continued attempt {trainer.attempt}")
+        chosen = result["chosen_candidate"]["attempt"]
+        print(f"candidate code information (nats): {scores}; continued candidate {chosen}")
     if args.env == "rearrangement":
         print(f"codes used per one-hot: {diag['codes_used']}")
         print(f"selectivity {diag['selectivity']:.3f}, purity {diag['purity']}")

@@ -414,6 +414,7 @@ def test_screening_continues_the_highest_scoring_candidate(tmp_path):
     assert result["step"] == trainer.planned_steps == 18
     best = max(candidates, key=lambda c: c["score"])
     assert trainer.attempt == best["attempt"]
+    assert result["chosen_candidate"] == best
     assert trainer.screening_score() == pytest.approx(best["score"])
     stored = load_checkpoint(best["path"], kind="representation")["state"]["encoder"]
     for name, value in trainer.encoder.state_dict().items():

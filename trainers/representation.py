@@ -233,10 +233,12 @@ class RepresentationTrainer(Trainer):
     highest (the others' checkpoints stay in ``<out_dir>/checkpoints/candidate<i>.pt``).
     The chosen candidate's steps count towards ``num_steps``; the others add
     ``(num_candidates - 1) * candidate_steps`` steps. The result lists every candidate
-    with its score and loss under ``candidates``. The score is a proxy, not a guarantee:
-    on key-wall (12 candidates of 1000 steps) the chosen run met the goal in 2 of 5
-    seeds, as without screening, and the highest-scoring final run was one that missed it
-    (docs/RESULTS.md, "key-wall"); no preset turns it on.
+    with its score and loss under ``candidates``, the one continued under
+    ``chosen_candidate`` (a collapse restart after screening still starts afresh). The
+    score is a proxy, not a guarantee: on key-wall (12 candidates of 1000 steps) the
+    chosen run met the goal in 2 of 5 seeds, as without screening, and the
+    highest-scoring final run was one that missed it (docs/RESULTS.md, "key-wall"); no
+    preset turns it on.
 
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
@@ -427,6 +429,13 @@ class RepresentationTrainer(Trainer):
         n = self.config.num_candidates
         return n > 1 and len(self.candidates) < n
 
+    @property
+    def chosen_candidate(self) -> dict[str, Any] | None:
+        """The highest-scoring candidate once screening has ended (else ``None``)."""
+        if self.screening or not self.candidates:
+            return None
+        return max(self.candidates, key=lambda c: c["score"])
+
     def screening_score(self) -> float:
         """Label-free ``unique_information`` (nats) of the codes of evenly spaced stored play frames."""
         stored = len(self.buffer)
@@ -454,7 +463,7 @@ class RepresentationTrainer(Trainer):
         if self.screening:
             self._new_init()
             return
-        best = max(self.candidates, key=lambda c: c["score"])
+        best = self.chosen_candidate
         if best["attempt"] != self.attempt:
             self.attempt = best["attempt"]
             self._build(seed=self._attempt_seed(self.attempt))
@@ -537,6 +546,7 @@ class RepresentationTrainer(Trainer):
             "attempt": self.attempt,
             "restarts": self.restarts,
             "candidates": self.candidates,
+            "chosen_candidate": self.chosen_candidate,
             "collapsed": final_reason is not None,
             "diagnostics": result["evaluation"],
         }
