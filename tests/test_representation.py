@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from tensordict import TensorDict
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.eval import code_information
 from dorp_rl.modules import (
     DDDPSimilarity,
@@ -23,6 +23,7 @@ from dorp_rl.modules import (
     IdentitySimilarity,
 )
 from dorp_rl.objectives import CPCLoss
+from dorp_rl.objectives.cpc import uncovered_motion
 from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer, load_encoder
 
 
@@ -200,10 +201,53 @@ def test_sparsity_term_shrinks_the_object_maps():
     assert float(out["map_mass"]) < 0.5 * first_mass
 
 
+def test_uncovered_motion_counts_moving_pixels_outside_every_map():
+    anchor = torch.zeros(1, 3, 16, 16, dtype=torch.uint8)
+    future = anchor.clone()
+    anchor[0, :, 2, 3] = 255  # the object was at (2, 3) ...
+    future[0, :, 5, 6] = 255  # ... and moved to (5, 6)
+    empty = torch.zeros(1, 2, 16, 16)
+    assert float(uncovered_motion(anchor, future, empty, empty)) == 1.0
+    at_start, at_end = empty.clone(), empty.clone()
+    at_start[0, 1, 2, 3] = 1.0  # one map holds the object where it was ...
+    assert float(uncovered_motion(anchor, future, at_start, empty)) == 0.5
+    at_end[0, 0, 5, 6] = 1.0  # ... another where it went: all motion is covered
+    assert float(uncovered_motion(anchor, future, at_start, at_end)) == 0.0
+    # no moving pixel: nothing to cover
+    assert float(uncovered_motion(anchor, anchor, empty, empty)) == 0.0
+
+
+def test_motion_term_covers_motion_with_the_wide_onehot_only():
+    torch.manual_seed(0)
+    env = KeyWallEnv(batch_size=(), batch_locked=False)
+    states = torch.tensor([[3, 3, 0], [10, 2, 0], [7, 12, 1], [12, 5, 1]])
+    moved = env.transition(states, torch.tensor([0, 1, 2, 3]))
+    td = TensorDict(
+        pixels=env.render_state(states), future_pixels=env.render_state(moved), batch_size=[4]
+    )
+    encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(16, 2)))
+    loss = CPCLoss(encoder, DDDPSimilarity(32), motion_weight=2.0)
+    out = loss(td)
+    maps = encoder.object_maps(torch.cat([td["pixels"], td["future_pixels"]])).detach()
+    agent_only = uncovered_motion(td["pixels"], td["future_pixels"], maps[:4, :1], maps[4:, :1])
+    assert float(out["loss_motion"].detach()) == pytest.approx(2 * float(agent_only), rel=1e-5)
+    # training on the term alone puts the agent's map on the agent
+    opt = torch.optim.Adam(encoder.extractor.parameters(), lr=1e-2)
+    first = float(out["loss_motion"].detach())
+    for _ in range(30):
+        out = loss(td)
+        opt.zero_grad()
+        out["loss_motion"].backward()
+        opt.step()
+    assert float(out["loss_motion"].detach()) < 0.5 * first
+
+
 def test_loss_errors():
     loss = _loss()
     with pytest.raises(ValueError, match="sparsity_weight must be >= 0"):
         CPCLoss(loss.encoder, DDDPSimilarity(16), sparsity_weight=-1.0)
+    with pytest.raises(ValueError, match="motion_weight must be >= 0"):
+        CPCLoss(loss.encoder, DDDPSimilarity(16), motion_weight=-0.5)
     with pytest.raises(ValueError, match="same shape"):
         loss(TensorDict(pixels=_pixels(4), future_pixels=_pixels(5), batch_size=[]))
     with pytest.raises(ValueError, match="dim"):

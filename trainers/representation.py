@@ -66,6 +66,7 @@ class RepresentationConfig(ConfigMixin):
     usage_weight: float = 0.0
     exclusivity_weight: float = 0.0
     sparsity_weight: float = 0.0
+    motion_weight: float = 0.0
     # optimisation
     batch_size: int = 128
     lr: float = 1e-3
@@ -303,6 +304,7 @@ class RepresentationTrainer(Trainer):
             usage_weight=cfg.usage_weight,
             exclusivity_weight=cfg.exclusivity_weight,
             sparsity_weight=cfg.sparsity_weight,
+            motion_weight=cfg.motion_weight,
         )
         groups = [{"params": list(self.encoder.parameters()), "lr": cfg.lr}]
         sim_params = list(self.similarity.parameters())

@@ -67,6 +67,20 @@ def change_imbalance(change: torch.Tensor) -> torch.Tensor:
     return 1.0 - entropy / math.log(change.shape[-1])
 
 
+def uncovered_motion(
+    anchor: torch.Tensor, future: torch.Tensor, anchor_maps: torch.Tensor, future_maps: torch.Tensor
+) -> torch.Tensor:
+    """Share of moving pixels that no object map covers, in [0, 1].
+
+    A pixel moves when it differs between the two frames ``[B, 3, H, W]`` of a pair; it
+    is covered as much as the highest value any map ``[B, C', H, W]`` takes on it in either
+    frame (the object is under its map where it was and where it went).
+    """
+    moved = (anchor != future).any(-3).to(anchor_maps.dtype)  # [B, H, W]
+    cover = torch.maximum(anchor_maps, future_maps).amax(-3)  # [B, H, W]
+    return ((1 - cover) * moved).sum() / moved.sum().clamp_min(1)
+
+
 def encoder_has_pairs(probs: torch.Tensor) -> bool:
     """Whether codes have at least two one-hots (the exclusivity term needs pairs)."""
     return probs.shape[-2] > 1
@@ -101,9 +115,16 @@ class CPCLoss(LossModule):
             that drives each map to zero away from its object. In key rooms it shrinks
             what the key and the door leave in the agent's map, which otherwise flips the
             agent's code with the key at the borders of code regions (docs/RESULTS.md).
+        motion_weight: weight of an optional motion-coverage term
+            (:func:`uncovered_motion`): every pixel that changes between the two frames
+            of a pair should lie under the object map of a one-hot of more than 2 codes.
+            Without it a key-wall agent map held almost nothing on the agent (mean 0.0003
+            on its pixel) and its code followed what the key leaves in the map; with it
+            the map sits on the agent (docs/RESULTS.md, "key-wall").
 
     Reads ``pixels`` (o_t) and ``future_pixels`` (o_{t+k}) and returns ``loss_cpc`` (plus
-    ``loss_usage``, ``loss_exclusivity`` and ``loss_sparsity`` when enabled) and detached
+    ``loss_usage``, ``loss_exclusivity``, ``loss_sparsity`` and ``loss_motion`` when
+    enabled) and detached
     metrics: ``accuracy`` (share of anchors whose best-scoring candidate is their own
     future), ``mi_lower_bound`` (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor
     codes per one-hot, averaged), ``min_codes_in_batch`` (the fewest on a one-hot of more
@@ -150,6 +171,7 @@ class CPCLoss(LossModule):
         usage_weight: float = 0.0,
         exclusivity_weight: float = 0.0,
         sparsity_weight: float = 0.0,
+        motion_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if gumbel_side not in ("positive", "anchor"):
@@ -167,14 +189,19 @@ class CPCLoss(LossModule):
         self.gumbel_side = gumbel_side
         self.gumbel_temperature = float(gumbel_temperature)
         self.ce_temperature = float(ce_temperature)
-        if usage_weight < 0 or exclusivity_weight < 0 or sparsity_weight < 0:
-            raise ValueError(
-                "usage_weight, exclusivity_weight and sparsity_weight must be >= 0, got "
-                f"{usage_weight}, {exclusivity_weight}, {sparsity_weight}."
-            )
+        weights = {
+            "usage_weight": usage_weight,
+            "exclusivity_weight": exclusivity_weight,
+            "sparsity_weight": sparsity_weight,
+            "motion_weight": motion_weight,
+        }
+        for name, value in weights.items():
+            if value < 0:
+                raise ValueError(f"{name} must be >= 0, got {value}.")
         self.usage_weight = float(usage_weight)
         self.exclusivity_weight = float(exclusivity_weight)
         self.sparsity_weight = float(sparsity_weight)
+        self.motion_weight = float(motion_weight)
         sizes = torch.tensor(encoder.code_sizes)
         self._wide_onehots = (
             sizes > 2 if (sizes > 2).any() else torch.ones_like(sizes, dtype=torch.bool)
@@ -241,6 +268,12 @@ class CPCLoss(LossModule):
             )
         if self.sparsity_weight > 0:
             out.set("loss_sparsity", self.sparsity_weight * maps.mean())
+        if self.motion_weight > 0:
+            # Only the wide one-hots' maps may cover motion: a key bit's map that did
+            # took the agent (docs/RESULTS.md, "key-wall").
+            wide = self._wide_onehots.to(maps.device)
+            uncovered = uncovered_motion(anchor, future, maps[:batch, wide], maps[batch:, wide])
+            out.set("loss_motion", self.motion_weight * uncovered)
         out.set("map_mass", maps.detach().flatten(-2).sum(-1).mean())
         if self.exclusivity_weight > 0 and encoder_has_pairs(probs):
             # How much each one-hot's object map changes between o_t and o_t+k: dense
