@@ -78,7 +78,7 @@ def settings(steps_scale: float) -> dict[str, list[tuple[str, RepresentationConf
         "keywall": [
             (
                 "keywall-dddp",
-                RepresentationConfig.key_wall(num_steps=steps(6000)),
+                RepresentationConfig.key_wall(num_steps=steps(3000)),
             ),
         ],
     }

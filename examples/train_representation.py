@@ -5,7 +5,7 @@
 
 Prints the ground-truth diagnostics (codes used, connectivity; for key rooms whether the
 key bit and the agent one-hot are separate) and writes the pictures under
-``<out-dir>/plots``. Key-wall takes about 6 minutes on a 2-core CPU (6000 steps).
+``<out-dir>/plots``. Key-wall takes about 4 minutes on a 2-core CPU (3000 steps).
 """
 
 from __future__ import annotations
