@@ -23,7 +23,7 @@ import argparse
 import torch
 
 from dorp_rl.envs import KeyWallEnv
-from dorp_rl.eval.diagnostics import key_room_diagnostics
+from dorp_rl.eval.diagnostics import key_event_states, key_room_diagnostics
 from dorp_rl.trainers.representation import load_encoder
 
 
@@ -45,17 +45,14 @@ def main() -> None:
         for row in diag[name]:
             print(" ".join(f"{c:2d}" if c >= 0 else " ." for c in row))
 
-    cells = env.start_cells
-    rows, cols = cells // 16, cells % 16
-    without_key = torch.stack([rows, cols, torch.zeros_like(rows)], -1)
-    with_key = without_key.clone()
-    with_key[:, 2] = 1
+    without_key, with_key = key_event_states(env)
+    rows, cols = without_key[:, 0], without_key[:, 1]
     with torch.no_grad():
         _, maps_without = encoder.logits_and_maps(env.render_state(without_key))
         _, maps_with = encoder.logits_and_maps(env.render_state(with_key))
     agent_without, agent_with = maps_without[:, agent], maps_with[:, agent]
     change = (agent_with - agent_without).abs()  # [cells, 16, 16]
-    on_agent = agent_without[torch.arange(len(cells)), rows, cols]
+    on_agent = agent_without[torch.arange(len(rows)), rows, cols]
     print(f"agent map on the agent's pixel (mean)      {on_agent.mean():.4f}")
     print(f"agent map mass (mean sum over pixels)      {agent_without.sum((-2, -1)).mean():.3f}")
     print(f"change when the key is taken: total        {change.sum((-2, -1)).mean():.3f}")

@@ -78,7 +78,9 @@ def settings(steps_scale: float) -> dict[str, list[tuple[str, RepresentationConf
         "keywall": [
             (
                 "keywall-dddp",
-                RepresentationConfig.key_wall(num_steps=steps(3000)),
+                RepresentationConfig.key_wall(
+                    num_steps=steps(RepresentationConfig.key_wall().num_steps)
+                ),
             ),
         ],
     }

@@ -554,6 +554,13 @@ def _cells_to_states(cells: torch.Tensor, has_key: int) -> torch.Tensor:
     )
 
 
+def key_event_states(env: KeyRoomEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """The key events of :func:`key_room_diagnostics`: states int64 ``[E, 3]`` of every
+    start-able cell without the key, and the same cells with it, in the same order."""
+    start_cells = env.start_cells.cpu()
+    return _cells_to_states(start_cells, 0), _cells_to_states(start_cells, 1)
+
+
 def _code_map(cells: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
     """int64 ``[16, 16]`` map with ``codes[i]`` at flat cell ``cells[i]``, ``-1`` elsewhere."""
     out = torch.full((GRID_SIZE * GRID_SIZE,), -1, dtype=torch.int64)

@@ -124,8 +124,7 @@ class CPCLoss(LossModule):
 
     Reads ``pixels`` (o_t) and ``future_pixels`` (o_{t+k}) and returns ``loss_cpc`` (plus
     ``loss_usage``, ``loss_exclusivity``, ``loss_sparsity`` and ``loss_motion`` when
-    enabled) and detached
-    metrics: ``accuracy`` (share of anchors whose best-scoring candidate is their own
+    enabled) and detached metrics: ``accuracy`` (share of anchors whose best-scoring candidate is their own
     future), ``mi_lower_bound`` (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor
     codes per one-hot, averaged), ``min_codes_in_batch`` (the fewest on a one-hot of more
     than 2 codes), ``similarity_scale``, ``gumbel_temperature``, ``map_mass`` (summed
