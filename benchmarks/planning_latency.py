@@ -3,7 +3,7 @@
 What is measured
 ----------------
 One :class:`~dorp_rl.planners.RandomShootingPlanner` call (``num_candidates`` random
-sequences of ``horizon`` steps, pixel-L2 cost to the goal, one acting env) through:
+sequences of ``planning_horizon`` steps, pixel-L2 cost to the goal, one acting env) through:
 
 - ``ground truth``: :class:`~dorp_rl.envs.GroundTruthModelEnv` (true dynamics and
   renderer of ``ObjectRearrangementEnv``);
@@ -13,12 +13,12 @@ sequences of ``horizon`` steps, pixel-L2 cost to the goal, one acting env) throu
   (``--preset``; latency does not depend on the weights). The env predicts each
   distinct (frame, action) pair once; ``no dedup`` is the same call predicting every
   candidate's frame;
-- ``bare forward``: the model's ``predict`` on the same frames, ``horizon`` calls of
-  ``num_candidates`` frames each, nothing else: the floor a planner through this model
-  cannot beat. ``bare forward x1`` is one call on all ``num_candidates * horizon``
-  frames, for reference.
+- ``bare forward``: the model's ``predict`` on the same frames, ``planning_horizon``
+  calls of ``num_candidates`` frames each, nothing else: the floor a planner through
+  this model cannot beat. ``bare forward x1`` is one call on all
+  ``num_candidates * planning_horizon`` frames, for reference.
 
-With ``--cem`` the :class:`~dorp_rl.planners.CategoricalCEMPlanner` (3 iterations) is
+With ``--cem`` the :class:`~dorp_rl.planners.CategoricalCEMPlanner` (3 ``optim_steps``) is
 timed too. Each number is the median of ``--repeats`` calls after a warm-up call. A
 breakdown of the world-model call splits it into model ``predict``, the cost, and the
 rest (TorchRL ``step`` / ``step_mdp``, sampling, stacking), timed by wrappers in the
@@ -42,6 +42,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from dorp_rl.envs import ObjectRearrangementEnv
@@ -89,13 +90,16 @@ class Timed:
             self.calls += 1
 
 
-class TimedCost(nn.Module):
-    def __init__(self, cost: nn.Module) -> None:
+class TimedCost(TensorDictModuleBase):
+    """A cost module timed by a :class:`Timed` wrapper; same keys and step aggregation."""
+
+    def __init__(self, cost: TensorDictModuleBase) -> None:
         super().__init__()
         self.cost, self.timer = cost, Timed(cost)
-        self.in_keys, self.reduction = cost.in_keys, cost.reduction
+        self.in_keys, self.out_keys = cost.in_keys, cost.out_keys
+        self.step_aggregation = cost.step_aggregation
 
-    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+    def forward(self, rollout: TensorDictBase) -> TensorDictBase:
         return self.timer(rollout)
 
 
@@ -111,12 +115,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads")
     parser.add_argument("--candidates", type=int, default=1000)
-    parser.add_argument("--horizon", type=int, default=14)
+    parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--objects", type=int, default=3, help="blocks in the rearrangement env")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--checkpoint", type=Path, default=None, help="a world-model checkpoint")
     parser.add_argument("--preset", choices=("small", "default"), default="default")
-    parser.add_argument("--cem", action="store_true", help="also time CEM (3 iterations)")
+    parser.add_argument("--cem", action="store_true", help="also time CEM (optim_steps=3)")
     parser.add_argument("--profile", action="store_true", help="torch.profiler top operators")
     args = parser.parse_args()
 
@@ -124,7 +128,7 @@ def main() -> None:
     torch.manual_seed(0)
     env = ObjectRearrangementEnv(num_objects=args.objects, batch_size=(1,), seed=0)
     td = env.reset()
-    n, h = args.candidates, args.horizon
+    n, h = args.candidates, args.planning_horizon
     model, description = build_model(env, args)
     num_params = sum(p.numel() for p in model.parameters())
     print(
@@ -135,7 +139,12 @@ def main() -> None:
 
     def planner(cls, model_env, cost=None, **kwargs):
         return cls(
-            model_env, cost or PixelDistanceCost(), num_candidates=n, horizon=h, seed=0, **kwargs
+            model_env,
+            cost or PixelDistanceCost(),
+            planning_horizon=h,
+            num_candidates=n,
+            seed=0,
+            **kwargs,
         )
 
     rows: list[tuple[str, float]] = []

@@ -53,7 +53,7 @@ def main() -> None:
         help="run only tasks[START:STOP] of the --tasks set (to split a run across processes)",
     )
     parser.add_argument("--candidates", type=int, default=1000)
-    parser.add_argument("--horizon", type=int, default=14)
+    parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
     parser.add_argument(
         "--tasks-per-rollout", type=int, default=None, help="default: 10 gt, 1 video"
@@ -62,11 +62,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0, help="planner seed")
     parser.add_argument(
-        "--reduction",
+        "--step-aggregation",
         choices=["final", "min"],
         default="final",
-        help="final: score the last frame, execute the whole sequence (the paper's VF); "
-        "min: score the closest frame, execute up to it (the authors' goal step)",
+        help="how a sequence's per-step pixel distances make its score. final: score the "
+        "last frame, execute the whole sequence (the paper's VF); min: score the closest "
+        "frame, execute up to it (the authors' goal step)",
     )
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
@@ -75,7 +76,8 @@ def main() -> None:
 
     print(
         f"{args.tasks} tasks (seed {args.task_seed}), {args.candidates} candidates x "
-        f"{args.horizon} steps, open loop, reduction {args.reduction!r}; "
+        f"{args.planning_horizon} steps, open loop, step aggregation "
+        f"{args.step_aggregation!r}; "
         f"torch threads {torch.get_num_threads()}"
     )
     print(
@@ -99,10 +101,10 @@ def main() -> None:
                 policy = VisualForesightPolicy(
                     planning_env,
                     variant,
+                    planning_horizon=args.planning_horizon,
                     num_candidates=args.candidates,
-                    horizon=args.horizon,
                     seed=args.seed,
-                    reduction=args.reduction,
+                    step_aggregation=args.step_aggregation,
                 )
                 result = evaluate_policy(
                     env,

@@ -40,8 +40,10 @@ def main() -> None:
         planning_env = GroundTruthModelEnv(env)
     else:
         planning_env = WorldModelEnv(load_video_model(args.checkpoint, env), env.num_actions)
+    # VF-CEM refits to the best 2 % of the candidates (the paper's top_k=20 of 1000).
+    elites = {"top_k": max(1, round(0.02 * args.candidates))} if args.variant == "cem" else {}
     policy = VisualForesightPolicy(
-        planning_env, args.variant, num_candidates=args.candidates, seed=args.seed
+        planning_env, args.variant, num_candidates=args.candidates, seed=args.seed, **elites
     )
 
     # One episode by hand: a seeded task, env.rollout with the planner as the policy.

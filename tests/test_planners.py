@@ -9,6 +9,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.envs import TensorDictPrimer
@@ -23,15 +24,18 @@ from dorp_rl.planners import (
     PixelDistanceCost,
     RandomShootingPlanner,
     RolloutCost,
-    SumCost,
-    reduce_steps,
+    WeightedCostSum,
+    aggregate_steps,
     select_best,
 )
 from dorp_rl.policies import VisualForesightPolicy
 
 PLANNERS = {
     "rs": RandomShootingPlanner,
-    "cem": lambda *a, **k: CategoricalCEMPlanner(*a, elite_fraction=0.1, **k),
+    # The elites are the top 10 % of the candidates (num_candidates=64 -> top_k=6).
+    "cem": lambda *a, **k: CategoricalCEMPlanner(
+        *a, top_k=max(1, round(0.1 * k["num_candidates"])), **k
+    ),
 }
 
 
@@ -48,12 +52,11 @@ class FirstActionCost(RolloutCost):
     """0 only when the first action is ``target``: a toy cost with one right answer."""
 
     def __init__(self, target: int = 3) -> None:
-        super().__init__()
+        super().__init__(step_aggregation="sum")
         self.target = target
         self.in_keys = ["action"]
-        self.reduction = "sum"
 
-    def forward(self, rollout):
+    def per_step_cost(self, rollout):
         action = rollout["action"].squeeze(-1)  # [B, N, H]
         cost = torch.zeros(action.shape, dtype=torch.float32)
         cost[..., 0] = (action[..., 0] != self.target).float()
@@ -101,7 +104,7 @@ def test_pixel_distance_cost_values():
         },
         batch_size=(1, 2, 3),
     )
-    cost = PixelDistanceCost()(rollout)
+    cost = PixelDistanceCost()(rollout)["cost"]
     assert cost.shape == (1, 2, 3) and cost.dtype == torch.float32
     expected = torch.tensor([[[0.0, 1.0, 0.0], [0.0, 0.0, 768**0.5]]])
     assert torch.allclose(cost, expected)
@@ -123,7 +126,7 @@ def test_pixel_distance_cost_with_one_goal_per_row_in_small_chunks():
     naive = (frames.double() - goals.view(3, 1, 1, 3, 16, 16).double()) / 255
     expected = naive.square().flatten(-3).sum(-1).sqrt().float()
     for chunk_size in (7, 512):
-        cost = PixelDistanceCost(chunk_size=chunk_size)(rollout)
+        cost = PixelDistanceCost(chunk_size=chunk_size)(rollout)["cost"]
         assert torch.allclose(cost, expected, atol=1e-4)
 
 
@@ -158,14 +161,14 @@ def code_rollout(start: tuple[int, int], steps: list[tuple[int, int]], target, m
 def test_code_match_cost_on_chosen_onehots():
     # Start (0, 0); target code 2 on one-hot 0; one-hot 1 must stay at 0.
     rollout = code_rollout((0, 0), [(1, 0), (2, 1), (2, 0), (2, 0)], target=(2, 3))
-    cost = CodeMatchCost(CornerEncoder(), onehots=[0])(rollout)[0, 0]
+    cost = CodeMatchCost(CornerEncoder(), onehots=[0])(rollout)["cost"][0, 0]
     assert cost[0] > 0.99 and cost[1] > 0.99  # not there / other one-hot changed
     assert -1e-3 <= cost[2] <= 0 and torch.isclose(cost[2], cost[3])
     # All one-hots (onehots=None): (2, 3) is never reached.
-    assert (CodeMatchCost(CornerEncoder())(rollout) > 0.99).all()
+    assert (CodeMatchCost(CornerEncoder())(rollout)["cost"] > 0.99).all()
     # Per-row choice through a mask key: one-hot 1 only.
     rollout = code_rollout((0, 0), [(0, 3), (1, 3)], target=(2, 3), mask=(False, True))
-    cost = CodeMatchCost(CornerEncoder(), onehots="subgoal_onehots")(rollout)[0, 0]
+    cost = CodeMatchCost(CornerEncoder(), onehots="subgoal_onehots")(rollout)["cost"][0, 0]
     assert cost[0] <= 0 and cost[1] > 0.99
     with pytest.raises(MissingRolloutKeyError, match="subgoal_code"):
         CodeMatchCost(CornerEncoder())(rollout.exclude("subgoal_code"))
@@ -183,24 +186,35 @@ def test_code_match_cost_prefers_confident_matches():
 
     rollout = code_rollout((0, 0), [(1, 0), (1, 0)], target=(1, 0))
     rollout["next", "pixels"][0, 0, 1, 2, 0, 0] = 255
-    cost = CodeMatchCost(Confidence())(rollout)[0, 0]
+    cost = CodeMatchCost(Confidence())(rollout)["cost"][0, 0]
     assert cost[1] < cost[0] <= 0
 
 
-def test_sum_cost_and_reductions():
+def test_weighted_cost_sum_and_step_aggregations():
     rollout = code_rollout((0, 0), [(1, 0), (2, 0)], target=(2, 0))
     rollout["goal_pixels"] = rollout["next", "pixels"][:, :, 1:].expand(1, 1, 2, 3, 16, 16)
-    a, b = CodeMatchCost(CornerEncoder()), PixelDistanceCost()
-    total = SumCost(a, b, weights=(2.0, 0.5))
-    assert torch.allclose(total(rollout), 2 * a(rollout) + 0.5 * b(rollout))
-    assert total.reduction == "min"
-    assert SumCost(a, NegativeRewardCost()).reduction == "sum"
+    a = CodeMatchCost(CornerEncoder(), out_key="code_cost")
+    b = PixelDistanceCost(out_key="pixel_cost")
+    total = TensorDictSequential(a, b, WeightedCostSum({"code_cost": 2.0, "pixel_cost": 0.5}))
+    out = total(rollout.clone())
+    expected = 2 * a(rollout.clone())["code_cost"] + 0.5 * b(rollout.clone())["pixel_cost"]
+    assert torch.allclose(out["cost"], expected)
+    assert (a.step_aggregation, b.step_aggregation) == ("min", "min")
+    assert WeightedCostSum({"code_cost": 1.0}).step_aggregation == "sum"
+    assert NegativeRewardCost().step_aggregation == "sum"
     assert set(total.in_keys) >= {("next", "pixels"), "goal_pixels", "subgoal_code"}
+    assert "code_cost" not in total.in_keys and total.out_keys[-1] == "cost"
+    with pytest.raises(MissingRolloutKeyError, match="pixel_cost"):
+        WeightedCostSum({"pixel_cost": 1.0})(rollout.clone())
     per_step = torch.tensor([[3.0, 1.0, 1.0, 2.0], [0.0, 5.0, 0.0, 0.0]])
-    assert reduce_steps(per_step, "min")[0].tolist() == [1.0, 0.0]
-    assert reduce_steps(per_step, "min")[1].tolist() == [1, 0]
-    assert reduce_steps(per_step, "sum")[0].tolist() == [7.0, 5.0]
-    assert reduce_steps(per_step, "final")[0].tolist() == [2.0, 0.0]
+    assert aggregate_steps(per_step, "min")[0].tolist() == [1.0, 0.0]
+    assert aggregate_steps(per_step, "min")[1].tolist() == [1, 0]
+    assert aggregate_steps(per_step, "sum")[0].tolist() == [7.0, 5.0]
+    assert aggregate_steps(per_step, "final")[0].tolist() == [2.0, 0.0]
+    with pytest.raises(ValueError, match="step_aggregation"):
+        aggregate_steps(per_step, "mean")
+    with pytest.raises(ValueError, match="step_aggregation"):
+        PixelDistanceCost(step_aggregation="mean")
     # Equal scores: the earliest step wins.
     assert select_best(torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([[0, 5, 2]])).item() == 2
 
@@ -212,7 +226,7 @@ def test_sum_cost_and_reductions():
 def test_planner_finds_the_best_action_of_a_toy_cost(name):
     env = two_object_env()
     planner = PLANNERS[name](
-        GroundTruthModelEnv(env), FirstActionCost(3), num_candidates=64, horizon=4, seed=0
+        GroundTruthModelEnv(env), FirstActionCost(3), num_candidates=64, planning_horizon=4, seed=0
     )
     td = planner(env.reset())
     assert td["action"].shape == (3, 1) and (td["action"] == 3).all()
@@ -223,7 +237,7 @@ def test_planner_finds_the_best_action_of_a_toy_cost(name):
 def test_actions_respect_the_spec(name):
     env = two_object_env(batch=2)
     planner = PLANNERS[name](
-        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=32, horizon=4, seed=1
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=32, planning_horizon=4, seed=1
     )
     td = env.rollout(5, planner, break_when_any_done=False)
     assert td["action"].dtype == torch.int64 and td["action"].shape == (2, 5, 1)
@@ -241,7 +255,9 @@ def test_rows_do_not_influence_each_other(name):
     td = tasks(env, states, goals)
 
     def plan(batch):
-        planner = PLANNERS[name](model, PixelDistanceCost(), num_candidates=64, horizon=6, seed=7)
+        planner = PLANNERS[name](
+            model, PixelDistanceCost(), num_candidates=64, planning_horizon=6, seed=7
+        )
         return planner(batch.clone())["planner_plan"]
 
     together = plan(td)
@@ -261,7 +277,9 @@ def test_same_seed_same_plan(name):
     model = GroundTruthModelEnv(env)
 
     def make(seed):
-        return PLANNERS[name](model, PixelDistanceCost(), num_candidates=32, horizon=6, seed=seed)
+        return PLANNERS[name](
+            model, PixelDistanceCost(), num_candidates=32, planning_horizon=6, seed=seed
+        )
 
     first, second = make(11), make(11)
     a, b = first(td.clone()), second(td.clone())
@@ -278,10 +296,11 @@ def test_cem_warm_start_shifts_the_plan():
     # With warm_start_mix=1 and one iteration every candidate is the shifted plan.
     planner = CategoricalCEMPlanner(
         GroundTruthModelEnv(env),
-        PixelDistanceCost(reduction="sum"),
+        PixelDistanceCost(step_aggregation="sum"),
         num_candidates=16,
-        horizon=6,
-        num_iterations=1,
+        planning_horizon=6,
+        optim_steps=1,
+        top_k=1,
         warm_start_mix=1.0,
         seed=0,
     )
@@ -309,8 +328,9 @@ def test_cem_initial_probs_with_action_repeat():
         GroundTruthModelEnv(env),
         PixelDistanceCost(),
         num_candidates=8,
-        horizon=6,
+        planning_horizon=6,
         action_repeat=2,
+        top_k=1,
         warm_start_mix=0.5,
         seed=0,
     )
@@ -327,7 +347,11 @@ def test_cem_initial_probs_with_action_repeat():
 def test_action_repeat_repeats_decisions():
     env = two_object_env()
     planner = RandomShootingPlanner(
-        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=16, horizon=8, action_repeat=2
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        num_candidates=16,
+        planning_horizon=8,
+        action_repeat=2,
     )
     plan = planner(env.reset())["planner_plan"]
     assert torch.equal(plan[:, 0::2], plan[:, 1::2])
@@ -337,9 +361,9 @@ def test_open_loop_emits_the_stored_sequence_then_replans():
     env = ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=3, terminate_on_success=False)
     planner = RandomShootingPlanner(
         GroundTruthModelEnv(env),
-        PixelDistanceCost(reduction="sum"),
+        PixelDistanceCost(step_aggregation="sum"),
         num_candidates=16,
-        horizon=4,
+        planning_horizon=4,
         execution="open_loop",
         seed=0,
     )
@@ -352,9 +376,9 @@ def test_open_loop_emits_the_stored_sequence_then_replans():
     # "min" keeps only the prefix up to the best step.
     planner = RandomShootingPlanner(
         GroundTruthModelEnv(env),
-        PixelDistanceCost(reduction="min"),
+        PixelDistanceCost(step_aggregation="min"),
         num_candidates=16,
-        horizon=4,
+        planning_horizon=4,
         execution="open_loop",
         seed=0,
     )
@@ -365,7 +389,7 @@ def test_open_loop_emits_the_stored_sequence_then_replans():
 def test_unbatched_acting_env():
     env = ObjectRearrangementEnv(num_objects=1, seed=0)
     planner = RandomShootingPlanner(
-        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=16, horizon=4, seed=0
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=16, planning_horizon=4, seed=0
     )
     td = env.rollout(3, planner)
     assert td["action"].shape[1:] == (1,) and td["planner_plan"].shape[1:] == (4,)
@@ -376,14 +400,20 @@ def test_same_cost_and_plan_through_a_world_model():
     env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
     td = env.reset()
     truth = CategoricalCEMPlanner(
-        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=32, horizon=5, seed=3
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        planning_horizon=5,
+        num_candidates=32,
+        seed=3,
+        top_k=1,
     )
     learned = CategoricalCEMPlanner(
         WorldModelEnv(DecodingModel(env), num_actions=4),
         PixelDistanceCost(),
+        planning_horizon=5,
         num_candidates=32,
-        horizon=5,
         seed=3,
+        top_k=1,
     )
     assert torch.equal(truth(td.clone())["planner_plan"], learned(td.clone())["planner_plan"])
 
@@ -397,7 +427,7 @@ def test_code_match_cost_drives_a_planner_to_the_subgoal():
         GroundTruthModelEnv(env),
         CodeMatchCost(CornerEncoder()),
         num_candidates=64,
-        horizon=4,
+        planning_horizon=4,
         execution="open_loop",
         seed=0,
     )
@@ -417,9 +447,9 @@ def test_code_match_cost_with_the_real_encoder_runs_in_a_planner():
         GroundTruthModelEnv(env),
         CodeMatchCost(encoder, onehots=[1]),
         num_candidates=16,
-        horizon=4,
+        planning_horizon=4,
         action_repeat=2,
-        elite_fraction=0.25,
+        top_k=4,
         seed=0,
     )
     out = planner(td)
@@ -435,35 +465,81 @@ def test_errors():
     with pytest.raises(ValueError, match="batch-locked"):
         RandomShootingPlanner(env, cost)
     with pytest.raises(ValueError, match="horizon"):
-        RandomShootingPlanner(model, cost, horizon=0)
+        RandomShootingPlanner(model, cost, planning_horizon=0)
     with pytest.raises(ValueError, match="num_candidates"):
         CategoricalCEMPlanner(model, cost, num_candidates=0)
-    with pytest.raises(ValueError, match="action_repeat must divide horizon"):
-        RandomShootingPlanner(model, cost, horizon=7, action_repeat=2)
-    for fraction in (0.0, 1.5):
-        with pytest.raises(ValueError, match="elite_fraction"):
-            CategoricalCEMPlanner(model, cost, elite_fraction=fraction)
+    with pytest.raises(ValueError, match="action_repeat must divide planning_horizon"):
+        RandomShootingPlanner(model, cost, planning_horizon=7, action_repeat=2)
+    for top_k in (0, 1001, 2.5):
+        with pytest.raises(ValueError, match="top_k"):
+            CategoricalCEMPlanner(model, cost, top_k=top_k)
+    with pytest.raises(ValueError, match="top_k"):
+        CategoricalCEMPlanner(model, cost, num_candidates=16)  # default top_k=20 > 16
+    for steps in (0, 1.5):
+        with pytest.raises(ValueError, match="optim_steps"):
+            CategoricalCEMPlanner(model, cost, optim_steps=steps)
+    with pytest.raises(ValueError, match="step_aggregation"):
+        RandomShootingPlanner(model, cost, step_aggregation="mean")
+    with pytest.raises(ValueError, match="cost_key"):
+        RandomShootingPlanner(model, cost, cost_key="pixel_cost")
     with pytest.raises(ValueError, match="execution"):
         RandomShootingPlanner(model, cost, execution="closed")
     with pytest.raises(ValueError, match="depth"):
         RandomShootingPlanner(model, PixelDistanceCost(pixels_key=("next", "depth")))
-    planner = RandomShootingPlanner(model, cost, num_candidates=8, horizon=3)
+    planner = RandomShootingPlanner(model, cost, num_candidates=8, planning_horizon=3)
     with pytest.raises(ValueError, match="goal_pixels") as info:
         planner(env.reset().exclude("goal_pixels"))
     assert isinstance(info.value, MissingRolloutKeyError)
 
     class WrongShape(FirstActionCost):
-        def forward(self, rollout):
-            return super().forward(rollout).sum(-1)
+        def per_step_cost(self, rollout):
+            return super().per_step_cost(rollout).unsqueeze(-1)  # [B, N, H, 1]
 
     with pytest.raises(ValueError, match=r"per-step cost of shape \[3, 8, 3\]"):
-        RandomShootingPlanner(model, WrongShape(), num_candidates=8, horizon=3)(env.reset())
+        RandomShootingPlanner(model, WrongShape(), num_candidates=8, planning_horizon=3)(
+            env.reset()
+        )
+
+    class WritesNothing(FirstActionCost):
+        def forward(self, rollout):  # declares "cost" but never writes it
+            return rollout
+
+    with pytest.raises(ValueError, match="'cost'"):
+        RandomShootingPlanner(model, WritesNothing(), num_candidates=8, planning_horizon=3)(
+            env.reset()
+        )
+
+
+def test_composed_cost_plans_like_its_single_term():
+    """A TensorDictSequential of costs plugs into a planner through its in/out keys."""
+    env = two_object_env()
+    td = env.reset()
+    model = GroundTruthModelEnv(env)
+    composed = TensorDictSequential(
+        PixelDistanceCost(out_key="pixel_cost"),
+        WeightedCostSum({"pixel_cost": 2.0}, out_key="total"),
+    )
+    planner = RandomShootingPlanner(
+        model, composed, planning_horizon=4, num_candidates=16, step_aggregation="min", seed=0
+    )
+    assert planner.cost_key == "total" and planner.step_aggregation == "min"
+    assert "goal_pixels" in planner.in_keys and "pixel_cost" not in planner.in_keys
+    single = RandomShootingPlanner(
+        model, PixelDistanceCost(), planning_horizon=4, num_candidates=16, seed=0
+    )
+    a, b = planner(td.clone()), single(td.clone())
+    assert torch.equal(a["planner_plan"], b["planner_plan"])
+    assert torch.allclose(a["planner_cost"], 2 * b["planner_cost"])
+    # Without step_aggregation the planner takes the cost's, and a sequence has none: "sum".
+    assert RandomShootingPlanner(model, composed).step_aggregation == "sum"
+    explicit = RandomShootingPlanner(model, composed, cost_key="pixel_cost")
+    assert explicit.cost_key == "pixel_cost"
 
 
 def test_make_primer():
     env = two_object_env(batch=2)
     planner = RandomShootingPlanner(
-        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=8, horizon=5
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=8, planning_horizon=5
     )
     primer = planner.make_primer()
     assert isinstance(primer, TensorDictPrimer)
@@ -482,8 +558,9 @@ def test_visual_foresight_reaches_nearby_goals(variant):
     states = [[[5, 5]], [[2, 2]], [[10, 3]], [[0, 12]]]
     goals = [[[5, 8]], [[4, 3]], [[8, 5]], [[3, 12]]]
     td = tasks(env, states, goals)
+    top_k = {"top_k": 4} if variant == "cem" else {}  # the paper's top 2 % of 200
     policy = VisualForesightPolicy(
-        GroundTruthModelEnv(env), variant, num_candidates=200, horizon=8, seed=0
+        GroundTruthModelEnv(env), variant, planning_horizon=8, num_candidates=200, seed=0, **top_k
     )
     out = env.rollout(
         16,
@@ -499,7 +576,7 @@ def test_visual_foresight_reaches_nearby_goals(variant):
 def test_visual_foresight_in_a_collector():
     env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
     policy = VisualForesightPolicy(
-        GroundTruthModelEnv(env), "rs", num_candidates=32, horizon=4, seed=0
+        GroundTruthModelEnv(env), "rs", num_candidates=32, planning_horizon=4, seed=0
     )
     collector = Collector(
         env, policy, frames_per_batch=8, total_frames=16, auto_register_policy_transforms=True
@@ -517,9 +594,16 @@ def test_visual_foresight_in_a_collector():
     with pytest.raises(ValueError, match="variant"):
         VisualForesightPolicy(GroundTruthModelEnv(env), "mppi")
     literal = VisualForesightPolicy(
-        GroundTruthModelEnv(env), "rs", reduction="final", num_candidates=16, horizon=4, seed=0
+        GroundTruthModelEnv(env),
+        "rs",
+        step_aggregation="final",
+        planning_horizon=4,
+        num_candidates=16,
+        seed=0,
     )
-    assert literal.planner.execution == "open_loop" and literal.planner.reduction == "final"
+    assert literal.planner.execution == "open_loop"
+    assert literal.planner.step_aggregation == "final"
     assert (literal(env.reset())["planner_length"] == 4).all()  # the whole sequence
     cem = VisualForesightPolicy(GroundTruthModelEnv(env), "cem").planner
-    assert (cem.num_candidates, cem.num_elites, cem.num_iterations) == (1000, 20, 3)
+    assert (cem.num_candidates, cem.top_k, cem.optim_steps) == (1000, 20, 3)
+    assert cem.planning_horizon == 14

@@ -316,7 +316,7 @@ def test_the_video_model_plugs_into_a_planning_env_and_planner(
 
     planning_env = WorldModelEnv(model, env.num_actions)
     planner = RandomShootingPlanner(
-        planning_env, PixelDistanceCost(), num_candidates=16, horizon=3, seed=0
+        planning_env, PixelDistanceCost(), planning_horizon=3, num_candidates=16, seed=0
     )
     td = env.reset()
     action = planner(td.clone())["action"]

@@ -1,41 +1,46 @@
 """Planning: discrete MPC planners (random shooting, categorical CEM) and rollout costs.
 
-The planners are :class:`torchrl.modules.planners.MPCPlannerBase` subclasses that
-sample discrete action sequences, roll them out in a planning env
+The planners are :class:`torchrl.modules.planners.MPCPlannerBase` subclasses, one per
+file as in torchrl (``base.py``, ``random_shooting.py``, ``cem.py``), that sample
+discrete action sequences, roll them out in a planning env
 (:class:`dorp_rl.envs.GroundTruthModelEnv`, :class:`dorp_rl.envs.WorldModelEnv`) and
-minimise a cost module over the imagined rollout.
+minimise a cost over the imagined rollout. Costs (``costs.py``) are TensorDict modules
+that write a per-step cost ``[B, N, H]``; they compose with
+:class:`~tensordict.nn.TensorDictSequential` and :class:`WeightedCostSum`.
 """
 
+from dorp_rl.planners.base import (
+    EXECUTIONS,
+    DiscreteMPCPlanner,
+    aggregate_steps,
+    select_best,
+)
+from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.costs import (
-    REDUCTIONS,
+    STEP_AGGREGATIONS,
     CodeMatchCost,
     MissingRolloutKeyError,
     NegativeRewardCost,
     PixelDistanceCost,
     RolloutCost,
-    SumCost,
+    WeightedCostSum,
+    check_step_aggregation,
 )
-from dorp_rl.planners.mpc import (
-    EXECUTIONS,
-    CategoricalCEMPlanner,
-    DiscreteMPCPlanner,
-    RandomShootingPlanner,
-    reduce_steps,
-    select_best,
-)
+from dorp_rl.planners.random_shooting import RandomShootingPlanner
 
 __all__ = [
+    "EXECUTIONS",
+    "STEP_AGGREGATIONS",
     "CategoricalCEMPlanner",
     "CodeMatchCost",
     "DiscreteMPCPlanner",
-    "EXECUTIONS",
     "MissingRolloutKeyError",
     "NegativeRewardCost",
     "PixelDistanceCost",
-    "REDUCTIONS",
     "RandomShootingPlanner",
     "RolloutCost",
-    "SumCost",
-    "reduce_steps",
+    "WeightedCostSum",
+    "aggregate_steps",
+    "check_step_aggregation",
     "select_best",
 ]

@@ -1,7 +1,7 @@
-"""Costs of imagined rollouts, as small modules the discrete MPC planners minimise.
+"""Costs of imagined rollouts: TensorDict modules that the discrete MPC planners minimise.
 
 A planner rolls ``N`` candidate action sequences of ``H`` steps out for each of ``B``
-acting envs and hands the costs one tensordict of batch shape ``[B, N, H]``:
+acting envs and hands the cost one tensordict of batch shape ``[B, N, H]``:
 
 - ``action``: int64 ``[B, N, H, 1]``, the action taken at each step;
 - ``("next", key)``: what the planning env produced after each step, e.g.
@@ -11,8 +11,19 @@ acting envs and hands the costs one tensordict of batch shape ``[B, N, H]``:
   the *start* frame at every step, and ``goal_pixels`` / ``subgoal_code`` are the goal
   of each row.
 
-A cost returns a per-step cost, float ``[B, N, H]`` (lower is better), and says how the
-planner should fold the steps into one score per candidate with its ``reduction``:
+Each cost is a :class:`~tensordict.nn.TensorDictModuleBase`: it reads its ``in_keys``
+and writes a per-step cost, float ``[B, N, H]`` (lower is better), under its
+``out_key`` (``"cost"`` by default), so costs compose like any TensorDict modules::
+
+    TensorDictSequential(
+        PixelDistanceCost(out_key="pixel_cost"),
+        CodeMatchCost(encoder, out_key="code_cost"),
+        WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),  # writes "cost"
+    )
+
+A cost also says, with its ``step_aggregation``, how a planner should fold the ``H``
+per-step costs of one candidate into that candidate's score (it is not a loss
+reduction: it decides which sequence is best and how much of it runs open loop):
 
 - ``"min"``: the best step counts. A sequence is as good as the closest it gets to the
   goal; in open-loop execution the planner then executes the sequence only up to that
@@ -22,21 +33,36 @@ planner should fold the steps into one score per candidate with its ``reduction`
 - ``"sum"``: every step counts (the total along the way).
 - ``"final"``: only the last step counts.
 
-Each cost lists the keys it reads in ``in_keys``; the planner uses it to stack only the
-predictions that are needed and to check, before rolling out, that every key is there.
-A key missing from the rollout raises :class:`MissingRolloutKeyError` (both a
-``KeyError`` and a ``ValueError``) naming it.
+The planner uses ``in_keys`` (for a :class:`~tensordict.nn.TensorDictSequential`, the
+keys read and not produced inside it) to stack only the predictions that are needed
+and to check, before rolling out, that every key is there. A key missing from the
+rollout raises :class:`MissingRolloutKeyError` (both a ``KeyError`` and a
+``ValueError``) naming it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import torch
 from tensordict import NestedKey, TensorDictBase, unravel_key
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-REDUCTIONS = ("min", "sum", "final")
+__all__ = [
+    "STEP_AGGREGATIONS",
+    "CodeMatchCost",
+    "MissingRolloutKeyError",
+    "NegativeRewardCost",
+    "PixelDistanceCost",
+    "RolloutCost",
+    "WeightedCostSum",
+    "check_step_aggregation",
+]
+
+#: How a planner folds a candidate's per-step costs ``[H]`` into its score.
+STEP_AGGREGATIONS = ("min", "sum", "final")
 
 
 class MissingRolloutKeyError(KeyError, ValueError):
@@ -63,10 +89,14 @@ def get_rollout_key(rollout: TensorDictBase, key: NestedKey, cost_name: str) -> 
     return value
 
 
-def check_reduction(reduction: str) -> str:
-    if reduction not in REDUCTIONS:
-        raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}.")
-    return reduction
+def check_step_aggregation(step_aggregation: str) -> str:
+    """``step_aggregation`` if it is one of :data:`STEP_AGGREGATIONS`, else a ``ValueError``."""
+    if step_aggregation not in STEP_AGGREGATIONS:
+        raise ValueError(
+            f"step_aggregation (how a candidate's per-step costs fold into its score) must be "
+            f"one of {STEP_AGGREGATIONS}, got {step_aggregation!r}."
+        )
+    return step_aggregation
 
 
 def compact_broadcast(tensor: torch.Tensor, keep_last: int) -> torch.Tensor:
@@ -81,18 +111,52 @@ def compact_broadcast(tensor: torch.Tensor, keep_last: int) -> torch.Tensor:
     return tensor
 
 
-class RolloutCost(nn.Module):
-    """Base class: ``forward(rollout [*B, N, H]) -> float [*B, N, H]`` per-step costs.
+class RolloutCost(TensorDictModuleBase):
+    """Base class of the costs: writes a per-step cost float ``[*B, N, H]`` under ``out_key``.
 
-    Subclasses set ``in_keys`` (the keys they read) and ``reduction`` (``"min"``,
-    ``"sum"`` or ``"final"``, see the module docstring).
+    Subclasses set ``in_keys`` (the keys they read) and implement
+    :meth:`per_step_cost`; :meth:`forward` writes its result into the rollout and
+    returns the rollout, as TensorDict modules do.
+
+    Args:
+        out_key: where the per-step cost is written (``out_keys == [out_key]``).
+        step_aggregation: how planners fold a candidate's per-step costs into its score
+            (``"min"``, ``"sum"`` or ``"final"``, see the module docstring).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.planners import RolloutCost
+        >>> class StepsTaken(RolloutCost):
+        ...     def __init__(self):
+        ...         super().__init__(out_key="steps", step_aggregation="final")
+        ...         self.in_keys = ["action"]
+        ...
+        ...     def per_step_cost(self, rollout):
+        ...         return torch.arange(1.0, rollout.shape[-1] + 1).expand(rollout.shape)
+        >>> actions = torch.zeros(2, 5, 3, 1, dtype=torch.int64)
+        >>> rollout = TensorDict(action=actions, batch_size=(2, 5, 3))
+        >>> StepsTaken()(rollout)["steps"][0, 0]
+        tensor([1., 2., 3.])
     """
 
-    in_keys: list[NestedKey]
-    reduction: str = "sum"
+    def __init__(self, *, out_key: NestedKey = "cost", step_aggregation: str = "sum") -> None:
+        super().__init__()
+        self.out_key = unravel_key(out_key)
+        self.in_keys = []
+        self.out_keys = [self.out_key]
+        self.step_aggregation = check_step_aggregation(step_aggregation)
 
-    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        """The per-step cost, float ``[*B, N, H]``, of a rollout ``[*B, N, H]``."""
         raise NotImplementedError
+
+    def forward(self, rollout: TensorDictBase) -> TensorDictBase:
+        rollout.set(self.out_key, self.per_step_cost(rollout))
+        return rollout
+
+    def extra_repr(self) -> str:
+        return f"out_key={self.out_key!r}, step_aggregation={self.step_aggregation!r}"
 
 
 class PixelDistanceCost(RolloutCost):
@@ -100,13 +164,14 @@ class PixelDistanceCost(RolloutCost):
 
     Per step: ``|| next_pixels / 255 - goal / 255 ||_2`` over the 768 values of the frame
     (0 when the predicted frame is the goal, about 4.9 for one 2x4 block of a saturated
-    colour moved by one cell). Reduction ``"min"`` by default: a candidate is scored by
-    the closest it gets to the goal.
+    colour moved by one cell). ``step_aggregation="min"`` by default: a candidate is
+    scored by the closest it gets to the goal.
 
     Args:
         goal_key: the goal image, uint8 ``[*B, 3, 16, 16]`` in the acting tensordict.
         pixels_key: the predicted frames in the rollout.
-        reduction: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
+        out_key: where the per-step cost ``[*B, N, H]`` is written.
+        step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
         chunk_size: frames per chunk of the computation (a speed knob, not a result one).
 
     Examples:
@@ -114,11 +179,11 @@ class PixelDistanceCost(RolloutCost):
         >>> from tensordict import TensorDict
         >>> from dorp_rl.planners import PixelDistanceCost
         >>> goal = torch.zeros(2, 1, 1, 3, 16, 16, dtype=torch.uint8).expand(2, 5, 4, 3, 16, 16)
+        >>> frames = torch.zeros(2, 5, 4, 3, 16, 16, dtype=torch.uint8)
         >>> rollout = TensorDict(
-        ...     {"goal_pixels": goal, ("next", "pixels"): torch.zeros(2, 5, 4, 3, 16, 16, dtype=torch.uint8)},
-        ...     batch_size=(2, 5, 4),
+        ...     {"goal_pixels": goal, ("next", "pixels"): frames}, batch_size=(2, 5, 4)
         ... )
-        >>> PixelDistanceCost()(rollout).shape
+        >>> PixelDistanceCost()(rollout)["cost"].shape
         torch.Size([2, 5, 4])
     """
 
@@ -126,19 +191,20 @@ class PixelDistanceCost(RolloutCost):
         self,
         goal_key: NestedKey = "goal_pixels",
         pixels_key: NestedKey = ("next", "pixels"),
-        reduction: str = "min",
+        *,
+        out_key: NestedKey = "cost",
+        step_aggregation: str = "min",
         chunk_size: int = 512,
     ) -> None:
-        super().__init__()
+        super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         if int(chunk_size) < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
         self.goal_key = unravel_key(goal_key)
         self.pixels_key = unravel_key(pixels_key)
-        self.reduction = check_reduction(reduction)
         self.chunk_size = int(chunk_size)
         self.in_keys = [self.pixels_key, self.goal_key]
 
-    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         name = type(self).__name__
         pixels = get_rollout_key(rollout, self.pixels_key, name)
         goal = get_rollout_key(rollout, self.goal_key, name)
@@ -165,7 +231,7 @@ class PixelDistanceCost(RolloutCost):
         return out.sqrt_().div_(255.0).reshape(lead)
 
     def extra_repr(self) -> str:
-        return f"goal_key={self.goal_key!r}, reduction={self.reduction!r}"
+        return f"goal_key={self.goal_key!r}, {super().extra_repr()}"
 
 
 class CodeMatchCost(RolloutCost):
@@ -180,8 +246,9 @@ class CodeMatchCost(RolloutCost):
 
     where ``confidence`` is the mean over one-hots of the probability of the wanted code,
     so that among matching sequences (and among failing ones) the more confident win.
-    The cost lies in ``[-tie_break, 1]``. Reduction ``"min"`` by default: a sequence is
-    good if it reaches the target at some step (and open-loop execution stops there).
+    The cost lies in ``[-tie_break, 1]``. ``step_aggregation="min"`` by default: a
+    sequence is good if it reaches the target at some step (and open-loop execution
+    stops there).
 
     Args:
         encoder: a :class:`~dorp_rl.modules.DiscreteCodeEncoder` (anything with
@@ -193,8 +260,9 @@ class CodeMatchCost(RolloutCost):
             tensordict (one choice per row, as a batched DORP policy needs).
         pixels_key: the predicted frames in the rollout.
         start_pixels_key: the start frame (a root key, shared by candidates and steps).
+        out_key: where the per-step cost ``[*B, N, H]`` is written.
         tie_break: weight of the confidence term; small so it only breaks ties.
-        reduction: how planners fold the steps.
+        step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
         chunk_size: frames per encoder call (bounds memory).
 
     Examples:
@@ -212,7 +280,7 @@ class CodeMatchCost(RolloutCost):
         ...     },
         ...     batch_size=(2, 5, 4),
         ... )
-        >>> cost = CodeMatchCost(encoder, onehots=[0])(rollout)
+        >>> cost = CodeMatchCost(encoder, onehots=[0])(rollout)["cost"]
         >>> cost.shape, bool(((cost > -0.01) & (cost <= 1)).all())
         (torch.Size([2, 5, 4]), True)
     """
@@ -225,11 +293,12 @@ class CodeMatchCost(RolloutCost):
         *,
         pixels_key: NestedKey = ("next", "pixels"),
         start_pixels_key: NestedKey = "pixels",
+        out_key: NestedKey = "cost",
         tie_break: float = 1e-3,
-        reduction: str = "min",
+        step_aggregation: str = "min",
         chunk_size: int = 8192,
     ) -> None:
-        super().__init__()
+        super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         if not callable(encoder):
             raise ValueError(f"encoder must be callable, got {type(encoder).__name__}.")
         if not 0.0 <= float(tie_break) < 0.5:
@@ -241,7 +310,6 @@ class CodeMatchCost(RolloutCost):
         self.pixels_key = unravel_key(pixels_key)
         self.start_pixels_key = unravel_key(start_pixels_key)
         self.tie_break = float(tie_break)
-        self.reduction = check_reduction(reduction)
         self.chunk_size = int(chunk_size)
         self.onehots_key: NestedKey | None = None
         self.onehots: list[int] | None = None
@@ -253,9 +321,10 @@ class CodeMatchCost(RolloutCost):
             self.onehots = [int(i) for i in onehots]
             if not self.onehots:
                 raise ValueError("onehots must name at least one one-hot (or be None for all).")
-        self.in_keys = [self.pixels_key, self.start_pixels_key, self.target_key]
+        in_keys = [self.pixels_key, self.start_pixels_key, self.target_key]
         if self.onehots_key is not None:
-            self.in_keys.append(self.onehots_key)
+            in_keys.append(self.onehots_key)
+        self.in_keys = in_keys
 
     @torch.no_grad()
     def _encode(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -279,7 +348,7 @@ class CodeMatchCost(RolloutCost):
         lead = pixels.shape[:-3]
         return code.reshape(*lead, code.shape[-1]), prob.reshape(*lead, *prob.shape[-2:])
 
-    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         name = type(self).__name__
         if rollout.batch_dims < 2:
             raise ValueError(
@@ -312,74 +381,128 @@ class CodeMatchCost(RolloutCost):
 
     def extra_repr(self) -> str:
         which = self.onehots_key if self.onehots_key is not None else self.onehots
-        return f"target_key={self.target_key!r}, onehots={which!r}, reduction={self.reduction!r}"
+        return f"target_key={self.target_key!r}, onehots={which!r}, {super().extra_repr()}"
 
 
-class SumCost(RolloutCost):
-    """A weighted sum of per-step costs: ``sum_i weights[i] * costs[i](rollout)``.
+class WeightedCostSum(RolloutCost):
+    """Writes ``sum_k weights[k] * rollout[k]``: a weighted sum of per-step costs.
 
-    The reduction is the components' common one, or ``"sum"`` if they differ (pass
-    ``reduction=`` to choose).
+    The last module of a :class:`~tensordict.nn.TensorDictSequential` of costs, each
+    writing its per-step cost under its own ``out_key``. The sequence's ``in_keys`` are
+    the keys its costs read from the rollout (not the intermediate cost keys), which is
+    what a planner needs; its last out key (this module's ``out_key``) is the one the
+    planner reads by default. A sequence has no ``step_aggregation`` attribute, so pass
+    ``step_aggregation=`` to the planner unless ``"sum"`` is wanted.
 
     Args:
-        *costs: the cost modules.
-        weights: one weight per cost (default all 1).
-        reduction: overrides the reduction.
+        weights: per-step cost key -> weight.
+        out_key: where the weighted sum ``[*B, N, H]`` is written.
+        step_aggregation: how planners fold the steps (default ``"sum"``).
 
     Examples:
-        >>> from dorp_rl.planners import PixelDistanceCost, SumCost
-        >>> cost = SumCost(PixelDistanceCost(), PixelDistanceCost("subgoal_pixels"), weights=(1.0, 0.5))
-        >>> cost.reduction, cost.in_keys
-        ('min', [('next', 'pixels'), 'goal_pixels', 'subgoal_pixels'])
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictSequential
+        >>> from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+        >>> from dorp_rl.planners import CodeMatchCost, PixelDistanceCost, WeightedCostSum
+        >>> encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(8, 8)))
+        >>> cost = TensorDictSequential(
+        ...     PixelDistanceCost(out_key="pixel_cost"),
+        ...     CodeMatchCost(encoder, out_key="code_cost"),
+        ...     WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),
+        ... )
+        >>> cost.in_keys
+        [('next', 'pixels'), 'goal_pixels', 'pixels', 'subgoal_code']
+        >>> cost.out_keys
+        ['pixel_cost', 'code_cost', 'cost']
+        >>> frames = torch.randint(0, 256, (2, 5, 4, 3, 16, 16), dtype=torch.uint8)
+        >>> start = frames[:, :1, :1].expand(2, 5, 4, 3, 16, 16)
+        >>> rollout = TensorDict(
+        ...     {
+        ...         "pixels": start,
+        ...         "goal_pixels": start,
+        ...         "subgoal_code": torch.zeros(2, 1, 1, 2, dtype=torch.int64).expand(2, 5, 4, 2),
+        ...         ("next", "pixels"): frames,
+        ...     },
+        ...     batch_size=(2, 5, 4),
+        ... )
+        >>> out = cost(rollout)
+        >>> torch.allclose(out["cost"], out["pixel_cost"] + 0.5 * out["code_cost"])
+        True
     """
 
     def __init__(
         self,
-        *costs: nn.Module,
-        weights: Sequence[float] | None = None,
-        reduction: str | None = None,
+        weights: Mapping[NestedKey, float],
+        *,
+        out_key: NestedKey = "cost",
+        step_aggregation: str = "sum",
     ) -> None:
-        super().__init__()
-        if not costs:
-            raise ValueError("SumCost needs at least one cost.")
-        weights = [1.0] * len(costs) if weights is None else [float(w) for w in weights]
-        if len(weights) != len(costs):
-            raise ValueError(f"weights must have {len(costs)} entries, got {len(weights)}.")
-        self.costs = nn.ModuleList(costs)
-        self.weights = weights
-        if reduction is None:
-            found = {getattr(c, "reduction", "sum") for c in costs}
-            reduction = found.pop() if len(found) == 1 else "sum"
-        self.reduction = check_reduction(reduction)
-        keys: list[NestedKey] = []
-        for cost in costs:
-            for key in getattr(cost, "in_keys", None) or []:
-                if key not in keys:
-                    keys.append(key)
-        self.in_keys = keys
+        super().__init__(out_key=out_key, step_aggregation=step_aggregation)
+        if not isinstance(weights, Mapping) or not weights:
+            raise ValueError(
+                f"weights must be a non-empty mapping from per-step cost keys to weights, "
+                f"got {weights!r}."
+            )
+        self.weights: dict[NestedKey, float] = {}
+        for key, weight in weights.items():
+            key = unravel_key(key)
+            if key in self.weights:
+                raise ValueError(f"weights names the key {key!r} twice.")
+            if not math.isfinite(float(weight)):
+                raise ValueError(f"the weight of {key!r} must be finite, got {weight}.")
+            self.weights[key] = float(weight)
+        self.in_keys = list(self.weights)
 
-    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         total = None
-        for weight, cost in zip(self.weights, self.costs, strict=True):
-            value = weight * cost(rollout)
+        for key, weight in self.weights.items():
+            value = rollout.get(key, None)
+            if value is None:
+                raise MissingRolloutKeyError(
+                    f"{type(self).__name__} needs the per-step cost {key!r}, which is missing "
+                    f"from the rollout: put a cost with out_key={key!r} before it in the "
+                    "TensorDictSequential."
+                )
+            value = weight * value.to(torch.float32)
             total = value if total is None else total + value
         return total
+
+    def extra_repr(self) -> str:
+        return f"weights={self.weights!r}, {super().extra_repr()}"
 
 
 class NegativeRewardCost(RolloutCost):
     """Minus the planning env's reward at each step (for reward-defining model envs).
 
     Args:
-        reward_key: the reward in the rollout.
-        reduction: how planners fold the steps (default ``"sum"``: the return).
+        reward_key: the reward in the rollout, ``[*B, N, H]`` or ``[*B, N, H, 1]``.
+        out_key: where the per-step cost ``[*B, N, H]`` is written.
+        step_aggregation: how planners fold the steps (default ``"sum"``: the return).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.planners import NegativeRewardCost
+        >>> rollout = TensorDict({("next", "reward"): torch.ones(2, 5, 4, 1)}, batch_size=(2, 5, 4))
+        >>> NegativeRewardCost()(rollout)["cost"][0, 0]
+        tensor([-1., -1., -1., -1.])
     """
 
-    def __init__(self, reward_key: NestedKey = ("next", "reward"), reduction: str = "sum") -> None:
-        super().__init__()
+    def __init__(
+        self,
+        reward_key: NestedKey = ("next", "reward"),
+        *,
+        out_key: NestedKey = "cost",
+        step_aggregation: str = "sum",
+    ) -> None:
+        super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         self.reward_key = unravel_key(reward_key)
-        self.reduction = check_reduction(reduction)
         self.in_keys = [self.reward_key]
 
-    def forward(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         reward = get_rollout_key(rollout, self.reward_key, type(self).__name__)
         return -reward.reshape(rollout.batch_size).to(torch.float32)
+
+    def extra_repr(self) -> str:
+        return f"reward_key={self.reward_key!r}, {super().extra_repr()}"

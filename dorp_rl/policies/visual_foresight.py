@@ -16,18 +16,21 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, TensorDictPrimer
 
+from dorp_rl.planners.base import DiscreteMPCPlanner
+from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.costs import PixelDistanceCost
-from dorp_rl.planners.mpc import CategoricalCEMPlanner, DiscreteMPCPlanner, RandomShootingPlanner
+from dorp_rl.planners.random_shooting import RandomShootingPlanner
 
-#: Defaults of each variant (the paper: 1000 sequences; CEM top 2 %, 3 iterations).
+#: Defaults of each variant (the paper: 1000 sequences of 14 steps; CEM top 2 % = 20
+#: elites, 3 optimisation steps).
 VARIANT_DEFAULTS: dict[str, dict[str, Any]] = {
-    "rs": {"num_candidates": 1000, "horizon": 14, "execution": "open_loop"},
+    "rs": {"planning_horizon": 14, "num_candidates": 1000, "execution": "open_loop"},
     "cem": {
+        "planning_horizon": 14,
         "num_candidates": 1000,
-        "horizon": 14,
-        "num_iterations": 3,
-        "elite_fraction": 0.02,
         "execution": "open_loop",
+        "optim_steps": 3,
+        "top_k": 20,
     },
 }
 
@@ -38,14 +41,16 @@ class VisualForesightPolicy(TensorDictModuleBase):
     - ``variant="rs"``: :class:`~dorp_rl.planners.RandomShootingPlanner`, 1000 random
       sequences of 14 steps, the best one executed open loop (as the paper).
     - ``variant="cem"``: :class:`~dorp_rl.planners.CategoricalCEMPlanner`, 1000 samples
-      per iteration, top 2 %, 3 iterations, also executed open loop by default (pass
-      ``execution="receding"`` to replan at every step, with warm start).
+      per optimisation step, ``top_k=20`` elites (top 2 %), ``optim_steps=3``, also
+      executed open loop by default (pass ``execution="receding"`` to replan at every
+      step, with warm start). ``top_k`` is a count: lower it with ``num_candidates``.
 
-    A sequence is scored by the closest its predicted frames get to the goal
-    (``reduction="min"``) and executed up to that frame, as the authors' release does
-    for its goal step; ``reduction="final"`` gives the literal "best full sequence"
-    reading (score the last frame, execute all steps). Any other keyword goes to the
-    planner (``num_candidates``, ``horizon``, ``action_repeat``, ``seed``, ...).
+    ``step_aggregation`` says how the per-step pixel distances of a sequence fold into
+    its score. ``"min"`` (default): a sequence is scored by the closest its predicted
+    frames get to the goal and executed up to that frame, as the authors' release does
+    for its goal step; ``"final"`` gives the literal "best full sequence" reading (score
+    the last frame, execute all steps). Any other keyword goes to the planner
+    (``planning_horizon``, ``num_candidates``, ``action_repeat``, ``seed``, ...).
 
     It is a policy for ``env.rollout(max_steps, policy)`` and for
     :class:`torchrl.collectors.Collector`. Its state (the plan being executed) lives in
@@ -57,7 +62,7 @@ class VisualForesightPolicy(TensorDictModuleBase):
         planning_env: a planning env that produces ``pixels`` (not batch-locked).
         variant: ``"rs"`` or ``"cem"``.
         goal_key: the goal image in the acting env's tensordict.
-        reduction: ``"min"`` (default), ``"final"`` or ``"sum"``.
+        step_aggregation: ``"min"`` (default), ``"final"`` or ``"sum"``.
         **planner_kwargs: overrides of the planner's arguments.
 
     Examples:
@@ -65,7 +70,7 @@ class VisualForesightPolicy(TensorDictModuleBase):
         >>> from dorp_rl.policies import VisualForesightPolicy
         >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
         >>> policy = VisualForesightPolicy(
-        ...     GroundTruthModelEnv(env), "cem", num_candidates=100, horizon=6, seed=0
+        ...     GroundTruthModelEnv(env), "cem", planning_horizon=6, num_candidates=100, seed=0
         ... )
         >>> td = env.rollout(4, policy)
         >>> td["action"].shape
@@ -78,7 +83,7 @@ class VisualForesightPolicy(TensorDictModuleBase):
         variant: str = "cem",
         *,
         goal_key: NestedKey = "goal_pixels",
-        reduction: str = "min",
+        step_aggregation: str = "min",
         **planner_kwargs: Any,
     ) -> None:
         super().__init__()
@@ -86,7 +91,7 @@ class VisualForesightPolicy(TensorDictModuleBase):
             raise ValueError(f"variant must be one of {sorted(VARIANT_DEFAULTS)}, got {variant!r}.")
         self.variant = variant
         kwargs = {**VARIANT_DEFAULTS[variant], **planner_kwargs}
-        cost = PixelDistanceCost(goal_key=goal_key, reduction=reduction)
+        cost = PixelDistanceCost(goal_key=goal_key, step_aggregation=step_aggregation)
         planner_cls = RandomShootingPlanner if variant == "rs" else CategoricalCEMPlanner
         self.planner: DiscreteMPCPlanner = planner_cls(planning_env, cost, **kwargs)
         self.in_keys = list(self.planner.in_keys)

@@ -1,23 +1,29 @@
-"""Discrete model-predictive planners: random shooting and categorical CEM.
+"""Shared machinery of the discrete model-predictive planners (torchrl ``MPCPlannerBase``).
 
-Both are :class:`torchrl.modules.planners.MPCPlannerBase` subclasses for a
+:class:`DiscreteMPCPlanner` is a :class:`torchrl.modules.planners.MPCPlannerBase` for a
 :class:`~torchrl.data.Categorical` action: given the acting envs' tensordict (batch
-``[B]``), they sample ``N`` candidate action sequences per row, roll them out in a
+``[B]``) it samples ``N`` candidate action sequences per row, rolls them out in a
 planning env (:class:`~dorp_rl.envs.GroundTruthModelEnv`,
 :class:`~dorp_rl.envs.WorldModelEnv`, or any non-batch-locked env) on a ``[B, N]``
-batch, score them with a cost module (:mod:`dorp_rl.planners.costs`) and write an
-``action``. torchrl's own ``CEMPlanner`` / ``MPPIPlanner`` assume continuous actions.
+batch, scores them with a cost module (:mod:`dorp_rl.planners.costs`) and writes an
+``action``. The optimisers are :class:`~dorp_rl.planners.RandomShootingPlanner`
+(``random_shooting.py``) and :class:`~dorp_rl.planners.CategoricalCEMPlanner`
+(``cem.py``); torchrl's own ``CEMPlanner`` / ``MPPIPlanner`` assume continuous actions.
+Argument names follow torchrl's: ``planning_horizon``, ``num_candidates``, and for CEM
+``optim_steps`` and ``top_k``.
 
-Horizon and action repeat
-    ``horizon`` counts env steps. With ``action_repeat = r`` a candidate is
-    ``horizon / r`` decisions, each repeated ``r`` times (the authors' 7 actions x 2 =
-    14 steps); ``r`` must divide ``horizon``.
+Planning horizon and action repeat
+    ``planning_horizon`` counts env steps. With ``action_repeat = r`` a candidate is
+    ``planning_horizon / r`` decisions, each repeated ``r`` times (the authors' 7
+    actions x 2 = 14 steps); ``r`` must divide ``planning_horizon``.
 
 Scoring
-    The cost gives a per-step cost ``[B, N, H]``; ``reduction`` (by default the cost's
-    own ``reduction`` attribute, else ``"sum"``) folds it into one score per candidate:
+    The cost writes a per-step cost ``[B, N, H]`` into the rollout under ``cost_key``;
+    ``step_aggregation`` (by default the cost's own ``step_aggregation`` attribute, else
+    ``"sum"``) says how the ``H`` per-step costs of one candidate fold into its score:
     ``"sum"``, ``"final"`` (last step) or ``"min"`` (best step; among equal scores the
-    candidate that gets there earliest wins).
+    candidate that gets there earliest wins). It is not a loss reduction: it decides
+    which candidate is best, and for ``"min"`` how much of it is executed open loop.
 
 Execution
     ``"receding"``: every call replans and returns the first action of the best
@@ -55,12 +61,14 @@ Randomness
     A ``torch.Generator`` owned by the planner, seeded by ``seed`` (or by torch's global
     generator when ``seed=None``); :meth:`set_seed` reseeds it. The same seed and the
     same inputs give the same plans. Uniform numbers are drawn in one row-major block per
-    call (``[B, iterations, N, H / r]``), so a row's candidates do not depend on the rows
-    after it (row 0 planned alone or first in a batch sees the same samples), and no
+    call (``[B, optim_steps, N, H / r]``), so a row's candidates do not depend on the
+    rows after it (row 0 planned alone or first in a batch sees the same samples), and no
     computation mixes rows: one row's goal never changes another row's plan.
 """
 
 from __future__ import annotations
+
+import numbers
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
@@ -69,29 +77,65 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, TensorDictPrimer
 from torchrl.modules.planners import MPCPlannerBase
 
-from dorp_rl.planners.costs import MissingRolloutKeyError, check_reduction
+from dorp_rl.planners.costs import (
+    STEP_AGGREGATIONS,
+    MissingRolloutKeyError,
+    check_step_aggregation,
+)
+
+__all__ = [
+    "EXECUTIONS",
+    "STEP_AGGREGATIONS",
+    "DiscreteMPCPlanner",
+    "aggregate_steps",
+    "check_step_aggregation",
+    "select_best",
+]
 
 EXECUTIONS = ("receding", "open_loop")
 
 
 class DiscreteMPCPlanner(MPCPlannerBase):
-    """Shared machinery of the discrete planners (sampling, rollouts, scoring, state).
+    """Shared machinery of the discrete planners: sampling, rollouts, scoring, state.
 
-    Subclasses implement :meth:`_optimize`. See the module docstring for the keys,
-    execution modes and randomness.
+    Subclasses implement :meth:`_optimize` (random shooting, CEM). See the module
+    docstring for the state keys, execution modes and randomness.
 
     Args:
-        env: the planning env (not batch-locked, Categorical action).
-        cost: a cost module (``forward(rollout [B, N, H]) -> [B, N, H]``), ideally with
-            ``in_keys`` and ``reduction`` attributes (:mod:`dorp_rl.planners.costs`).
-        num_candidates: sequences per row and per iteration (``N``).
-        horizon: env steps per sequence (``H``).
-        action_repeat: env steps per decision; must divide ``horizon``.
+        env: the planning env (not batch-locked, Categorical action of shape ``()`` or
+            ``(1,)``).
+        cost: a TensorDict module over the rollout ``[B, N, H]`` that writes a per-step
+            cost ``[B, N, H]`` under ``cost_key`` (:mod:`dorp_rl.planners.costs`, or a
+            :class:`~tensordict.nn.TensorDictSequential` of them). Its ``in_keys`` say
+            which predictions to stack and which root keys the acting tensordict must
+            hold (all of them when it has none).
+        planning_horizon: env steps per candidate sequence (``H``).
+        num_candidates: sequences per row and per optimisation step (``N``).
+        action_repeat: env steps per decision; must divide ``planning_horizon``.
         execution: ``"receding"`` or ``"open_loop"``.
-        reduction: ``"min"``, ``"sum"`` or ``"final"``; ``None`` takes the cost's.
+        step_aggregation: how a candidate's per-step costs fold into its score,
+            ``"min"``, ``"sum"`` or ``"final"``; ``None`` takes the cost's
+            ``step_aggregation`` attribute (``"sum"`` if it has none).
         seed: seeds the planner's generator (``None``: drawn from torch's global one).
+        cost_key: where the cost writes its per-step cost; ``None`` takes the cost's
+            last ``out_keys`` entry (``"cost"`` if it has none).
         action_key: where the action is written.
         key_prefix: prefix of the state keys.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
+        >>> from dorp_rl.planners import DiscreteMPCPlanner, PixelDistanceCost
+        >>> class ActionZero(DiscreteMPCPlanner):  # one candidate: action 0 at every step
+        ...     def _optimize(self, td, previous_plan, shift, valid):
+        ...         decisions = torch.zeros(td.shape[0], 1, self.num_decisions, dtype=torch.int64)
+        ...         score, step = self._evaluate(td, decisions)  # [b, 1] each
+        ...         return decisions[:, 0], score[:, 0], step[:, 0]
+        >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
+        >>> planner = ActionZero(GroundTruthModelEnv(env), PixelDistanceCost(), planning_horizon=3)
+        >>> planner(env.reset())["planner_plan"]
+        tensor([[0, 0, 0],
+                [0, 0, 0]])
     """
 
     def __init__(
@@ -99,12 +143,13 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         env: EnvBase,
         cost: nn.Module,
         *,
+        planning_horizon: int = 14,
         num_candidates: int = 1000,
-        horizon: int = 14,
         action_repeat: int = 1,
         execution: str = "receding",
-        reduction: str | None = None,
+        step_aggregation: str | None = None,
         seed: int | None = None,
+        cost_key: NestedKey | None = None,
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
     ) -> None:
@@ -118,16 +163,15 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 "batch_size=() and batch_locked=False, or wrap the env's dynamics in "
                 "dorp_rl.envs.GroundTruthModelEnv / WorldModelEnv."
             )
-        for name, value in (("num_candidates", num_candidates), ("horizon", horizon)):
-            if int(value) != value or int(value) < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value}.")
-        if int(action_repeat) != action_repeat or int(action_repeat) < 1:
-            raise ValueError(f"action_repeat must be an integer >= 1, got {action_repeat}.")
-        if int(horizon) % int(action_repeat):
+        check_integer("num_candidates", num_candidates)
+        check_integer("planning_horizon", planning_horizon)
+        check_integer("action_repeat", action_repeat)
+        if int(planning_horizon) % int(action_repeat):
             raise ValueError(
-                f"action_repeat must divide horizon (horizon counts env steps: {horizon} steps "
-                f"= horizon / action_repeat decisions each repeated action_repeat times), got "
-                f"horizon={horizon} and action_repeat={action_repeat}."
+                f"action_repeat must divide planning_horizon (it counts env steps: "
+                f"planning_horizon / action_repeat decisions, each repeated action_repeat "
+                f"times), got planning_horizon={planning_horizon} and "
+                f"action_repeat={action_repeat}."
             )
         if execution not in EXECUTIONS:
             raise ValueError(f"execution must be one of {EXECUTIONS}, got {execution!r}.")
@@ -139,24 +183,37 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 f"the planning env's action spec must be a Categorical of shape () or (1,), got "
                 f"{type(action_spec).__name__} of shape {tuple(action_spec.shape)}."
             )
+        cost_out_keys = [unravel_key(k) for k in (getattr(cost, "out_keys", None) or [])]
+        if cost_key is None:
+            cost_key = cost_out_keys[-1] if cost_out_keys else "cost"
+        cost_key = unravel_key(cost_key)
+        if cost_out_keys and cost_key not in cost_out_keys:
+            raise ValueError(
+                f"cost_key={cost_key!r} is not among the keys the cost "
+                f"{type(cost).__name__} writes (out_keys={cost_out_keys}); pass the key "
+                "holding its per-step cost."
+            )
         super().__init__(env, action_key=action_key)
         self.action_key = unravel_key(action_key)
         self.cost = cost
+        self.cost_key = cost_key
         self.num_actions = int(action_spec.n)
         self.num_candidates = int(num_candidates)
-        self.horizon = int(horizon)
+        self.planning_horizon = int(planning_horizon)
         self.action_repeat = int(action_repeat)
-        self.num_decisions = self.horizon // self.action_repeat
+        self.num_decisions = self.planning_horizon // self.action_repeat
         self.execution = execution
-        self.reduction = check_reduction(
-            reduction if reduction is not None else getattr(cost, "reduction", "sum")
+        self.step_aggregation = check_step_aggregation(
+            step_aggregation
+            if step_aggregation is not None
+            else getattr(cost, "step_aggregation", "sum")
         )
         self._action_shape = tuple(action_spec.shape)
         self.plan_key = f"{key_prefix}plan"
         self.cursor_key = f"{key_prefix}cursor"
         self.length_key = f"{key_prefix}length"
-        self.cost_key = f"{key_prefix}cost"
-        self.state_keys = [self.plan_key, self.cursor_key, self.length_key, self.cost_key]
+        self.plan_cost_key = f"{key_prefix}cost"
+        self.state_keys = [self.plan_key, self.cursor_key, self.length_key, self.plan_cost_key]
         self._cost_keys = [unravel_key(k) for k in (getattr(cost, "in_keys", None) or [])]
         produced = {unravel_key(("next", k)) for k in self._env_output_keys()}
         self._next_keys = [k for k in self._cost_keys if isinstance(k, tuple) and k[0] == "next"]
@@ -195,10 +252,10 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         """
         specs = Composite(
             {
-                self.plan_key: Categorical(self.num_actions, shape=(self.horizon,)),
+                self.plan_key: Categorical(self.num_actions, shape=(self.planning_horizon,)),
                 self.cursor_key: Unbounded(shape=(1,), dtype=torch.int64),
                 self.length_key: Unbounded(shape=(1,), dtype=torch.int64),
-                self.cost_key: Unbounded(shape=(1,), dtype=torch.float32),
+                self.plan_cost_key: Unbounded(shape=(1,), dtype=torch.float32),
             }
         )
         return TensorDictPrimer(specs, default_value=0, expand_specs=True)
@@ -236,11 +293,11 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         flat = td.reshape(-1) if td.batch_dims != 1 else td
         rows = flat.batch_size[0]
         device = self.generator.device
-        h = self.horizon
+        h = self.planning_horizon
         plan = self._read(flat, self.plan_key, (rows, h), torch.int64)
         cursor = self._read(flat, self.cursor_key, (rows, 1), torch.int64)
         length = self._read(flat, self.length_key, (rows, 1), torch.int64)
-        score = self._read(flat, self.cost_key, (rows, 1), torch.float32)
+        score = self._read(flat, self.plan_cost_key, (rows, 1), torch.float32)
         valid = length.squeeze(-1) > 0
         is_init = flat.get("is_init", None)
         if is_init is not None:
@@ -267,7 +324,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             (self.plan_key, plan),
             (self.cursor_key, cursor),
             (self.length_key, length),
-            (self.cost_key, score),
+            (self.plan_cost_key, score),
         ):
             out.set(key, value.reshape(*batch, value.shape[-1]).to(td.device))
         if self._action_shape == ():
@@ -289,7 +346,10 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         decisions, score, step = self._optimize(td, previous_plan, shift, valid)
         plan = decisions.repeat_interleave(self.action_repeat, dim=-1)
         # Open loop stops at the best step for "min"; the whole sequence counts otherwise.
-        length = step + 1 if self.reduction == "min" else torch.full_like(step, self.horizon)
+        if self.step_aggregation == "min":
+            length = step + 1
+        else:
+            length = torch.full_like(step, self.planning_horizon)
         return plan, length, score
 
     def _optimize(
@@ -302,9 +362,9 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         """Best decisions int64 ``[b, H / r]``, their score ``[b]`` and best step ``[b]``."""
         raise NotImplementedError
 
-    def _uniforms(self, rows: int, iterations: int) -> torch.Tensor:
-        """Uniform numbers ``[rows, iterations, N, H / r]`` in one row-major draw."""
-        shape = (rows, iterations, self.num_candidates, self.num_decisions)
+    def _uniforms(self, rows: int, optim_steps: int) -> torch.Tensor:
+        """Uniform numbers ``[rows, optim_steps, N, H / r]`` in one row-major draw."""
+        shape = (rows, optim_steps, self.num_candidates, self.num_decisions)
         return torch.rand(shape, generator=self.generator, device=self.generator.device)
 
     def _evaluate(
@@ -312,15 +372,27 @@ class DiscreteMPCPlanner(MPCPlannerBase):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scores candidates ``[b, N, H / r]``: (score ``[b, N]``, best step ``[b, N]``)."""
         rollout = self.imagine(td, decisions)
-        per_step = self.cost(rollout)
-        expected = rollout.batch_size
-        if not isinstance(per_step, torch.Tensor) or per_step.shape != expected:
-            got = list(per_step.shape) if isinstance(per_step, torch.Tensor) else type(per_step)
+        out = self.cost(rollout)
+        out = rollout if out is None else out
+        name = type(self.cost).__name__
+        if not isinstance(out, TensorDictBase):
             raise ValueError(
-                f"the cost must return a per-step cost of shape {list(expected)} "
-                f"([B, N, H]), got {got}."
+                f"the cost {name} must return the rollout tensordict with its per-step cost "
+                f"under cost_key={self.cost_key!r}, got a {type(out).__name__}."
             )
-        return reduce_steps(per_step.to(torch.float32), self.reduction)
+        per_step = out.get(self.cost_key, None)
+        if per_step is None:
+            raise ValueError(
+                f"the cost {name} wrote no {self.cost_key!r} (cost_key) into the rollout; its "
+                f"output holds {sorted(str(k) for k in out.keys(True, True))}."
+            )
+        expected = rollout.batch_size
+        if per_step.shape != expected:
+            raise ValueError(
+                f"the cost {name} must write a per-step cost of shape {list(expected)} "
+                f"([B, N, H]) under {self.cost_key!r}, got {list(per_step.shape)}."
+            )
+        return aggregate_steps(per_step.to(torch.float32), self.step_aggregation)
 
     def imagine(self, td: TensorDictBase, decisions: torch.Tensor) -> TensorDictBase:
         """Rolls candidate decisions ``[b, N, H / r]`` out from rows ``td [b]``.
@@ -334,7 +406,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         actions = decisions.repeat_interleave(self.action_repeat, dim=-1).to(td.device)
         current = td.select(*self._env_in_keys, strict=False).unsqueeze(1).expand(rows, n)
         outputs = []
-        for t in range(self.horizon):
+        for t in range(self.planning_horizon):
             current = current.copy()
             current.set(
                 self.action_key, actions[..., t : t + 1].reshape(rows, n, *self._action_shape)
@@ -346,7 +418,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 next_td = next_td.select(*wanted, strict=False)
             outputs.append(next_td)
             current = self.env.step_mdp(current)
-        horizon_shape = torch.Size([rows, n, self.horizon])
+        horizon_shape = torch.Size([rows, n, self.planning_horizon])
         if self._cost_keys:
             root = td.select(*self._root_keys, strict=False)
         else:
@@ -398,34 +470,59 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             return torch.zeros(shape, dtype=dtype, device=device)
         if tuple(value.shape) != shape:
             raise ValueError(
-                f"{key!r} must have shape {list(shape)} for this planner (horizon "
-                f"{self.horizon}), got {list(value.shape)}; was it written by another planner?"
+                f"{key!r} must have shape {list(shape)} for this planner "
+                f"(planning_horizon {self.planning_horizon}), got {list(value.shape)}; was it "
+                "written by another planner?"
             )
         return value.to(device=device, dtype=dtype).clone()
 
     def extra_repr(self) -> str:
         return (
-            f"num_candidates={self.num_candidates}, horizon={self.horizon}, "
+            f"planning_horizon={self.planning_horizon}, num_candidates={self.num_candidates}, "
             f"action_repeat={self.action_repeat}, execution={self.execution!r}, "
-            f"reduction={self.reduction!r}"
+            f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}"
         )
 
 
-def reduce_steps(per_step: torch.Tensor, reduction: str) -> tuple[torch.Tensor, torch.Tensor]:
+def aggregate_steps(
+    per_step: torch.Tensor, step_aggregation: str
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Folds per-step costs ``[..., H]`` into (score ``[...]``, best step ``[...]``).
 
-    ``"min"``: the lowest step cost and its first step; ``"sum"``: the total, step
-    ``H - 1``; ``"final"``: the last step's cost, step ``H - 1``.
+    ``step_aggregation`` says how the steps of one candidate make its score: ``"min"``,
+    the lowest step cost and the first step reaching it; ``"sum"``, the total, step
+    ``H - 1``; ``"final"``, the last step's cost, step ``H - 1``.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.planners import aggregate_steps
+        >>> per_step = torch.tensor([[3.0, 1.0, 1.0, 2.0]])
+        >>> aggregate_steps(per_step, "min")
+        (tensor([1.]), tensor([1]))
+        >>> aggregate_steps(per_step, "sum")
+        (tensor([7.]), tensor([3]))
     """
+    check_step_aggregation(step_aggregation)
     last = per_step.shape[-1] - 1
-    if reduction == "min":
-        return per_step.min(dim=-1)
+    if step_aggregation == "min":
+        score, step = per_step.min(dim=-1)
+        return score, step
     full = torch.full(per_step.shape[:-1], last, dtype=torch.int64, device=per_step.device)
-    if reduction == "sum":
+    if step_aggregation == "sum":
         return per_step.sum(-1), full
-    if reduction == "final":
-        return per_step[..., -1], full
-    raise ValueError(f"unknown reduction {reduction!r}.")
+    return per_step[..., -1], full
+
+
+def check_integer(
+    name: str, value: object, low: int = 1, high: int | None = None, high_name: str = ""
+) -> int:
+    """``int(value)``, or a ``ValueError`` naming ``name`` unless it is an integer in range."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and int(value) == value
+    if not ok or int(value) < low or (high is not None and int(value) > high):
+        upper = f"{high_name} = {high}" if high_name else f"{high}"
+        bounds = f">= {low}" if high is None else f"in [{low}, {upper}]"
+        raise ValueError(f"{name} must be an integer {bounds}, got {value!r}.")
+    return int(value)
 
 
 def select_best(score: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
@@ -433,238 +530,3 @@ def select_best(score: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
     best = score.min(dim=-1, keepdim=True).values
     tied_step = torch.where(score <= best, step, torch.full_like(step, torch.iinfo(step.dtype).max))
     return tied_step.argmin(dim=-1)
-
-
-class RandomShootingPlanner(DiscreteMPCPlanner):
-    """Random shooting: N uniformly random action sequences, keep the best.
-
-    The paper's VF-RS draws 1000 sequences and executes the best one open loop.
-
-    Args:
-        env: the planning env (not batch-locked, Categorical action).
-        cost: a cost module over the rollout (:mod:`dorp_rl.planners.costs`).
-        num_candidates: sequences per row (default 1000).
-        horizon: env steps per sequence (default 14).
-        action_repeat: env steps per decision; must divide ``horizon``.
-        execution: ``"receding"`` (default) or ``"open_loop"``.
-        seed: seeds the planner's generator.
-        reduction: ``"min"``, ``"sum"`` or ``"final"``; ``None`` takes the cost's.
-        **kwargs: ``action_key``, ``key_prefix`` (see :class:`DiscreteMPCPlanner`).
-
-    Examples:
-        >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
-        >>> from dorp_rl.planners import PixelDistanceCost, RandomShootingPlanner
-        >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
-        >>> planner = RandomShootingPlanner(
-        ...     GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=100, horizon=6, seed=0
-        ... )
-        >>> td = env.rollout(3, planner)
-        >>> td["action"].shape, td["planner_plan"].shape
-        (torch.Size([2, 3, 1]), torch.Size([2, 3, 6]))
-    """
-
-    def __init__(
-        self,
-        env: EnvBase,
-        cost: nn.Module,
-        num_candidates: int = 1000,
-        horizon: int = 14,
-        action_repeat: int = 1,
-        execution: str = "receding",
-        seed: int | None = None,
-        *,
-        reduction: str | None = None,
-        **kwargs,
-    ) -> None:
-        super().__init__(
-            env,
-            cost,
-            num_candidates=num_candidates,
-            horizon=horizon,
-            action_repeat=action_repeat,
-            execution=execution,
-            reduction=reduction,
-            seed=seed,
-            **kwargs,
-        )
-
-    def _optimize(self, td, previous_plan, shift, valid):
-        rows = td.batch_size[0]
-        u = self._uniforms(rows, 1)[:, 0]
-        decisions = (u * self.num_actions).floor().to(torch.int64).clamp_max(self.num_actions - 1)
-        score, step = self._evaluate(td, decisions)
-        best = select_best(score, step)
-        index = torch.arange(rows, device=best.device)
-        return decisions[index, best], score[index, best], step[index, best]
-
-
-class CategoricalCEMPlanner(DiscreteMPCPlanner):
-    """Cross-entropy method over per-step categorical distributions.
-
-    Each iteration samples ``N`` sequences from independent per-decision categorical
-    distributions ``[b, H / r, A]`` (uniform at first), scores them, and refits each
-    distribution to the action frequencies of the elites (the ``elite_fraction`` best
-    sequences), optionally smoothed with the previous distribution and floored at
-    ``min_probability`` so that no action becomes impossible. The best sequence seen
-    in any iteration is the plan. The paper's VF-CEM: 1000 samples, top 2 %,
-    3 iterations.
-
-    Warm start (``warm_start=True``): a row that has a plan from an earlier call starts
-    from it shifted by the steps executed since (padded with its last action), as
-    ``warm_start_mix * one_hot(shifted plan) + (1 - warm_start_mix) * uniform``.
-
-    Args:
-        env: the planning env (not batch-locked, Categorical action).
-        cost: a cost module over the rollout (:mod:`dorp_rl.planners.costs`).
-        num_candidates: sequences per row and iteration (default 1000).
-        horizon: env steps per sequence (default 14).
-        action_repeat: env steps per decision; must divide ``horizon``.
-        num_iterations: CEM iterations (default 3).
-        elite_fraction: fraction of candidates kept as elites, in ``(0, 1]``
-            (default 0.02; at least one elite).
-        warm_start: start from the previous plan shifted (see above).
-        execution: ``"receding"`` (default) or ``"open_loop"``.
-        smoothing: weight of the old distribution in each refit, in [0, 1).
-        warm_start_mix: weight of the shifted plan in the initial distribution, in [0, 1].
-        min_probability: floor of every action probability after a refit.
-        reduction: ``"min"``, ``"sum"`` or ``"final"``; ``None`` takes the cost's.
-        seed: seeds the planner's generator.
-        **kwargs: ``action_key``, ``key_prefix`` (see :class:`DiscreteMPCPlanner`).
-
-    Examples:
-        >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
-        >>> from dorp_rl.planners import CategoricalCEMPlanner, PixelDistanceCost
-        >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
-        >>> planner = CategoricalCEMPlanner(
-        ...     GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=100, horizon=6,
-        ...     elite_fraction=0.1, seed=0,
-        ... )
-        >>> td = env.rollout(3, planner)
-        >>> td["action"].shape, bool(((td["action"] >= 0) & (td["action"] < 4)).all())
-        (torch.Size([2, 3, 1]), True)
-    """
-
-    def __init__(
-        self,
-        env: EnvBase,
-        cost: nn.Module,
-        num_candidates: int = 1000,
-        horizon: int = 14,
-        action_repeat: int = 1,
-        num_iterations: int = 3,
-        elite_fraction: float = 0.02,
-        warm_start: bool = True,
-        execution: str = "receding",
-        smoothing: float = 0.0,
-        *,
-        warm_start_mix: float = 0.5,
-        min_probability: float = 1e-3,
-        reduction: str | None = None,
-        seed: int | None = None,
-        **kwargs,
-    ) -> None:
-        if int(num_iterations) != num_iterations or int(num_iterations) < 1:
-            raise ValueError(f"num_iterations must be an integer >= 1, got {num_iterations}.")
-        if not 0.0 < float(elite_fraction) <= 1.0:
-            raise ValueError(f"elite_fraction must be in (0, 1], got {elite_fraction}.")
-        if not 0.0 <= float(warm_start_mix) <= 1.0:
-            raise ValueError(f"warm_start_mix must be in [0, 1], got {warm_start_mix}.")
-        if not 0.0 <= float(smoothing) < 1.0:
-            raise ValueError(f"smoothing must be in [0, 1), got {smoothing}.")
-        super().__init__(
-            env,
-            cost,
-            num_candidates=num_candidates,
-            horizon=horizon,
-            action_repeat=action_repeat,
-            execution=execution,
-            reduction=reduction,
-            seed=seed,
-            **kwargs,
-        )
-        if not 0.0 <= float(min_probability) <= 1.0 / self.num_actions:
-            raise ValueError(
-                f"min_probability must be in [0, 1 / num_actions = {1.0 / self.num_actions}], "
-                f"got {min_probability}."
-            )
-        self.num_iterations = int(num_iterations)
-        self.elite_fraction = float(elite_fraction)
-        self.num_elites = max(1, int(round(self.elite_fraction * self.num_candidates)))
-        self.warm_start = bool(warm_start)
-        self.warm_start_mix = float(warm_start_mix)
-        self.smoothing = float(smoothing)
-        self.min_probability = float(min_probability)
-
-    def initial_probs(
-        self, previous_plan: torch.Tensor, shift: torch.Tensor, valid: torch.Tensor
-    ) -> torch.Tensor:
-        """Initial per-decision distributions ``[b, H / r, A]`` (uniform, or warm-started).
-
-        Args:
-            previous_plan: int64 ``[b, H]``, the stored plans (per env step).
-            shift: int64 ``[b]``, env steps executed since each was planned.
-            valid: bool ``[b]``, which rows have a plan.
-        """
-        rows = previous_plan.shape[0]
-        a, h = self.num_actions, self.horizon
-        device = previous_plan.device
-        uniform = torch.full((rows, self.num_decisions, a), 1.0 / a, device=device)
-        use = valid & (shift < h) if self.warm_start else torch.zeros_like(valid)
-        if not use.any():
-            return uniform
-        steps = torch.arange(h, device=device) + shift.clamp(0, h - 1).unsqueeze(-1)
-        shifted = previous_plan.gather(-1, steps.clamp_max(h - 1))  # pads with the last action
-        starts = shifted[:, :: self.action_repeat]  # first env step of each decision
-        onehot = torch.nn.functional.one_hot(starts, a).to(uniform.dtype)
-        warm = self.warm_start_mix * onehot + (1.0 - self.warm_start_mix) * uniform
-        return torch.where(use.view(-1, 1, 1), warm, uniform)
-
-    def _sample(self, probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """Inverse-CDF samples ``[b, N, D]`` from ``probs [b, D, A]`` and uniforms ``[b, N, D]``."""
-        cdf = probs.cumsum(-1).unsqueeze(1)  # [b, 1, D, A]
-        index = (u.unsqueeze(-1) >= cdf).sum(-1)
-        return index.clamp_max(self.num_actions - 1)
-
-    def _refit(self, probs: torch.Tensor, elites: torch.Tensor) -> torch.Tensor:
-        freq = torch.nn.functional.one_hot(elites, self.num_actions).to(probs.dtype).mean(1)
-        probs = self.smoothing * probs + (1.0 - self.smoothing) * freq
-        probs = probs.clamp_min(self.min_probability)
-        return probs / probs.sum(-1, keepdim=True)
-
-    def _optimize(self, td, previous_plan, shift, valid):
-        rows = td.batch_size[0]
-        probs = self.initial_probs(previous_plan, shift, valid)
-        u = self._uniforms(rows, self.num_iterations)
-        index = torch.arange(rows, device=probs.device)
-        best_decisions = best_score = best_step = None
-        for i in range(self.num_iterations):
-            decisions = self._sample(probs, u[:, i])
-            score, step = self._evaluate(td, decisions)
-            best = select_best(score, step)
-            cand_decisions, cand_score, cand_step = (
-                decisions[index, best],
-                score[index, best],
-                step[index, best],
-            )
-            if best_score is None:
-                best_decisions, best_score, best_step = cand_decisions, cand_score, cand_step
-            else:
-                better = (cand_score < best_score) | (
-                    (cand_score == best_score) & (cand_step < best_step)
-                )
-                best_decisions = torch.where(better.unsqueeze(-1), cand_decisions, best_decisions)
-                best_score = torch.where(better, cand_score, best_score)
-                best_step = torch.where(better, cand_step, best_step)
-            if i + 1 < self.num_iterations:
-                elite_index = score.topk(self.num_elites, dim=-1, largest=False).indices
-                elites = decisions.gather(
-                    1, elite_index.unsqueeze(-1).expand(-1, -1, self.num_decisions)
-                )
-                probs = self._refit(probs, elites)
-        return best_decisions, best_score, best_step
-
-    def extra_repr(self) -> str:
-        return (
-            f"{super().extra_repr()}, num_iterations={self.num_iterations}, "
-            f"num_elites={self.num_elites}, warm_start={self.warm_start}"
-        )
