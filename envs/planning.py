@@ -241,36 +241,66 @@ class GroundTruthModelEnv(_PlanningEnvBase):
         )
 
 
-_HASH_WEIGHTS: dict[torch.device, torch.Tensor] = {}
+_HASH_WEIGHTS: dict[tuple[torch.device, int], torch.Tensor] = {}
+
+
+def row_hashes(rows: torch.Tensor) -> torch.Tensor:
+    """A 64-bit hash ``[n]`` of each row of a uint8 ``[n, ...]`` tensor (same bytes, same hash)."""
+    n = rows.shape[0]
+    flat = rows.reshape(n, -1)
+    pad = (-flat.shape[1]) % 8
+    if pad:
+        flat = torch.nn.functional.pad(flat, (0, pad))
+    words = flat.contiguous().view(torch.int64)
+    key_id = (rows.device, words.shape[1])
+    weights = _HASH_WEIGHTS.get(key_id)
+    if weights is None:
+        gen = torch.Generator().manual_seed(0x5EED)
+        weights = torch.randint(-(2**62), 2**62, (words.shape[1],), generator=gen) | 1
+        weights = _HASH_WEIGHTS.setdefault(key_id, weights.to(rows.device))
+    return (words * weights).sum(-1)
+
+
+def distinct_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The distinct rows of a uint8 ``[n, D]`` tensor, and ``inverse`` with ``out[inverse] == rows``.
+
+    Rows are grouped by a 64-bit hash of their bytes (one pass, no row sort); the groups
+    are then checked row by row, so a hash collision never merges different rows (it
+    falls back to no deduplication, ``inverse=None``). Planning repeats frames a lot
+    (candidates share prefixes, blocked moves leave frames unchanged), so the models and
+    encoders that run on imagined frames run on distinct ones only.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs.planning import distinct_rows
+        >>> rows = torch.tensor([[1, 2], [3, 4], [1, 2]], dtype=torch.uint8)
+        >>> unique, inverse = distinct_rows(rows)
+        >>> unique.shape[0], bool((unique[inverse] == rows).all())
+        (2, True)
+    """
+    n = rows.shape[0]
+    key = row_hashes(rows)
+    unique, inverse = torch.unique(key, return_inverse=True)
+    first = torch.full((unique.shape[0],), n, dtype=torch.long, device=key.device)
+    first.scatter_reduce_(0, inverse, torch.arange(n, device=key.device), reduce="amin")
+    representatives = rows[first]
+    if not bool((representatives[inverse] == rows).reshape(n, -1).all()):
+        return rows, None
+    return representatives, inverse
 
 
 def _distinct_pairs(
     pixels: torch.Tensor, action: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """The distinct (frame, action) rows, and ``inverse`` with ``rows[inverse] == input``.
-
-    Rows are grouped by a 64-bit hash of their bytes (one pass, no row sort); the groups
-    are then checked row by row, so a hash collision never merges different rows (it
-    falls back to no deduplication, ``inverse=None``).
-    """
+    """The distinct (frame, action) rows, and ``inverse`` with ``rows[inverse] == input``."""
     n = pixels.shape[0]
-    words = pixels.reshape(n, -1).contiguous().view(torch.int64)  # [n, 96]
-    weights = _HASH_WEIGHTS.get(pixels.device)
-    if weights is None or weights.shape[0] != words.shape[1] + 1:
-        gen = torch.Generator().manual_seed(0x5EED)
-        weights = torch.randint(-(2**62), 2**62, (words.shape[1] + 1,), generator=gen) | 1
-        weights = _HASH_WEIGHTS.setdefault(pixels.device, weights.to(pixels.device))
-    key = (words * weights[:-1]).sum(-1) + action.reshape(n).long() * weights[-1]
-    unique, inverse = torch.unique(key, return_inverse=True)
-    first = torch.full((unique.shape[0],), n, dtype=torch.long, device=key.device)
-    first.scatter_reduce_(0, inverse, torch.arange(n, device=key.device), reduce="amin")
-    rep_pixels, rep_action = pixels[first], action[first]
-    same = (rep_pixels[inverse] == pixels).flatten(1).all(-1) & (
-        rep_action[inverse] == action
-    ).flatten(1).all(-1)
-    if not bool(same.all()):
+    action_bytes = action.reshape(n, 1).to(torch.int64).contiguous().view(torch.uint8)  # [n, 8]
+    unique, inverse = distinct_rows(torch.cat([pixels.reshape(n, -1), action_bytes], -1))
+    if inverse is None:
         return pixels, action, None
-    return rep_pixels, rep_action, inverse
+    frames = unique[:, :-8].reshape(-1, *pixels.shape[1:])
+    actions = unique[:, -8:].contiguous().view(torch.int64).to(action.dtype)
+    return frames, actions.reshape(-1, *action.shape[1:]), inverse
 
 
 class WorldModelEnv(_PlanningEnvBase):

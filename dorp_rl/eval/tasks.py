@@ -10,7 +10,7 @@ within the step limit) and reports the steps next to the lower bound of each tas
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -69,6 +69,7 @@ def evaluate_policy(
     max_steps: int | None = None,
     tasks_per_rollout: int = 1,
     progress: bool = False,
+    report_keys: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Runs ``policy`` on every task and returns success and step figures.
 
@@ -85,13 +86,17 @@ def evaluate_policy(
         max_steps: step limit per task (default: ``env.max_steps``).
         tasks_per_rollout: tasks per batched rollout.
         progress: show a tqdm bar over tasks.
+        report_keys: keys the policy writes (e.g. ``dorp_replans``) whose value at each
+            task's last step is reported per task, as a list of numbers (the first
+            element of the value).
 
     Returns:
         ``success`` (bool list per task), ``steps`` (int list: steps until success, or
         the limit), ``success_rate``, ``mean_steps`` (over successful tasks, ``nan`` if
-        none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``.
+        none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``,
+        and one list per entry of ``report_keys``.
     """
-    limit = int(max_steps or env.max_steps)
+    limit = int(env.max_steps if max_steps is None else max_steps)
     if limit < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
     if tasks_per_rollout < 1:
@@ -116,6 +121,7 @@ def evaluate_policy(
         bar = tqdm(total=n, desc="tasks")
     success: list[bool] = []
     steps: list[int] = []
+    reported: dict[str, list[float]] = {key: [] for key in report_keys}
     start = time.perf_counter()
     for first in range(0, n, tasks_per_rollout):
         chunk = tasks[first : first + tasks_per_rollout]
@@ -146,6 +152,14 @@ def evaluate_policy(
         for row in range(rows):
             success.append(bool(won_at_end[row]))
             steps.append(int(first_done[row]) + 1 if success[-1] else limit)
+        for key in report_keys:
+            if key not in rollout.keys(True, True):
+                raise KeyError(
+                    f"report key {key!r} is not in the rollout: does the policy write it?"
+                )
+            values = rollout.get(key)[:rows]
+            values = values.reshape(rows, t, -1)[torch.arange(rows), first_done, 0]
+            reported[key] += values.float().tolist()
         if bar is not None:
             bar.update(rows)
     if bar is not None:
@@ -165,4 +179,5 @@ def evaluate_policy(
         else float("nan"),
         "max_steps": limit,
         "seconds": time.perf_counter() - start,
+        **reported,
     }

@@ -1,6 +1,7 @@
 """Models as TensorDict-friendly modules: code encoder, similarity matrices, video prediction model."""
 
 from dorp_rl.modules.encoder import DiscreteCodeEncoder, EncoderConfig, check_pixels
+from dorp_rl.modules.oracle import OracleCodeEncoder
 from dorp_rl.modules.similarity import (
     SIMILARITIES,
     DDDPSimilarity,
@@ -20,6 +21,7 @@ __all__ = [
     "EncoderConfig",
     "FullSimilarity",
     "IdentitySimilarity",
+    "OracleCodeEncoder",
     "SIMILARITIES",
     "VideoModelConfig",
     "VideoPredictionModel",

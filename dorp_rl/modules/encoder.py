@@ -50,6 +50,13 @@ class EncoderConfig:
         return cls(code_sizes=tuple(code_sizes), channels=16, mlp_sizes=(128, 128))
 
 
+def module_device(module: nn.Module) -> torch.device:
+    """Device of a module's first parameter or buffer (CPU for a module without tensors)."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return torch.device("cpu")
+
+
 def check_pixels(pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
     """Validates images ``[*B, 3, 16, 16]`` (uint8, or float in [0, 1]) and returns floats in [0, 1]."""
     if not isinstance(pixels, torch.Tensor):

@@ -1,4 +1,4 @@
-"""Planning: discrete MPC planners (random shooting, categorical CEM) and rollout costs.
+"""Planning: code graphs, discrete MPC planners (random shooting, categorical CEM), costs.
 
 The planners are :class:`torchrl.modules.planners.MPCPlannerBase` subclasses, one per
 file as in torchrl (``base.py``, ``random_shooting.py``, ``cem.py``), that sample
@@ -7,6 +7,8 @@ discrete action sequences, roll them out in a planning env
 minimise a cost over the imagined rollout. Costs (``costs.py``) are TensorDict modules
 that write a per-step cost ``[B, N, H]``; they compose with
 :class:`~tensordict.nn.TensorDictSequential` and :class:`WeightedCostSum`.
+:class:`CodeGraph` (``code_graph.py``) holds which codes follow each other in play data
+and finds DORP's shortest paths over them.
 """
 
 from dorp_rl.planners.base import (
@@ -16,6 +18,7 @@ from dorp_rl.planners.base import (
     select_best,
 )
 from dorp_rl.planners.cem import CategoricalCEMPlanner
+from dorp_rl.planners.code_graph import CodeGraph, encoder_fingerprint, resolve_groups
 from dorp_rl.planners.costs import (
     STEP_AGGREGATIONS,
     CodeMatchCost,
@@ -32,6 +35,7 @@ __all__ = [
     "EXECUTIONS",
     "STEP_AGGREGATIONS",
     "CategoricalCEMPlanner",
+    "CodeGraph",
     "CodeMatchCost",
     "DiscreteMPCPlanner",
     "MissingRolloutKeyError",
@@ -42,5 +46,7 @@ __all__ = [
     "WeightedCostSum",
     "aggregate_steps",
     "check_step_aggregation",
+    "encoder_fingerprint",
+    "resolve_groups",
     "select_best",
 ]

@@ -204,9 +204,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         self.num_decisions = self.planning_horizon // self.action_repeat
         self.execution = execution
         self.step_aggregation = check_step_aggregation(
-            step_aggregation
-            if step_aggregation is not None
-            else getattr(cost, "step_aggregation", "sum")
+            step_aggregation if step_aggregation is not None else _cost_aggregation(cost, cost_key)
         )
         self._action_shape = tuple(action_spec.shape)
         self.plan_key = f"{key_prefix}plan"
@@ -482,6 +480,23 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             f"action_repeat={self.action_repeat}, execution={self.execution!r}, "
             f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}"
         )
+
+
+def _cost_aggregation(cost: nn.Module, cost_key: NestedKey) -> str:
+    """The ``step_aggregation`` of the module that writes ``cost_key`` (``"sum"`` if none says).
+
+    A composed cost (a :class:`~tensordict.nn.TensorDictSequential` ending in a
+    :class:`~dorp_rl.planners.WeightedCostSum`) has no attribute of its own: the module
+    that writes the key the planner reads decides.
+    """
+    if hasattr(cost, "step_aggregation"):
+        return cost.step_aggregation
+    writer = None
+    for module in cost.modules():
+        keys = [unravel_key(k) for k in getattr(module, "out_keys", None) or []]
+        if module is not cost and cost_key in keys and hasattr(module, "step_aggregation"):
+            writer = module
+    return writer.step_aggregation if writer is not None else "sum"
 
 
 def aggregate_steps(

@@ -50,6 +50,8 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
+from dorp_rl.envs.planning import distinct_rows, row_hashes
+
 __all__ = [
     "STEP_AGGREGATIONS",
     "CodeMatchCost",
@@ -167,12 +169,18 @@ class PixelDistanceCost(RolloutCost):
     colour moved by one cell). ``step_aggregation="min"`` by default: a candidate is
     scored by the closest it gets to the goal.
 
+    Plain L2 is flat once a block no longer overlaps its place in the goal image: moving
+    it closer changes nothing until it touches. ``blur_sigmas`` adds the L2 distance of
+    the frames blurred with a Gaussian of each given width (in cells), which keeps
+    decreasing as a block approaches from further away.
+
     Args:
         goal_key: the goal image, uint8 ``[*B, 3, 16, 16]`` in the acting tensordict.
         pixels_key: the predicted frames in the rollout.
         out_key: where the per-step cost ``[*B, N, H]`` is written.
         step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
         chunk_size: frames per chunk of the computation (a speed knob, not a result one).
+        blur_sigmas: widths of the extra blurred terms (default none: the paper's L2).
 
     Examples:
         >>> import torch
@@ -195,10 +203,19 @@ class PixelDistanceCost(RolloutCost):
         out_key: NestedKey = "cost",
         step_aggregation: str = "min",
         chunk_size: int = 512,
+        blur_sigmas: Sequence[float] = (),
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         if int(chunk_size) < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
+        sigmas = [float(x) for x in blur_sigmas]
+        if any(not math.isfinite(x) or x <= 0 for x in sigmas):
+            raise ValueError(f"blur_sigmas must be positive widths, got {list(blur_sigmas)}.")
+        self.blur_sigmas = tuple(sigmas)
+        for i, sigma in enumerate(sigmas):
+            radius = min(15, math.ceil(3 * sigma))
+            taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1) / sigma) ** 2)
+            self.register_buffer(f"_blur{i}", taps / taps.sum(), persistent=False)
         self.goal_key = unravel_key(goal_key)
         self.pixels_key = unravel_key(pixels_key)
         self.chunk_size = int(chunk_size)
@@ -227,11 +244,81 @@ class PixelDistanceCost(RolloutCost):
             stop = start + self.chunk_size
             diff = frames[start:stop].to(torch.float32)
             diff.sub_(goals.index_select(0, owner[start:stop]))
-            out[start:stop] = diff.square_().sum(-1)
-        return out.sqrt_().div_(255.0).reshape(lead)
+            total = diff.square().sum(-1).sqrt_()
+            for i in range(len(self.blur_sigmas)):
+                # Blurring is linear: the blurred frames differ by the blurred difference.
+                blurred = _blur(diff.view(-1, *pixels.shape[-3:]), getattr(self, f"_blur{i}"))
+                total += blurred.flatten(1).square().sum(-1).sqrt_()
+            out[start:stop] = total
+        return out.div_(255.0).reshape(lead)
 
     def extra_repr(self) -> str:
-        return f"goal_key={self.goal_key!r}, {super().extra_repr()}"
+        blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
+        return f"goal_key={self.goal_key!r}{blur}, {super().extra_repr()}"
+
+
+def _blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
+    """Separable Gaussian blur of ``[n, c, h, w]`` images with zero padding."""
+    c, radius = images.shape[1], taps.shape[0] // 2
+    rows = taps.to(images.dtype).view(1, 1, -1, 1).expand(c, 1, -1, 1)
+    cols = taps.to(images.dtype).view(1, 1, 1, -1).expand(c, 1, 1, -1)
+    images = torch.nn.functional.conv2d(images, rows, padding=(radius, 0), groups=c)
+    return torch.nn.functional.conv2d(images, cols, padding=(0, radius), groups=c)
+
+
+class _EncodingCache:
+    """Codes and probabilities of frames already encoded, keyed by a hash of their bytes.
+
+    Planning calls keep imagining the same few thousand frames around the current state,
+    so most encoder calls repeat earlier ones. Entries are sorted tensors (looked up with
+    ``searchsorted``); when more than ``size`` frames are held the cache starts afresh.
+    It is emptied whenever the encoder's weights change (their ``_version`` counters,
+    which every in-place update such as an optimiser step increments) and is not part
+    of any state dict. Frames are matched by a 64-bit hash: two different frames share
+    one with probability about 1e-19 per pair.
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.keys = self.codes = self.probs = None
+        self.version: tuple | None = None
+
+    def encode(self, frames, encode_frames, module: nn.Module | None):
+        if self.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0:
+            return encode_frames(frames)
+        version = (id(module), *(p._version for p in module.parameters())) if module else None
+        if version != self.version or self.keys is None:
+            self.keys = self.codes = self.probs = None
+            self.version = version
+        keys = row_hashes(frames)
+        hit = torch.zeros(frames.shape[0], dtype=torch.bool, device=frames.device)
+        pos = None
+        if self.keys is not None and self.keys.device == keys.device:
+            pos = torch.searchsorted(self.keys, keys).clamp_max(self.keys.shape[0] - 1)
+            hit = self.keys[pos] == keys
+        miss = (~hit).nonzero().squeeze(-1)
+        new_codes, new_probs = encode_frames(frames[miss]) if miss.numel() else (None, None)
+        if self.keys is None:
+            code = torch.empty(frames.shape[0], *new_codes.shape[1:], dtype=new_codes.dtype)
+            prob = torch.empty(frames.shape[0], *new_probs.shape[1:], dtype=new_probs.dtype)
+            code, prob = code.to(new_codes.device), prob.to(new_probs.device)
+        else:
+            code = self.codes[pos.clamp_min(0)].clone()
+            prob = self.probs[pos.clamp_min(0)].clone()
+        if new_codes is not None:
+            code[miss], prob[miss] = new_codes, new_probs
+            self._insert(keys[miss], new_codes, new_probs)
+        return code, prob
+
+    def _insert(self, keys, codes, probs) -> None:
+        if self.keys is not None and self.keys.shape[0] + keys.shape[0] <= self.size:
+            keys = torch.cat([self.keys, keys])
+            codes = torch.cat([self.codes, codes])
+            probs = torch.cat([self.probs, probs])
+        elif keys.shape[0] > self.size:
+            return
+        order = torch.argsort(keys)
+        self.keys, self.codes, self.probs = keys[order], codes[order], probs[order]
 
 
 class CodeMatchCost(RolloutCost):
@@ -264,6 +351,8 @@ class CodeMatchCost(RolloutCost):
         tie_break: weight of the confidence term; small so it only breaks ties.
         step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
         chunk_size: frames per encoder call (bounds memory).
+        cache_size: frames whose codes are kept between calls (0: no cache). The
+            cache is emptied whenever the encoder's weights change.
 
     Examples:
         >>> import torch
@@ -297,10 +386,14 @@ class CodeMatchCost(RolloutCost):
         tie_break: float = 1e-3,
         step_aggregation: str = "min",
         chunk_size: int = 8192,
+        cache_size: int = 2**18,
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         if not callable(encoder):
             raise ValueError(f"encoder must be callable, got {type(encoder).__name__}.")
+        if int(cache_size) < 0:
+            raise ValueError(f"cache_size must be >= 0, got {cache_size}.")
+        self.cache = _EncodingCache(int(cache_size))
         if not 0.0 <= float(tie_break) < 0.5:
             raise ValueError(f"tie_break must be in [0, 0.5), got {tie_break}.")
         if int(chunk_size) < 1:
@@ -335,18 +428,27 @@ class CodeMatchCost(RolloutCost):
             module.eval()
         try:
             flat = pixels.reshape(-1, *pixels.shape[-3:])
-            codes, probs = [], []
-            for chunk in flat.split(self.chunk_size):
-                code, prob = self.encoder(chunk)
-                codes.append(code)
-                probs.append(prob)
+            inverse = None
+            if flat.dtype == torch.uint8 and flat.shape[0] > 1:
+                # Imagined frames repeat a lot, within a call and across calls: encode
+                # each distinct frame once, and frames seen in earlier calls not at all.
+                flat, inverse = distinct_rows(flat)
+            code, prob = self.cache.encode(flat, self._encode_frames, module)
         finally:
             if module is not None:
                 module.train(was_training)
-        code = torch.cat(codes)
-        prob = torch.cat(probs)
+        if inverse is not None:
+            code, prob = code[inverse], prob[inverse]
         lead = pixels.shape[:-3]
         return code.reshape(*lead, code.shape[-1]), prob.reshape(*lead, *prob.shape[-2:])
+
+    def _encode_frames(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        codes, probs = [], []
+        for chunk in frames.split(self.chunk_size):
+            code, prob = self.encoder(chunk)
+            codes.append(code)
+            probs.append(prob)
+        return torch.cat(codes), torch.cat(probs)
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         name = type(self).__name__

@@ -1,5 +1,13 @@
-"""Policies: the paper's visual-foresight baselines (and, later, DORP's hierarchical policy)."""
+"""Policies: DORP's hierarchical abstract-goal policy and the visual-foresight baselines."""
 
+from dorp_rl.policies.abstract_goal import MODES, ORDERS, AbstractGoalPolicy, make_dorp_policy
 from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightPolicy
 
-__all__ = ["VARIANT_DEFAULTS", "VisualForesightPolicy"]
+__all__ = [
+    "AbstractGoalPolicy",
+    "MODES",
+    "ORDERS",
+    "VARIANT_DEFAULTS",
+    "VisualForesightPolicy",
+    "make_dorp_policy",
+]

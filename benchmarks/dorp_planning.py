@@ -1,0 +1,234 @@
+"""DORP on seeded task sets: success, steps against the lower bound, replans, seconds.
+
+For every setting it takes codes trained by the library's presets (training them, with
+their play data, when ``--out-dir`` does not hold them yet), builds the code graph over
+that play data, assembles :func:`~dorp_rl.policies.make_dorp_policy` with the chosen low
+level, and runs it on ``--tasks`` tasks of :func:`~dorp_rl.eval.make_task_set` through
+:func:`~dorp_rl.eval.evaluate_policy`. It prints, per setting: success rate, mean steps
+of the solved tasks, their mean lower bound, the ratio of the two, edges removed
+(replans) per task, tasks given up, and seconds per task, with the paper's figure.
+
+Settings: ``1obj``, ``2obj``, ``3obj`` (one graph per one-hot), ``5obj`` (groups
+``(0, 1)`` and ``(2, 3, 4)``, 1400-step limit), ``3obj-full`` and ``5obj-full`` (the
+full-graph ablation), ``keywall`` and ``keycorridor`` (agent and key bit in one group).
+Low levels: ``gt`` (the true dynamics) and ``video`` (a video model from
+``--video-checkpoint``; train one with ``benchmarks/video_model_accuracy.py``).
+``--codes oracle`` swaps the learned codes for :class:`~dorp_rl.modules.OracleCodeEncoder`.
+
+    python benchmarks/dorp_planning.py --settings 1obj 2obj 3obj --low-level gt --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from dorp_rl.data import collect_play_data
+from dorp_rl.envs import make_env
+from dorp_rl.eval import evaluate_policy, make_task_set
+from dorp_rl.modules import OracleCodeEncoder
+from dorp_rl.planners import CodeGraph
+from dorp_rl.policies import make_dorp_policy
+from dorp_rl.trainers import (
+    RepresentationConfig,
+    RepresentationTrainer,
+    load_encoder,
+    load_video_model,
+)
+
+
+@dataclass
+class Setting:
+    env: str
+    num_objects: int
+    groups: Any
+    paper: str
+
+    @property
+    def codes_name(self) -> str:
+        if self.env == "rearrangement":
+            return f"rearrangement{self.num_objects}"
+        return self.env.replace("-", "")
+
+    def preset(self, **overrides: Any) -> RepresentationConfig:
+        if self.env == "key-wall":
+            return RepresentationConfig.key_wall(**overrides)
+        if self.env == "key-corridor":
+            return RepresentationConfig.key_corridor(**overrides)
+        # The step and data budgets of the representation benchmark's runs.
+        steps = {1: 1500, 2: 1500, 3: 2000}.get(self.num_objects, 3000)
+        frames = {1: 60_000, 2: 100_000, 3: 150_000}.get(self.num_objects, 200_000)
+        return RepresentationConfig.rearrangement(
+            self.num_objects, num_steps=steps, num_frames=frames, **overrides
+        )
+
+
+SETTINGS = {
+    "1obj": Setting("rearrangement", 1, "onehot", "1.00 in 25 steps"),
+    "2obj": Setting("rearrangement", 2, "onehot", "1.00 in 49 steps"),
+    "3obj": Setting("rearrangement", 3, "onehot", "1.00 in 75 steps"),
+    "5obj": Setting("rearrangement", 5, [(0, 1), (2, 3, 4)], "0.87 in 1091 steps"),
+    "3obj-full": Setting("rearrangement", 3, "full", "1.00 (full graph)"),
+    "5obj-full": Setting("rearrangement", 5, "full", "0.00 (full graph)"),
+    "keywall": Setting("key-wall", 1, [(0, 1)], "37/40 (gt), 9/10 (SV2P)"),
+    "keycorridor": Setting("key-corridor", 1, [(0, 1)], "33/40 (gt)"),
+}
+
+
+def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[Any, CodeGraph, dict]:
+    """The encoder (trained or oracle) and its code graph, from disk when already built."""
+    name = f"{setting.codes_name}-seed{args.code_seed}"
+    play_dir = args.out_dir / "play" / name
+    cfg = setting.preset(
+        seed=args.code_seed,
+        out_dir=str(args.out_dir / "codes" / name),
+        data_dir=str(play_dir),
+        progress=False,
+    )
+    timings: dict[str, float] = {}
+    if args.codes == "oracle":
+        encoder = OracleCodeEncoder(env, cell_size=args.oracle_cell)
+    else:
+        checkpoint = Path(cfg.out_dir) / "checkpoints" / "last.pt"
+        if not checkpoint.exists():
+            start = time.perf_counter()
+            RepresentationTrainer(cfg).train()
+            timings["train_codes_s"] = time.perf_counter() - start
+        encoder = load_encoder(checkpoint, env)
+    groups = setting.groups
+    tag = groups if isinstance(groups, str) else "-".join("".join(map(str, g)) for g in groups)
+    graph_path = args.out_dir / "graphs" / f"{name}-{args.codes}-{tag}.pt"
+    if graph_path.exists():
+        graph = CodeGraph.load(graph_path, encoder=encoder, env_config=env.config())
+    else:
+        buffer = collect_play_data(
+            cfg.make_env(batch_size=(cfg.num_envs,)),
+            cfg.num_frames,
+            directory=play_dir,
+            seed=cfg.seed,
+            trajectory_length=cfg.trajectory_length,
+        )
+        start = time.perf_counter()
+        graph = CodeGraph.from_play_data(buffer, encoder, groups)
+        timings["graph_s"] = time.perf_counter() - start
+        graph.save(graph_path)
+    return encoder, graph, timings
+
+
+def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str, Any]:
+    setting = SETTINGS[setting_name]
+    batch = args.tasks_per_rollout
+    env = make_env(
+        setting.env, num_objects=setting.num_objects, batch_size=(batch,), seed=args.seed
+    )
+    encoder, graph, timings = codes_and_graph(setting, args, env)
+    if low_level == "gt":
+        level: Any = "ground_truth"
+    else:
+        path = args.video_checkpoint.format(name=setting.codes_name)
+        level = load_video_model(path, env)
+    policy = make_dorp_policy(
+        env,
+        encoder,
+        graph,
+        low_level=level,
+        planner=args.planner,
+        planning_horizon=args.planning_horizon,
+        num_candidates=args.candidates,
+        waypoint_budget=args.waypoint_budget,
+        seed=args.seed,
+    )
+    tasks = make_task_set(env, args.tasks, seed=args.task_seed)
+    result = evaluate_policy(
+        env,
+        policy,
+        tasks,
+        max_steps=args.max_steps,
+        tasks_per_rollout=batch,
+        progress=args.progress,
+        report_keys=("dorp_replans", "dorp_failed"),
+    )
+    solved = torch.tensor(result["success"])
+    steps = torch.tensor(result["steps"], dtype=torch.float32)
+    bound = tasks["lower_bound"].float()
+    ratio = float((steps[solved] / bound[solved]).mean()) if solved.any() else math.nan
+    return {
+        "setting": setting_name,
+        "low_level": low_level,
+        "codes": args.codes,
+        "groups": graph.groups,
+        "graph_nodes": [graph.num_nodes(g) for g in range(graph.num_groups)],
+        "success_rate": result["success_rate"],
+        "mean_steps": result["mean_steps"],
+        "mean_lower_bound": result["mean_lower_bound"],
+        "steps_over_bound": ratio,
+        "replans_per_task": sum(result["dorp_replans"]) / args.tasks,
+        "given_up": int(sum(result["dorp_failed"])),
+        "seconds_per_task": result["seconds"] / args.tasks,
+        "max_steps": result["max_steps"],
+        "paper": setting.paper,
+        **timings,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--settings", nargs="+", choices=sorted(SETTINGS), default=["2obj"])
+    parser.add_argument("--low-level", nargs="+", choices=["gt", "video"], default=["gt"])
+    parser.add_argument("--codes", choices=["trained", "oracle"], default="trained")
+    parser.add_argument("--oracle-cell", type=int, default=4, help="region side of oracle codes")
+    parser.add_argument("--code-seed", type=int, default=0, help="seed of the trained codes")
+    parser.add_argument("--tasks", type=int, default=50)
+    parser.add_argument("--task-seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the planners")
+    parser.add_argument("--planner", choices=["rs", "cem"], default="rs")
+    parser.add_argument("--candidates", type=int, default=1000)
+    parser.add_argument("--planning-horizon", type=int, default=14)
+    parser.add_argument("--waypoint-budget", type=int, default=28)
+    parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
+    parser.add_argument("--tasks-per-rollout", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--out-dir", type=Path, default=Path("outputs"))
+    parser.add_argument(
+        "--video-checkpoint",
+        default="outputs/world_model/{name}-seed0/checkpoints/last.pt",
+        help="video model per setting; {name} is rearrangement<k>, keywall or keycorridor",
+    )
+    parser.add_argument("--json", type=Path, default=None, help="append the rows here")
+    args = parser.parse_args()
+    if args.tasks % args.tasks_per_rollout:
+        parser.error("--tasks must be a multiple of --tasks-per-rollout")
+    torch.set_num_threads(args.threads)
+    header = (
+        f"{'setting':<12} {'low':<6} {'success':>8} {'steps':>7} {'bound':>6} {'ratio':>6} "
+        f"{'replans':>8} {'gave up':>8} {'s/task':>7}  paper"
+    )
+    print(header, flush=True)
+    rows = []
+    for low_level in args.low_level:
+        for name in args.settings:
+            row = run(name, low_level, args)
+            rows.append(row)
+            print(
+                f"{name:<12} {low_level:<6} {row['success_rate']:>8.2f} {row['mean_steps']:>7.1f} "
+                f"{row['mean_lower_bound']:>6.1f} {row['steps_over_bound']:>6.2f} "
+                f"{row['replans_per_task']:>8.2f} {row['given_up']:>8d} "
+                f"{row['seconds_per_task']:>7.2f}  {row['paper']}",
+                flush=True,
+            )
+            if args.json is not None:
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                with args.json.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    main()

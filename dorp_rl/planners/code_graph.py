@@ -1,0 +1,730 @@
+"""Code graphs: which discrete codes follow each other in play data, and shortest paths.
+
+DORP plans at the level of its codes: a node is a code (of one one-hot, of a group of
+one-hots, or of the whole code), and an edge joins two codes that followed each other in
+some trajectory of the play data. The graph is undirected and unweighted, as the
+authors'; the number of transitions seen on each edge is kept for tie-breaking between
+equally short paths and for diagnostics.
+
+Groups
+    ``groups="onehot"`` builds one graph per one-hot (the paper's factorized planning),
+    ``groups="full"`` one graph over whole codes (the paper's full-graph ablation), and a
+    sequence of index tuples, e.g. ``[(0, 1), (2, 3, 4)]``, one graph per group of
+    one-hots (the paper's extended planning at 5 objects; agent plus key bit in the key
+    rooms). Groups must cover every one-hot exactly once.
+
+Storage
+    Every graph lives in fixed-shape tensors registered as buffers, so that torchrl's
+    multi-process collectors can share a policy holding it (``share_memory_()`` does not
+    support Python containers or sparse tensors). Nodes are the joint codes seen in the
+    data, sorted per group (``node_keys``, a mixed-radix number of the members' codes);
+    edges are one CSR over all groups (``indptr``, ``indices``, ``edge_counts``; group
+    ``g`` owns nodes ``node_offsets[g]:node_offsets[g + 1]``). Groups of at most
+    ``dense_limit`` nodes (one-hots, pairs) also get an all-pairs distance table, so that
+    a query without removed edges is a table lookup; larger groups (triples, the full
+    graph) are searched breadth-first on the CSR.
+
+Edge removal
+    The edges that failed during one task belong to that task, not to the graph: queries
+    take ``removed``, a tensor of (directed) edge ids to ignore in both directions, that
+    the caller keeps per task (:class:`~dorp_rl.policies.AbstractGoalPolicy` keeps it in
+    the tensordict, one row per env).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+from dorp_rl.modules.encoder import module_device
+
+#: Groups of at most this many nodes get a dense all-pairs distance table.
+DEFAULT_DENSE_LIMIT = 1024
+_UNREACHABLE = -1
+
+
+def encoder_fingerprint(encoder: nn.Module) -> str:
+    """A short hash of an encoder's weights: tells whether a graph was built with it.
+
+    Examples:
+        >>> from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+        >>> from dorp_rl.planners import encoder_fingerprint
+        >>> a = DiscreteCodeEncoder(EncoderConfig.small((8,)))
+        >>> encoder_fingerprint(a) == encoder_fingerprint(a), len(encoder_fingerprint(a))
+        (True, 16)
+    """
+    digest = hashlib.sha256()
+    for name, value in sorted(encoder.state_dict().items()):
+        digest.update(name.encode())
+        if isinstance(value, torch.Tensor):
+            digest.update(str(value.dtype).encode())
+            digest.update(value.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy())
+    return digest.hexdigest()[:16]
+
+
+def resolve_groups(groups: str | Sequence[Sequence[int]], num_onehots: int) -> list[list[int]]:
+    """Turns ``"onehot"``, ``"full"`` or explicit index groups into a checked list of groups.
+
+    Raises:
+        ValueError: a group that is empty, names a one-hot outside ``[0, num_onehots)``,
+            overlaps another group, or groups that leave a one-hot out.
+    """
+    if isinstance(groups, str):
+        if groups == "onehot":
+            return [[i] for i in range(num_onehots)]
+        if groups == "full":
+            return [list(range(num_onehots))]
+        raise ValueError(f"groups must be 'onehot', 'full' or index groups, got {groups!r}.")
+    out: list[list[int]] = []
+    seen: dict[int, int] = {}
+    for g, group in enumerate(groups):
+        members = [int(i) for i in group]
+        if not members:
+            raise ValueError(f"group {g} of {list(groups)} is empty.")
+        for i in members:
+            if not 0 <= i < num_onehots:
+                raise ValueError(
+                    f"group {g} names one-hot {i}, but the codes have {num_onehots} one-hots "
+                    f"(indices 0..{num_onehots - 1})."
+                )
+            if i in seen:
+                raise ValueError(
+                    f"one-hot {i} is in group {seen[i]} and group {g}: groups must not overlap."
+                )
+            seen[i] = g
+        out.append(members)
+    missing = sorted(set(range(num_onehots)) - set(seen))
+    if missing:
+        raise ValueError(
+            f"groups {[tuple(g) for g in out]} leave one-hots {missing} out: every one-hot "
+            "must be in exactly one group."
+        )
+    return out
+
+
+class CodeGraph(nn.Module):
+    """Undirected transition graphs over discrete codes, one per group of one-hots.
+
+    Build one with :meth:`from_transitions` (codes of consecutive frames) or
+    :meth:`from_play_data` (a play buffer and a trained encoder), query it with
+    :meth:`node_of`, :meth:`next_waypoint` and :meth:`shortest_path`, and keep it with
+    :meth:`save` / :meth:`load`.
+
+    Args:
+        code_sizes: codes per one-hot, e.g. ``(32, 32)``.
+        groups: ``"onehot"``, ``"full"`` or explicit index groups (module docstring).
+        node_keys: int64 ``[V]``, the joint code of every node, sorted within each group.
+        node_offsets: int64 ``[G + 1]``, where each group's nodes start.
+        node_counts: int64 ``[V]``, frames seen at each node.
+        indptr: int64 ``[V + 1]``, CSR row pointers (global node ids).
+        indices: int64 ``[E]``, CSR neighbours (global node ids), both directions.
+        edge_counts: int64 ``[E]``, transitions seen on each undirected edge.
+        fingerprint: :func:`encoder_fingerprint` of the encoder that made the codes.
+        env_config: ``env.config()`` of the environment the play data came from.
+        dense_limit: groups with at most this many nodes get a distance table.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.planners import CodeGraph
+        >>> codes = torch.tensor([[0, 0], [1, 0], [1, 1], [2, 1]])
+        >>> graph = CodeGraph.from_transitions(codes[:-1], codes[1:], code_sizes=(4, 4))
+        >>> graph.num_groups, graph.num_nodes(0), graph.num_edges(0)
+        (2, 3, 2)
+        >>> [graph.node_code(n).tolist() for n in graph.shortest_path(0, torch.tensor([0, 0]), torch.tensor([2, 0]))]
+        [[0], [1], [2]]
+    """
+
+    def __init__(
+        self,
+        code_sizes: Sequence[int],
+        groups: str | Sequence[Sequence[int]],
+        *,
+        node_keys: torch.Tensor,
+        node_offsets: torch.Tensor,
+        node_counts: torch.Tensor,
+        indptr: torch.Tensor,
+        indices: torch.Tensor,
+        edge_counts: torch.Tensor,
+        fingerprint: str = "",
+        env_config: dict[str, Any] | None = None,
+        dense_limit: int = DEFAULT_DENSE_LIMIT,
+    ) -> None:
+        super().__init__()
+        sizes = [int(z) for z in code_sizes]
+        if not sizes or min(sizes) < 1:
+            raise ValueError(f"code_sizes must be a non-empty list of sizes >= 1, got {sizes}.")
+        self.code_sizes = tuple(sizes)
+        self.groups = resolve_groups(groups, len(sizes))
+        self.fingerprint = str(fingerprint)
+        self.env_config = dict(env_config) if env_config is not None else None
+        self.dense_limit = int(dense_limit)
+        g = len(self.groups)
+        members = torch.full((g, max(len(m) for m in self.groups)), -1, dtype=torch.int64)
+        radix = torch.zeros_like(members)
+        for i, group in enumerate(self.groups):
+            members[i, : len(group)] = torch.tensor(group)
+            radix[i, : len(group)] = _radix([sizes[j] for j in group])
+        for name, value in (
+            ("node_keys", node_keys),
+            ("node_offsets", node_offsets),
+            ("node_counts", node_counts),
+            ("indptr", indptr),
+            ("indices", indices),
+            ("edge_counts", edge_counts),
+        ):
+            if (
+                not isinstance(value, torch.Tensor)
+                or value.dtype != torch.int64
+                or value.dim() != 1
+            ):
+                raise ValueError(f"{name} must be a 1-d int64 tensor, got {_describe(value)}.")
+        v, e = node_keys.shape[0], indices.shape[0]
+        if node_offsets.shape[0] != g + 1 or int(node_offsets[-1]) != v:
+            raise ValueError(
+                f"node_offsets must have {g + 1} entries ending at the {v} nodes, got "
+                f"{node_offsets.tolist()}."
+            )
+        if node_counts.shape[0] != v or indptr.shape[0] != v + 1 or edge_counts.shape[0] != e:
+            raise ValueError(
+                f"inconsistent graph tensors: {v} nodes, {e} edges, node_counts "
+                f"{node_counts.shape[0]}, indptr {indptr.shape[0]}, edge_counts {edge_counts.shape[0]}."
+            )
+        if e and (int(indices.min()) < 0 or int(indices.max()) >= v):
+            raise ValueError(f"indices must lie in [0, {v}), the node ids.")
+        self.register_buffer("group_members", members)
+        self.register_buffer("group_radix", radix)
+        self.register_buffer("node_keys", node_keys)
+        self.register_buffer("node_offsets", node_offsets)
+        self.register_buffer("node_counts", node_counts)
+        self.register_buffer("indptr", indptr)
+        self.register_buffer("indices", indices)
+        self.register_buffer("edge_counts", edge_counts)
+        # Derived: source of every edge, its reverse, and the group of every node.
+        src = torch.repeat_interleave(torch.arange(v), indptr.diff())
+        self.register_buffer("edge_source", src, persistent=False)
+        self.register_buffer("edge_reverse", _reverse_edges(src, indices, v), persistent=False)
+        self._offsets = [int(x) for x in node_offsets]
+        tables, table_offsets = [], []
+        start = 0
+        for i in range(g):
+            n = self.num_nodes(i)
+            if n <= self.dense_limit:
+                tables.append(self._all_pairs_distances(i).to(torch.int16).reshape(-1))
+                table_offsets.append(start)
+                start += n * n
+            else:
+                table_offsets.append(-1)
+        self.register_buffer(
+            "dense_distances",
+            torch.cat(tables) if tables else torch.zeros(0, dtype=torch.int16),
+            persistent=False,
+        )
+        self._table_offsets = table_offsets
+
+    # ------------------------------------------------------------------ #
+    # Building
+    # ------------------------------------------------------------------ #
+    @classmethod
+    def from_transitions(
+        cls,
+        codes: torch.Tensor,
+        next_codes: torch.Tensor,
+        code_sizes: Sequence[int],
+        groups: str | Sequence[Sequence[int]] = "onehot",
+        **kwargs: Any,
+    ) -> CodeGraph:
+        """Builds the graphs from the codes of consecutive frames.
+
+        Args:
+            codes: int64 ``[N, C]``, the code of each transition's first frame.
+            next_codes: int64 ``[N, C]``, the code of the frame after it (same trajectory).
+            code_sizes: codes per one-hot.
+            groups: ``"onehot"``, ``"full"`` or index groups.
+            **kwargs: ``fingerprint``, ``env_config``, ``dense_limit``.
+        """
+        sizes = [int(z) for z in code_sizes]
+        for name, value in (("codes", codes), ("next_codes", next_codes)):
+            if not isinstance(value, torch.Tensor) or value.dtype != torch.int64:
+                raise ValueError(f"{name} must be an int64 tensor, got {_describe(value)}.")
+            if value.dim() != 2 or value.shape[1] != len(sizes):
+                raise ValueError(
+                    f"{name} must have shape [N, {len(sizes)}] (one code per one-hot of "
+                    f"code_sizes {tuple(sizes)}), got {list(value.shape)}."
+                )
+            bad = (value < 0) | (value >= torch.tensor(sizes))
+            if bool(bad.any()):
+                col = int(bad.any(0).nonzero()[0])
+                raise ValueError(
+                    f"{name} holds code {int(value[:, col][bad[:, col]][0])} for one-hot {col}, "
+                    f"which has {sizes[col]} codes."
+                )
+        if codes.shape != next_codes.shape:
+            raise ValueError(
+                f"codes and next_codes must have the same shape, got {list(codes.shape)} "
+                f"and {list(next_codes.shape)}."
+            )
+        resolved = resolve_groups(groups, len(sizes))
+        node_keys, node_counts, node_offsets = [], [], [0]
+        sources, targets, counts = [], [], []
+        for members in resolved:
+            radix = _radix([sizes[j] for j in members])
+            a = (codes[:, members] * radix).sum(-1)
+            b = (next_codes[:, members] * radix).sum(-1)
+            keys, frame_counts = torch.unique(torch.cat([a, b]), return_counts=True)
+            offset = node_offsets[-1]
+            changed = a != b
+            lo = torch.minimum(a[changed], b[changed])
+            hi = torch.maximum(a[changed], b[changed])
+            pair_keys = torch.stack([lo, hi], -1)
+            pairs, pair_counts = torch.unique(pair_keys, dim=0, return_counts=True)
+            u = torch.searchsorted(keys, pairs[:, 0].contiguous()) + offset
+            v = torch.searchsorted(keys, pairs[:, 1].contiguous()) + offset
+            sources += [u, v]
+            targets += [v, u]
+            counts += [pair_counts, pair_counts]
+            node_keys.append(keys)
+            node_counts.append(frame_counts)
+            node_offsets.append(offset + keys.shape[0])
+        total = node_offsets[-1]
+        src, dst, cnt = torch.cat(sources), torch.cat(targets), torch.cat(counts)
+        order = torch.argsort(src * total + dst)
+        src, dst, cnt = src[order], dst[order], cnt[order]
+        indptr = torch.zeros(total + 1, dtype=torch.int64)
+        indptr[1:] = torch.bincount(src, minlength=total).cumsum(0)
+        return cls(
+            sizes,
+            resolved,
+            node_keys=torch.cat(node_keys),
+            node_offsets=torch.tensor(node_offsets, dtype=torch.int64),
+            node_counts=torch.cat(node_counts),
+            indptr=indptr,
+            indices=dst,
+            edge_counts=cnt,
+            **kwargs,
+        )
+
+    @classmethod
+    def from_play_data(
+        cls,
+        buffer: Any,
+        encoder: nn.Module,
+        groups: str | Sequence[Sequence[int]] = "onehot",
+        *,
+        chunk_size: int = 8192,
+        progress: bool = False,
+        dense_limit: int = DEFAULT_DENSE_LIMIT,
+    ) -> CodeGraph:
+        """Encodes every transition of a play buffer and builds the graphs.
+
+        Each stored transition (``pixels`` -> ``("next", "pixels")``, one step of one
+        trajectory) gives an edge when its two codes differ.
+
+        Args:
+            buffer: a play buffer (:func:`~dorp_rl.data.collect_play_data`) or a
+                TensorDict ``[N]`` holding ``pixels`` and ``("next", "pixels")``.
+            encoder: a :class:`~dorp_rl.modules.DiscreteCodeEncoder` (``encode`` and
+                ``code_sizes``), run in eval mode.
+            groups: ``"onehot"``, ``"full"`` or index groups.
+            chunk_size: transitions encoded at a time.
+            progress: show a tqdm bar.
+            dense_limit: see the class docstring.
+        """
+        sizes = getattr(encoder, "code_sizes", None)
+        if sizes is None or not callable(getattr(encoder, "encode", None)):
+            raise ValueError(
+                f"encoder must have code_sizes and encode() (a DiscreteCodeEncoder), got "
+                f"{type(encoder).__name__}."
+            )
+        storage = getattr(buffer, "storage", None)
+        n = len(buffer)
+        if n < 1:
+            raise ValueError("the play buffer is empty: no transitions to build a graph from.")
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=n, desc="encode play data", unit="frame")
+        codes, next_codes = [], []
+        device = module_device(encoder)
+        for start in range(0, n, chunk_size):
+            index = torch.arange(start, min(n, start + chunk_size))
+            chunk = storage[index] if storage is not None else buffer[index]
+            for key, out in (("pixels", codes), (("next", "pixels"), next_codes)):
+                pixels = chunk.get(key, None)
+                if pixels is None:
+                    raise ValueError(
+                        f"the play data has no {key!r}: a graph needs both frames of each "
+                        f"transition (keys present: {sorted(map(str, chunk.keys(True, True)))})."
+                    )
+                out.append(encoder.encode(pixels.to(device)).cpu())
+            if bar is not None:
+                bar.update(index.numel())
+        if bar is not None:
+            bar.close()
+        metadata = getattr(buffer, "metadata", None) or {}
+        return cls.from_transitions(
+            torch.cat(codes),
+            torch.cat(next_codes),
+            sizes,
+            groups,
+            fingerprint=encoder_fingerprint(encoder),
+            env_config=metadata.get("env_config"),
+            dense_limit=dense_limit,
+        )
+
+    # ------------------------------------------------------------------ #
+    # Structure
+    # ------------------------------------------------------------------ #
+    @property
+    def num_groups(self) -> int:
+        return len(self.groups)
+
+    def num_nodes(self, group: int) -> int:
+        """Nodes (distinct codes seen) of ``group``."""
+        return self._offsets[group + 1] - self._offsets[group]
+
+    def num_edges(self, group: int) -> int:
+        """Undirected edges of ``group``."""
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        return int(self.indptr[hi] - self.indptr[lo]) // 2
+
+    def group_of(self, onehot: int) -> int:
+        """The group holding one-hot ``onehot``."""
+        for g, members in enumerate(self.groups):
+            if onehot in members:
+                return g
+        raise ValueError(f"one-hot {onehot} is in no group (groups {self.groups}).")
+
+    def group_keys(self, code: torch.Tensor, group: int) -> torch.Tensor:
+        """Joint key ``[*B]`` of ``group``'s one-hots in codes ``[*B, C]``."""
+        members = self.groups[group]
+        radix = self.group_radix[group, : len(members)]
+        return (code[..., members].to(radix.device) * radix).sum(-1)
+
+    def node_of(self, code: torch.Tensor, group: int) -> torch.Tensor:
+        """Global node id ``[*B]`` of codes ``[*B, C]`` in ``group``; -1 where never seen."""
+        code = self._check_code(code, "code")
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        keys = self.node_keys[lo:hi]
+        wanted = self.group_keys(code, group)
+        if hi == lo:
+            return torch.full_like(wanted, _UNREACHABLE)
+        pos = torch.searchsorted(keys, wanted).clamp_max(hi - lo - 1)
+        found = keys[pos] == wanted
+        return torch.where(found, pos + lo, torch.full_like(pos, _UNREACHABLE))
+
+    def node_code(self, node: int | torch.Tensor) -> torch.Tensor:
+        """Codes of the group's one-hots at global node ``node`` (int64 ``[len(group)]``)."""
+        node = int(node)
+        group = self._group_of_node(node)
+        members = self.groups[group]
+        key = int(self.node_keys[node])
+        out = []
+        for j in reversed(members):
+            out.append(key % self.code_sizes[j])
+            key //= self.code_sizes[j]
+        return torch.tensor(out[::-1], dtype=torch.int64)
+
+    def neighbours(self, node: int) -> torch.Tensor:
+        """Global ids of the nodes joined to ``node``."""
+        return self.indices[self.indptr[node] : self.indptr[node + 1]]
+
+    def edge_id(self, a: int, b: int) -> int:
+        """Id of the directed edge ``a -> b`` (-1 if there is none)."""
+        lo, hi = int(self.indptr[a]), int(self.indptr[a + 1])
+        hits = (self.indices[lo:hi] == b).nonzero()
+        return lo + int(hits[0]) if hits.numel() else _UNREACHABLE
+
+    # ------------------------------------------------------------------ #
+    # Search
+    # ------------------------------------------------------------------ #
+    def distances_to(
+        self,
+        goal: int,
+        removed: torch.Tensor | None = None,
+        stop_at: int | None = None,
+    ) -> torch.Tensor:
+        """Hop distance from every node of ``goal``'s group to ``goal`` (-1: unreachable).
+
+        Args:
+            goal: a global node id.
+            removed: edge ids to ignore (in both directions); entries < 0 are ignored.
+            stop_at: stop the search once this node's distance is known.
+
+        Returns:
+            int64 ``[num_nodes(group)]``, indexed by ``node - node_offsets[group]``.
+        """
+        group = self._group_of_node(goal)
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        removed = self._removed(removed)
+        table = self._table_offsets[group]
+        if table >= 0 and removed.numel() == 0:
+            n = hi - lo
+            row = self.dense_distances[table + (goal - lo) * n : table + (goal - lo + 1) * n]
+            return row.to(torch.int64)
+        e_lo, e_hi = int(self.indptr[lo]), int(self.indptr[hi])
+        src = self.edge_source[e_lo:e_hi] - lo
+        dst = self.indices[e_lo:e_hi] - lo
+        alive = torch.ones(e_hi - e_lo, dtype=torch.bool)
+        if removed.numel():
+            both = torch.cat([removed, self.edge_reverse[removed]])
+            both = both[(both >= e_lo) & (both < e_hi)] - e_lo
+            alive[both] = False
+        src, dst = src[alive], dst[alive]
+        dist = torch.full((hi - lo,), _UNREACHABLE, dtype=torch.int64)
+        dist[goal - lo] = 0
+        frontier = torch.zeros(hi - lo, dtype=torch.bool)
+        frontier[goal - lo] = True
+        level = 0
+        while True:
+            step = frontier[src]
+            reached = dst[step]
+            reached = reached[dist[reached] < 0]
+            if reached.numel() == 0:
+                break
+            level += 1
+            dist[reached] = level
+            frontier = torch.zeros_like(frontier)
+            frontier[reached] = True
+            if stop_at is not None and dist[stop_at - lo] >= 0:
+                break
+        return dist
+
+    def next_waypoint(
+        self, node: int, goal: int, removed: torch.Tensor | None = None
+    ) -> tuple[int, int, int]:
+        """The next node on a shortest path from ``node`` to ``goal`` (same group).
+
+        Among neighbours one hop closer to the goal, the one joined by the edge seen most
+        often in the play data wins (then the lowest id).
+
+        Returns:
+            ``(next_node, edge_id, distance)``: ``distance`` is the hop count from ``node``
+            to ``goal``; ``(-1, -1, -1)`` when the goal cannot be reached, ``(node, -1,
+            0)`` when ``node == goal``.
+        """
+        if self._group_of_node(node) != self._group_of_node(goal):
+            raise ValueError(f"nodes {node} and {goal} belong to different groups.")
+        if node == goal:
+            return node, _UNREACHABLE, 0
+        dist = self.distances_to(goal, removed, stop_at=node)
+        return self._step_towards(dist, node, goal, self._removed(removed))
+
+    def _step_towards(
+        self, dist: torch.Tensor, node: int, goal: int, removed: torch.Tensor
+    ) -> tuple[int, int, int]:
+        """One hop down the distance field ``dist`` (of ``goal``'s group) from ``node``."""
+        lo = self._offsets[self._group_of_node(goal)]
+        d = int(dist[node - lo])
+        if d < 0:
+            return _UNREACHABLE, _UNREACHABLE, _UNREACHABLE
+        if d == 0:
+            return node, _UNREACHABLE, 0
+        e_lo, e_hi = int(self.indptr[node]), int(self.indptr[node + 1])
+        candidates = self.indices[e_lo:e_hi]
+        ok = dist[candidates - lo] == d - 1
+        if removed.numel():
+            edges = torch.arange(e_lo, e_hi)
+            gone = torch.isin(edges, removed) | torch.isin(self.edge_reverse[edges], removed)
+            ok &= ~gone
+        scores = torch.where(ok, self.edge_counts[e_lo:e_hi], torch.full_like(candidates, -1))
+        best = int(scores.argmax())
+        return int(candidates[best]), e_lo + best, d
+
+    def shortest_path(
+        self,
+        group: int,
+        start: torch.Tensor | int,
+        goal: torch.Tensor | int,
+        removed: torch.Tensor | None = None,
+    ) -> list[int]:
+        """Global node ids of a shortest path in ``group`` (start and goal included).
+
+        ``start`` and ``goal`` are codes ``[C]`` or global node ids. Returns ``[]`` when no
+        path exists (including when either code was never seen in the play data).
+        """
+        a = self._as_node(start, group)
+        b = self._as_node(goal, group)
+        if a < 0 or b < 0:
+            return []
+        removed = self._removed(removed)
+        dist = self.distances_to(b, removed)
+        path = [a]
+        while path[-1] != b:
+            nxt, _, _ = self._step_towards(dist, path[-1], b, removed)
+            if nxt < 0:
+                return []
+            path.append(nxt)
+        return path
+
+    # ------------------------------------------------------------------ #
+    # Persistence
+    # ------------------------------------------------------------------ #
+    def config(self) -> dict[str, Any]:
+        """What identifies this graph: code sizes, groups, encoder fingerprint, limits."""
+        return {
+            "code_sizes": list(self.code_sizes),
+            "groups": [list(g) for g in self.groups],
+            "fingerprint": self.fingerprint,
+            "dense_limit": self.dense_limit,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Writes the graph with the library's checkpoint format (kind ``"code_graph"``)."""
+        return save_checkpoint(
+            path,
+            kind="code_graph",
+            config=self.config(),
+            env_config=self.env_config or {},
+            state={k: v.cpu() for k, v in self.state_dict().items()},
+            step=0,
+        )
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path,
+        *,
+        encoder: nn.Module | None = None,
+        env_config: dict[str, Any] | None = None,
+    ) -> CodeGraph:
+        """Reads a graph written by :meth:`save`.
+
+        Args:
+            path: the file.
+            encoder: if given, the graph must have been built with this encoder (same
+                code sizes and the same weights, by :func:`encoder_fingerprint`).
+            env_config: if given, the play data must come from this environment.
+
+        Raises:
+            ValueError: a corrupted file, another kind of checkpoint, another
+                environment, or another encoder (the message says which).
+        """
+        payload = load_checkpoint(path, kind="code_graph", env_config=env_config)
+        cfg, state = payload["config"], payload["state"]
+        names = ("node_keys", "node_offsets", "node_counts", "indptr", "indices", "edge_counts")
+        missing = [k for k in names if k not in state]
+        if missing or not isinstance(cfg, dict) or "code_sizes" not in cfg:
+            raise ValueError(f"code graph {path} is incomplete: missing {missing or 'config'}.")
+        graph = cls(
+            cfg["code_sizes"],
+            cfg["groups"],
+            **{k: state[k] for k in names},
+            fingerprint=cfg.get("fingerprint", ""),
+            env_config=payload.get("env_config") or None,
+            dense_limit=cfg.get("dense_limit", DEFAULT_DENSE_LIMIT),
+        )
+        if encoder is not None:
+            graph.check_encoder(encoder, source=str(path))
+        return graph
+
+    def check_encoder(self, encoder: nn.Module, source: str = "the graph") -> None:
+        """Raises ``ValueError`` unless ``encoder`` has this graph's code sizes (and weights)."""
+        sizes = tuple(int(z) for z in getattr(encoder, "code_sizes", ()))
+        if sizes != self.code_sizes:
+            raise ValueError(
+                f"{source} was built for codes of sizes {self.code_sizes}, but the encoder "
+                f"gives codes of sizes {sizes}."
+            )
+        if self.fingerprint and encoder_fingerprint(encoder) != self.fingerprint:
+            raise ValueError(
+                f"{source} was built with another encoder (fingerprint {self.fingerprint}, "
+                f"this encoder's {encoder_fingerprint(encoder)}): its codes mean other things. "
+                "Build the graph again with CodeGraph.from_play_data(buffer, encoder)."
+            )
+
+    def extra_repr(self) -> str:
+        parts = [
+            f"{tuple(m)}: {self.num_nodes(g)} nodes, {self.num_edges(g)} edges"
+            for g, m in enumerate(self.groups)
+        ]
+        return f"code_sizes={self.code_sizes}, groups=[{'; '.join(parts)}]"
+
+    # ------------------------------------------------------------------ #
+    # Internals
+    # ------------------------------------------------------------------ #
+    def _all_pairs_distances(self, group: int) -> torch.Tensor:
+        """Dense hop distances ``[n, n]`` of a group (multi-source BFS with matrices)."""
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        n = hi - lo
+        e_lo, e_hi = int(self.indptr[lo]), int(self.indptr[hi])
+        adjacency = torch.zeros(n, n)
+        adjacency[self.edge_source[e_lo:e_hi] - lo, self.indices[e_lo:e_hi] - lo] = 1.0
+        dist = torch.full((n, n), _UNREACHABLE, dtype=torch.int64)
+        frontier = torch.eye(n)
+        seen = frontier.bool()
+        dist[seen] = 0
+        level = 0
+        while True:
+            reached = (frontier @ adjacency > 0) & ~seen
+            if not bool(reached.any()):
+                break
+            level += 1
+            dist[reached] = level
+            seen |= reached
+            frontier = reached.float()
+        return dist
+
+    def _group_of_node(self, node: int) -> int:
+        node = int(node)
+        if not 0 <= node < self._offsets[-1]:
+            raise ValueError(f"node {node} is not in the graph (nodes 0..{self._offsets[-1] - 1}).")
+        for g in range(self.num_groups):
+            if node < self._offsets[g + 1]:
+                return g
+        raise AssertionError("unreachable")
+
+    def _as_node(self, value: torch.Tensor | int, group: int) -> int:
+        if isinstance(value, torch.Tensor) and value.dim() == 1:
+            return int(self.node_of(value, group))
+        node = int(value)
+        if node >= 0 and self._group_of_node(node) != group:
+            raise ValueError(f"node {node} is not in group {group}.")
+        return node
+
+    def _removed(self, removed: torch.Tensor | None) -> torch.Tensor:
+        if removed is None:
+            return torch.zeros(0, dtype=torch.int64)
+        removed = removed.reshape(-1).to(torch.int64).cpu()
+        return removed[removed >= 0]
+
+    def _check_code(self, code: torch.Tensor, name: str) -> torch.Tensor:
+        if not isinstance(code, torch.Tensor) or code.dtype.is_floating_point:
+            raise ValueError(f"{name} must be an integer tensor [*B, C], got {_describe(code)}.")
+        if code.shape[-1:] != (len(self.code_sizes),):
+            raise ValueError(
+                f"{name} must have {len(self.code_sizes)} codes (one per one-hot of "
+                f"{self.code_sizes}), got shape {list(code.shape)}."
+            )
+        return code.to(torch.int64)
+
+
+def _radix(sizes: Sequence[int]) -> torch.Tensor:
+    """Mixed-radix multipliers: the last one-hot varies fastest."""
+    out, mult = [], 1
+    for size in reversed(sizes):
+        out.append(mult)
+        mult *= int(size)
+    if mult >= 2**62:
+        raise ValueError(f"a group of code sizes {list(sizes)} has too many joint codes.")
+    return torch.tensor(out[::-1], dtype=torch.int64)
+
+
+def _reverse_edges(src: torch.Tensor, dst: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """Index of ``b -> a`` for every edge ``a -> b`` (edges sorted by ``(src, dst)``)."""
+    if src.numel() == 0:
+        return src.clone()
+    keys = src * num_nodes + dst
+    return torch.searchsorted(keys, dst * num_nodes + src)
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"{value.dtype} tensor of shape {list(value.shape)}"
+    return type(value).__name__

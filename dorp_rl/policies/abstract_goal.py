@@ -1,0 +1,626 @@
+"""DORP's hierarchical policy: a shortest path over codes, followed waypoint by waypoint.
+
+:class:`AbstractGoalPolicy` is the paper's planning loop as one TorchRL policy:
+
+1. encode ``pixels`` and (once per episode) ``goal_pixels`` into codes;
+2. pick a group of one-hots whose code differs from the goal's, in a set order;
+3. find its shortest path in the :class:`~dorp_rl.planners.CodeGraph`;
+4. write the next waypoint as ``subgoal_code`` with ``subgoal_mask`` (the one-hots it
+   concerns) and let the low-level planner act with
+   :class:`~dorp_rl.planners.CodeMatchCost` (the other one-hots keep their codes);
+5. from the real frames reached, check whether the waypoint was reached within its step
+   budget; if not, remove that edge for this task and replan; when no group has a path
+   left the task ends as failed (``dorp_failed``), never in an endless loop;
+6. once every one-hot holds the goal's code, drive to the goal image with
+   :class:`~dorp_rl.planners.PixelDistanceCost`.
+
+All plan state lives in the tensordict (keys below, ``[*B, ...]`` per env), declared by
+:meth:`AbstractGoalPolicy.make_tensordict_primer` and restarted on ``is_init``, so one
+instance serves a batch of envs with different goals, partial resets and collector
+workers. Rows whose ``done`` is set, or that failed, are not planned for (action 0).
+
+=========================  ==================  ===========================================
+key                        dtype / shape       meaning
+=========================  ==================  ===========================================
+``code``, ``goal_code``    int64 ``[C]``       codes of the current frame and of the goal
+``subgoal_code``           int64 ``[C]``       the waypoint (other one-hots: current codes)
+``subgoal_mask``           bool ``[C]``        the one-hots the waypoint concerns
+``dorp_mode``              int64 ``[1]``       0 new, 1 waypoint, 2 goal image, 3 failed,
+                                               4 done (:data:`MODES`)
+``dorp_group``             int64 ``[1]``       group being moved
+``dorp_distance``          int64 ``[1]``       hops left on its path (incl. the waypoint)
+``dorp_budget``            int64 ``[1]``       steps left to reach the waypoint
+``dorp_edge``              int64 ``[1]``       graph edge of the current hop (-1: none)
+``dorp_removed``           int64 ``[R]``       edges removed for this task (-1: free slot)
+``dorp_replans``           int64 ``[1]``       edges removed so far
+``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
+``dorp_failed``            bool ``[1]``        no path left: the task is given up
+=========================  ==================  ===========================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torch import nn
+from torchrl.data import Binary, Composite, Unbounded
+from torchrl.envs import Compose, EnvBase, TensorDictPrimer
+
+from dorp_rl.envs.grid_base import GridWorldEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.modules.encoder import check_pixels, module_device
+from dorp_rl.planners.base import DiscreteMPCPlanner
+from dorp_rl.planners.cem import CategoricalCEMPlanner
+from dorp_rl.planners.code_graph import CodeGraph
+from dorp_rl.planners.costs import CodeMatchCost, PixelDistanceCost, WeightedCostSum
+from dorp_rl.planners.random_shooting import RandomShootingPlanner
+
+#: Values of ``dorp_mode``.
+MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
+_NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = range(5)
+#: Orders in which groups are moved (besides an explicit sequence of group indices).
+ORDERS = ("index", "nearest")
+
+
+class AbstractGoalPolicy(TensorDictModuleBase):
+    """The DORP policy: code-graph waypoints for a low-level discrete MPC planner.
+
+    See the module docstring for the loop and the keys it keeps.
+
+    Args:
+        encoder: maps frames to codes (``forward(pixels) -> (code, probs)`` and
+            ``code_sizes``): a trained :class:`~dorp_rl.modules.DiscreteCodeEncoder`
+            or an :class:`~dorp_rl.modules.OracleCodeEncoder`.
+        graph: a :class:`~dorp_rl.planners.CodeGraph` built with that encoder.
+        waypoint_planner: a :class:`~dorp_rl.planners.DiscreteMPCPlanner` whose cost
+            reads ``subgoal_code`` and ``subgoal_mask`` (a
+            :class:`~dorp_rl.planners.CodeMatchCost` with ``onehots="subgoal_mask"``).
+        goal_planner: a planner whose cost reads ``goal_pixels`` (a
+            :class:`~dorp_rl.planners.PixelDistanceCost`), with another ``key_prefix``.
+        order: ``"index"`` (groups in index order, as the authors), ``"nearest"`` (the
+            group with the shortest path first) or a sequence of group indices.
+        waypoint_budget: env steps allowed to reach one waypoint before its edge is
+            removed for the task.
+        max_removed_edges: edges a task may remove; one more failure ends the task.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.data import collect_play_data
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> from dorp_rl.planners import CodeGraph
+        >>> from dorp_rl.policies import make_dorp_policy
+        >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
+        >>> oracle = OracleCodeEncoder(env)
+        >>> graph = CodeGraph.from_play_data(collect_play_data(env, 2000, seed=0), oracle)
+        >>> policy = make_dorp_policy(env, oracle, graph, num_candidates=200, seed=0)
+        >>> td = env.rollout(100, policy, break_when_all_done=True, break_when_any_done=False)
+        >>> bool(td["next", "success"].any(-2).all())
+        True
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        graph: CodeGraph,
+        waypoint_planner: DiscreteMPCPlanner,
+        goal_planner: DiscreteMPCPlanner,
+        *,
+        order: str | Sequence[int] = "index",
+        waypoint_budget: int = 28,
+        max_removed_edges: int = 32,
+        pixels_key: str = "pixels",
+        goal_pixels_key: str = "goal_pixels",
+    ) -> None:
+        super().__init__()
+        if not isinstance(graph, CodeGraph):
+            raise ValueError(f"graph must be a dorp_rl CodeGraph, got {type(graph).__name__}.")
+        if not callable(encoder) or not hasattr(encoder, "code_sizes"):
+            raise ValueError(
+                f"encoder must be callable and have code_sizes, got {type(encoder).__name__}."
+            )
+        graph.check_encoder(encoder)
+        for name, planner in (
+            ("waypoint_planner", waypoint_planner),
+            ("goal_planner", goal_planner),
+        ):
+            if not isinstance(planner, DiscreteMPCPlanner):
+                raise ValueError(
+                    f"{name} must be a dorp_rl DiscreteMPCPlanner, got {type(planner).__name__}."
+                )
+        if waypoint_planner.plan_key == goal_planner.plan_key:
+            raise ValueError(
+                "waypoint_planner and goal_planner share their state keys "
+                f"({waypoint_planner.plan_key!r}): give them different key_prefix values."
+            )
+        for key in ("subgoal_code", "subgoal_mask"):
+            if key not in waypoint_planner.in_keys:
+                raise ValueError(
+                    f"the waypoint planner's cost must read {key!r} (CodeMatchCost(encoder, "
+                    f"'subgoal_code', onehots='subgoal_mask')); it reads {waypoint_planner.in_keys}."
+                )
+        if goal_pixels_key not in goal_planner.in_keys:
+            raise ValueError(
+                f"the goal planner's cost must read {goal_pixels_key!r} (PixelDistanceCost); "
+                f"it reads {goal_planner.in_keys}."
+            )
+        if int(waypoint_budget) != waypoint_budget or int(waypoint_budget) < 1:
+            raise ValueError(f"waypoint_budget must be an integer >= 1, got {waypoint_budget}.")
+        if int(max_removed_edges) != max_removed_edges or int(max_removed_edges) < 0:
+            raise ValueError(f"max_removed_edges must be an integer >= 0, got {max_removed_edges}.")
+        if isinstance(order, str):
+            if order not in ORDERS:
+                raise ValueError(f"order must be one of {ORDERS} or group indices, got {order!r}.")
+            self.order: str | list[int] = order
+        else:
+            self.order = [int(g) for g in order]
+            if sorted(self.order) != list(range(graph.num_groups)):
+                raise ValueError(
+                    f"order must list every group index 0..{graph.num_groups - 1} once, "
+                    f"got {list(order)}."
+                )
+        self.encoder = encoder
+        self.graph = graph
+        self.waypoint_planner = waypoint_planner
+        self.goal_planner = goal_planner
+        self.waypoint_budget = int(waypoint_budget)
+        self.max_removed_edges = int(max_removed_edges)
+        self.pixels_key = pixels_key
+        self.goal_pixels_key = goal_pixels_key
+        self.num_onehots = len(graph.code_sizes)
+        self.state_keys = [
+            "code",
+            "goal_code",
+            "subgoal_code",
+            "subgoal_mask",
+            "dorp_mode",
+            "dorp_group",
+            "dorp_distance",
+            "dorp_budget",
+            "dorp_edge",
+            "dorp_removed",
+            "dorp_replans",
+            "dorp_waypoints",
+            "dorp_failed",
+        ]
+        planner_keys = [*waypoint_planner.in_keys, *goal_planner.in_keys]
+        self.in_keys = list(
+            dict.fromkeys(
+                [pixels_key, goal_pixels_key, *planner_keys, *self.state_keys, "is_init", "done"]
+            )
+        )
+        self.out_keys = list(
+            dict.fromkeys(
+                ["action", *self.state_keys, *waypoint_planner.state_keys, *goal_planner.state_keys]
+            )
+        )
+
+    # ------------------------------------------------------------------ #
+    # State declaration
+    # ------------------------------------------------------------------ #
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """Declares the policy's own keys (zeros at reset; ``dorp_removed`` and ``dorp_edge`` -1).
+
+        torchrl's collectors find this and the planners' primers when built with
+        ``auto_register_policy_transforms=True``; :meth:`make_primer` gives all of them
+        for ``env.append_transform``.
+        """
+        c = self.num_onehots
+        r = max(1, self.max_removed_edges)
+
+        def integer(*shape: int) -> Unbounded:
+            return Unbounded(shape=shape, dtype=torch.int64)
+
+        specs = Composite(
+            code=integer(c),
+            goal_code=integer(c),
+            subgoal_code=integer(c),
+            subgoal_mask=Binary(n=c, shape=(c,), dtype=torch.bool),
+            dorp_mode=integer(1),
+            dorp_group=integer(1),
+            dorp_distance=integer(1),
+            dorp_budget=integer(1),
+            dorp_edge=integer(1),
+            dorp_removed=integer(r),
+            dorp_replans=integer(1),
+            dorp_waypoints=integer(1),
+            dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
+        )
+        defaults = {key: 0 for key in specs.keys()}
+        defaults.update(dorp_removed=-1, dorp_edge=-1, subgoal_mask=False, dorp_failed=False)
+        return TensorDictPrimer(specs, default_value=defaults, expand_specs=True)
+
+    def make_primer(self) -> Compose:
+        """Every key the policy and its planners keep, for ``env.append_transform``."""
+        return Compose(
+            self.make_tensordict_primer(),
+            self.waypoint_planner.make_primer(),
+            self.goal_planner.make_primer(),
+        )
+
+    def set_seed(self, seed: int | None) -> None:
+        """Reseeds both planners (the goal planner with ``seed + 1``)."""
+        self.waypoint_planner.set_seed(seed)
+        self.goal_planner.set_seed(None if seed is None else seed + 1)
+
+    # ------------------------------------------------------------------ #
+    # Acting
+    # ------------------------------------------------------------------ #
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        batch = tensordict.batch_size
+        flat = tensordict.reshape(-1) if len(batch) != 1 else tensordict
+        rows = flat.batch_size[0]
+        pixels = self._frames(flat, self.pixels_key)
+        goal_pixels = self._frames(flat, self.goal_pixels_key)
+        state = {key: self._read(flat, key) for key in self.state_keys}
+        mode = state["dorp_mode"].squeeze(-1)
+
+        # New episodes (is_init, or a tensordict without plan state) start afresh.
+        fresh = mode == _NEW
+        is_init = flat.get("is_init", None)
+        if is_init is not None:
+            fresh |= is_init.reshape(rows, -1).any(-1).cpu()
+        if fresh.any():
+            self._restart(state, fresh)
+        done = flat.get("done", None)
+        finished = (
+            done.reshape(rows, -1).any(-1).cpu()
+            if done is not None
+            else torch.zeros(rows, dtype=torch.bool)
+        )
+        # Rows torchrl's rollout will not step (``_step`` False) are finished too.
+        stepping = flat.get("_step", None)
+        if stepping is not None:
+            finished |= ~stepping.reshape(rows, -1).any(-1).cpu()
+        finished &= ~fresh
+        mode = state["dorp_mode"].squeeze(-1)
+        mode[finished & (mode != _FAILED)] = _DONE
+        active = (mode != _FAILED) & (mode != _DONE)
+
+        # Codes of the frames (and of the goals of new episodes): one encoder call.
+        if active.any() or fresh.any():
+            frames = torch.cat([pixels[active], goal_pixels[fresh]])
+            codes = self._encode(frames)
+            state["code"][active] = codes[: int(active.sum())]
+            state["goal_code"][fresh] = codes[int(active.sum()) :]
+        code, goal_code = state["code"], state["goal_code"]
+        # The goal-image phase starts when every code is the goal's, and an open-loop goal
+        # plan runs to its end even if frames on the way have other codes: otherwise the
+        # two phases interrupt each other and the policy flips between them.
+        goal_plan = self.goal_planner
+        running = self._read_planner(flat, goal_plan, goal_plan.cursor_key) < self._read_planner(
+            flat, goal_plan, goal_plan.length_key
+        )
+        at_goal = active & (
+            (code == goal_code).all(-1) | ((mode == _GOAL) & running.squeeze(-1) & ~fresh)
+        )
+
+        # Waypoint bookkeeping.
+        mask = state["subgoal_mask"]
+        in_waypoint = active & ~at_goal & (mode == _WAYPOINT)
+        reached = in_waypoint & ((code == state["subgoal_code"]) | ~mask).all(-1)
+        budget = state["dorp_budget"].squeeze(-1)
+        out_of_budget = in_waypoint & ~reached & (budget <= 0)
+        state["dorp_waypoints"][reached] += 1
+        for row in out_of_budget.nonzero().squeeze(-1).tolist():
+            self._remove_edge(state, row)
+        need = active & ~at_goal & ((mode != _WAYPOINT) | reached | out_of_budget)
+        need &= ~state["dorp_failed"].squeeze(-1)
+        new_waypoint = torch.zeros(rows, dtype=torch.bool)
+        for row in need.nonzero().squeeze(-1).tolist():
+            new_waypoint[row] = self._next_waypoint(state, row)
+        failed = state["dorp_failed"].squeeze(-1)
+        mode[failed] = _FAILED
+
+        # Modes, and fresh low-level plans where the target changed.
+        entering_goal = at_goal & (mode != _GOAL)
+        mode[at_goal] = _GOAL
+        mode[new_waypoint] = _WAYPOINT
+        state["dorp_mode"] = mode.unsqueeze(-1)
+        planners = (
+            (self.waypoint_planner, (mode == _WAYPOINT) & active & ~failed, new_waypoint),
+            (self.goal_planner, (mode == _GOAL) & active, entering_goal),
+        )
+        action = torch.zeros(rows, 1, dtype=torch.int64)
+        outputs: dict[str, torch.Tensor] = {}
+        for planner, rows_mask, restart in planners:
+            planner_state = {
+                key: self._read_planner(flat, planner, key) for key in planner.state_keys
+            }
+            planner_state[planner.length_key][restart] = 0
+            index = rows_mask.nonzero().squeeze(-1)
+            if index.numel():
+                sub = flat[index.to(flat.device)].clone(False)
+                for key in ("code", "goal_code", "subgoal_code", "subgoal_mask"):
+                    sub.set(key, state[key][index].to(flat.device))
+                for key, value in planner_state.items():
+                    sub.set(key, value[index].to(flat.device))
+                planner(sub)
+                action[index] = sub.get(planner.action_key).reshape(-1, 1).cpu()
+                for key in planner.state_keys:
+                    planner_state[key][index] = sub.get(key).cpu().to(planner_state[key].dtype)
+            outputs.update(planner_state)
+        state["dorp_budget"][mode == _WAYPOINT] -= 1
+
+        out = {"action": action, **state, **outputs}
+        for key, value in out.items():
+            tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(tensordict.device))
+        return tensordict
+
+    # ------------------------------------------------------------------ #
+    # Internals
+    # ------------------------------------------------------------------ #
+    def _restart(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
+        for key, value in state.items():
+            fill = -1 if key in ("dorp_removed", "dorp_edge") else 0
+            value[rows] = fill
+        state["dorp_mode"][rows] = _NEW
+
+    def _remove_edge(self, state: dict[str, torch.Tensor], row: int) -> None:
+        """The current waypoint was not reached in time: remove its edge for this task."""
+        edge = int(state["dorp_edge"][row])
+        removed = state["dorp_removed"][row]
+        count = int(state["dorp_replans"][row])
+        if count >= self.max_removed_edges:
+            state["dorp_failed"][row] = True
+            return
+        if edge >= 0:
+            removed[count % removed.shape[0]] = edge
+        state["dorp_replans"][row] += 1
+
+    def _group_order(self, code: torch.Tensor, goal: torch.Tensor, current: int) -> list[int]:
+        differing = [
+            g
+            for g, members in enumerate(self.graph.groups)
+            if bool((code[members] != goal[members]).any())
+        ]
+        if isinstance(self.order, list):
+            ranked = [g for g in self.order if g in differing]
+        else:
+            ranked = differing
+        # Finish the group being moved before starting another (the authors' sequential
+        # execution); "nearest" ranks the others by path length in _next_waypoint.
+        if current in ranked:
+            ranked.remove(current)
+            ranked.insert(0, current)
+        return ranked
+
+    def _next_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
+        """Sets the next waypoint of ``row``; marks the row failed when no group has a path."""
+        graph = self.graph
+        code, goal = state["code"][row], state["goal_code"][row]
+        removed = state["dorp_removed"][row]
+        current = int(state["dorp_group"][row]) if int(state["dorp_mode"][row]) == _WAYPOINT else -1
+        best: tuple[int, int, int, int] | None = None
+        for group in self._group_order(code, goal, current):
+            node = int(graph.node_of(code, group))
+            target = int(graph.node_of(goal, group))
+            if node < 0 or target < 0:
+                continue
+            nxt, edge, distance = graph.next_waypoint(node, target, removed)
+            if nxt < 0:
+                continue
+            if best is None or (
+                self.order == "nearest" and distance < best[3] and group != current
+            ):
+                best = (group, nxt, edge, distance)
+            if self.order != "nearest" or group == current:
+                break
+        if best is None:
+            state["dorp_failed"][row] = True
+            return False
+        group, nxt, edge, distance = best
+        members = graph.groups[group]
+        subgoal = code.clone()
+        subgoal[members] = graph.node_code(nxt)
+        state["subgoal_code"][row] = subgoal
+        state["subgoal_mask"][row] = False
+        state["subgoal_mask"][row, members] = True
+        state["dorp_group"][row] = group
+        state["dorp_edge"][row] = edge
+        state["dorp_distance"][row] = distance
+        state["dorp_budget"][row] = self.waypoint_budget
+        return True
+
+    def _encode(self, frames: torch.Tensor) -> torch.Tensor:
+        module = self.encoder
+        was_training = module.training
+        module.eval()
+        try:
+            device = module_device(module)
+            code = module(frames.to(device))[0]
+        finally:
+            module.train(was_training)
+        if code.shape[-1] != self.num_onehots:
+            raise ValueError(
+                f"the encoder gave {code.shape[-1]} codes per frame, the graph has "
+                f"{self.num_onehots} one-hots."
+            )
+        return code.to(torch.int64).cpu()
+
+    def _frames(self, td: TensorDictBase, key: str) -> torch.Tensor:
+        value = td.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"AbstractGoalPolicy needs {key!r} in the tensordict (uint8 [*B, 3, 16, 16])."
+            )
+        if not isinstance(value, torch.Tensor) or value.dtype != torch.uint8:
+            raise ValueError(f"{key!r} must be uint8 [*B, 3, 16, 16], got {value.dtype}.")
+        check_pixels(value, key)
+        if value.shape[:-3] != td.batch_size:
+            raise ValueError(
+                f"{key!r} must have shape [{', '.join(map(str, td.batch_size))}, 3, 16, 16] "
+                f"(one frame per env), got {list(value.shape)}."
+            )
+        return value.cpu()
+
+    def _read(self, td: TensorDictBase, key: str) -> torch.Tensor:
+        rows = td.batch_size[0]
+        c, r = self.num_onehots, max(1, self.max_removed_edges)
+        shapes = {
+            "code": c,
+            "goal_code": c,
+            "subgoal_code": c,
+            "subgoal_mask": c,
+            "dorp_removed": r,
+        }
+        width = shapes.get(key, 1)
+        dtype = torch.bool if key in ("subgoal_mask", "dorp_failed") else torch.int64
+        value = td.get(key, None)
+        if value is None:
+            fill = -1 if key in ("dorp_removed", "dorp_edge") else 0
+            return torch.full((rows, width), fill, dtype=dtype)
+        if tuple(value.shape) != (rows, width):
+            raise ValueError(
+                f"{key!r} must have shape [{rows}, {width}] for this policy, got "
+                f"{list(value.shape)}; was it written by a policy with other codes?"
+            )
+        return value.cpu().to(dtype).clone()
+
+    def _read_planner(self, td: TensorDictBase, planner: DiscreteMPCPlanner, key: str):
+        rows = td.batch_size[0]
+        value = td.get(key, None)
+        if value is not None:
+            return value.cpu().clone()
+        if key == planner.plan_key:
+            return torch.zeros(rows, planner.planning_horizon, dtype=torch.int64)
+        dtype = torch.float32 if key == planner.plan_cost_key else torch.int64
+        return torch.zeros(rows, 1, dtype=dtype)
+
+    def extra_repr(self) -> str:
+        return (
+            f"order={self.order!r}, waypoint_budget={self.waypoint_budget}, "
+            f"max_removed_edges={self.max_removed_edges}"
+        )
+
+
+def make_dorp_policy(
+    env: GridWorldEnv,
+    encoder: nn.Module | str | Path,
+    graph: CodeGraph | str | Path,
+    *,
+    low_level: str | EnvBase | nn.Module = "ground_truth",
+    planner: str = "rs",
+    planning_horizon: int = 14,
+    num_candidates: int = 1000,
+    action_repeat: int = 1,
+    goal_planner: str | None = None,
+    order: str | Sequence[int] = "index",
+    waypoint_budget: int = 28,
+    max_removed_edges: int = 32,
+    goal_code_weight: float = 100.0,
+    goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
+    seed: int | None = None,
+    **planner_kwargs: Any,
+) -> AbstractGoalPolicy:
+    """Assembles a DORP policy for ``env`` from checkpoints or objects.
+
+    Args:
+        env: the acting env (its dynamics serve as the oracle low level).
+        encoder: an encoder, or the path of a representation checkpoint.
+        graph: a :class:`~dorp_rl.planners.CodeGraph`, or the path of a saved one.
+        low_level: ``"ground_truth"`` (the env's true dynamics), a planning env
+            (:class:`~dorp_rl.envs.WorldModelEnv`, ...), a video prediction model, or the
+            path of a world-model checkpoint.
+        planner: ``"rs"`` (random shooting) or ``"cem"`` for the waypoint steps.
+        planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
+        goal_planner: the planner of the goal-image phase (default: as ``planner``).
+        order, waypoint_budget, max_removed_edges: see :class:`AbstractGoalPolicy`.
+        goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
+            not the goal's, added to its pixel distance (0: pixel distance alone, as the
+            paper). Without it the pixel cost can pull objects out of their goal codes,
+            and the policy flips between the two phases.
+        goal_blur_sigmas: blurred terms of the goal-image pixel distance
+            (:class:`~dorp_rl.planners.PixelDistanceCost`); ``()`` is the paper's plain
+            L2, which is flat while a block does not overlap its goal place.
+        seed: seeds the planners.
+        **planner_kwargs: more arguments of the planners (e.g. ``optim_steps``, ``top_k``).
+
+    Raises:
+        ValueError: a graph built for another environment, encoder or code sizes, or an
+            unknown planner or low level.
+    """
+    from dorp_rl.trainers import load_encoder, load_video_model
+
+    if not isinstance(env, GridWorldEnv):
+        raise ValueError(f"env must be a dorp_rl GridWorldEnv, got {type(env).__name__}.")
+    if isinstance(encoder, (str, Path)):
+        encoder = load_encoder(encoder, env)
+    if isinstance(graph, (str, Path)):
+        graph = CodeGraph.load(graph, encoder=encoder, env_config=env.config())
+    elif graph.env_config is not None and graph.env_config != env.config():
+        stored, wanted = graph.env_config, env.config()
+        diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+        details = "; ".join(f"{k}: graph {stored.get(k)!r}, env {wanted.get(k)!r}" for k in diff)
+        raise ValueError(
+            f"the code graph was built from another environment's play data ({details})."
+        )
+    if isinstance(low_level, (str, Path)) and str(low_level) == "ground_truth":
+        planning_env: EnvBase = GroundTruthModelEnv(env)
+    elif isinstance(low_level, EnvBase):
+        planning_env = low_level
+    elif isinstance(low_level, (str, Path)):
+        planning_env = WorldModelEnv(load_video_model(low_level, env), env.num_actions)
+    elif callable(getattr(low_level, "predict", None)):
+        planning_env = WorldModelEnv(low_level, env.num_actions)
+    else:
+        raise ValueError(
+            "low_level must be 'ground_truth', a planning env, a video model or a world-model "
+            f"checkpoint path, got {type(low_level).__name__}."
+        )
+    classes = {"rs": RandomShootingPlanner, "cem": CategoricalCEMPlanner}
+    for name, value in (("planner", planner), ("goal_planner", goal_planner or planner)):
+        if value not in classes:
+            raise ValueError(f"{name} must be one of {sorted(classes)}, got {value!r}.")
+    shape = {
+        "planning_horizon": planning_horizon,
+        "num_candidates": num_candidates,
+        "action_repeat": action_repeat,
+        "execution": "open_loop",
+    }
+    extra = {k: v for k, v in planner_kwargs.items()}
+    waypoint = classes[planner](
+        planning_env,
+        CodeMatchCost(encoder, "subgoal_code", onehots="subgoal_mask"),
+        **shape,
+        seed=seed,
+        key_prefix="waypoint_planner_",
+        **(extra if planner == "cem" else {}),
+    )
+    goal_kind = goal_planner or planner
+    pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
+    goal_cost: nn.Module = pixel_cost
+    if goal_code_weight > 0:
+        # The goal-image phase starts with every code at the goal's: frames that leave
+        # them cost more than any pixel distance, so the pixel cost cannot undo the plan.
+        goal_cost = TensorDictSequential(
+            pixel_cost,
+            CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost"),
+            WeightedCostSum(
+                {"pixel_cost": 1.0, "goal_code_cost": float(goal_code_weight)},
+                step_aggregation="min",
+            ),
+        )
+    goal = classes[goal_kind](
+        planning_env,
+        goal_cost,
+        **shape,
+        seed=None if seed is None else seed + 1,
+        key_prefix="goal_planner_",
+        **(extra if goal_kind == "cem" else {}),
+    )
+    return AbstractGoalPolicy(
+        encoder,
+        graph,
+        waypoint,
+        goal,
+        order=order,
+        waypoint_budget=waypoint_budget,
+        max_removed_edges=max_removed_edges,
+    )

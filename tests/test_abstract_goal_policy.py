@@ -1,0 +1,234 @@
+"""AbstractGoalPolicy (DORP): solving tasks with oracle codes and the true dynamics, edge
+removal, failure on unreachable goals, independent rows, collectors, and bad input."""
+
+from __future__ import annotations
+
+import functools
+
+import pytest
+import torch
+from torchrl.collectors import Collector, MultiSyncCollector
+
+from dorp_rl.data import collect_play_data
+from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.eval import evaluate_policy, make_task_set
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
+from dorp_rl.planners import CodeGraph
+from dorp_rl.policies import MODES, AbstractGoalPolicy, make_dorp_policy
+
+SMALL = {"num_candidates": 200, "planning_horizon": 10}
+
+
+@pytest.fixture(scope="module")
+def two_objects():
+    env = ObjectRearrangementEnv(num_objects=2, batch_size=(4,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    graph = CodeGraph.from_play_data(collect_play_data(env, 20_000, seed=0), oracle)
+    return env, oracle, graph
+
+
+def fresh_batch(env, tasks):
+    return env.reset(tasks.select("state", "goal_state").to(env.device), set_state=True)
+
+
+def test_solves_two_object_tasks_with_oracle_codes(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    tasks = make_task_set(env, 4, seed=1)
+    result = evaluate_policy(env, policy, tasks, tasks_per_rollout=4)
+    assert result["success_rate"] == 1.0
+    # Waypoints are followed one region at a time: well within the step limit.
+    assert max(result["steps"]) < 6 * int(tasks["lower_bound"].max())
+
+
+def test_removing_an_edge_changes_the_next_waypoint(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    td = policy(fresh_batch(env, make_task_set(env, 4, seed=2)))
+    assert (td["dorp_mode"] == MODES["waypoint"]).all()
+    old_subgoal, old_edge = td["subgoal_code"].clone(), td["dorp_edge"].clone()
+    assert (old_edge >= 0).all() and (td["dorp_removed"] == -1).all()
+    # Same frames, but row 1 ran out of budget: only row 1 removes its edge and replans.
+    td["dorp_budget"][1] = 0
+    td = policy(td)
+    assert td["dorp_removed"][1, 0] == old_edge[1, 0] and td["dorp_replans"][1] == 1
+    assert not torch.equal(td["subgoal_code"][1], old_subgoal[1])
+    assert td["dorp_edge"][1] != old_edge[1]
+    for row in (0, 2, 3):
+        assert torch.equal(td["subgoal_code"][row], old_subgoal[row])
+        assert (td["dorp_removed"][row] == -1).all() and td["dorp_replans"][row] == 0
+
+
+def unreachable_goal_graph(env, oracle, goal_region: int, start_region: int):
+    """The true graph without the goal's region, plus an edge the dynamics cannot follow."""
+    buffer = collect_play_data(env, 4000, seed=0)
+    codes = oracle.encode(buffer[:]["pixels"])
+    next_codes = oracle.encode(buffer[:]["next", "pixels"])
+    keep = (codes[:, 0] != goal_region) & (next_codes[:, 0] != goal_region)
+    fake = torch.tensor([[start_region]])
+    goal = torch.tensor([[goal_region]])
+    return CodeGraph.from_transitions(
+        torch.cat([codes[keep], fake]), torch.cat([next_codes[keep], goal]), oracle.code_sizes
+    )
+
+
+def test_unreachable_goal_ends_as_a_failure_within_the_budget():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    graph = unreachable_goal_graph(env, oracle, goal_region=15, start_region=0)
+    policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_budget=5, **SMALL)
+    planned_rows = []
+    planning = policy.waypoint_planner.planning
+
+    def counting(td, *args, **kwargs):
+        planned_rows.append(td.batch_size[0])
+        return planning(td, *args, **kwargs)
+
+    policy.waypoint_planner.planning = counting
+    start = torch.tensor([[[0, 0]]])
+    goal = torch.tensor([[[14, 12]]])  # region 15; 26 moves away, and the edge is fake
+    td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
+    rollout = env.rollout(40, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
+    failed = rollout["dorp_failed"].squeeze(-1)[0]
+    first = int(failed.float().argmax())
+    assert failed.any() and first <= 5 + 1  # the budget, then the removal
+    assert (rollout["dorp_mode"][0, first:] == MODES["failed"]).all()
+    assert int(rollout["dorp_replans"][0, -1]) == 1
+    # A failed task costs no more planning.
+    assert len(planned_rows) == first
+
+
+def test_goal_code_missing_from_the_graph_fails_at_once():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    # A graph over regions 0, 1 and 2 only: the goal's region 15 was never seen.
+    graph = CodeGraph.from_transitions(
+        torch.tensor([[0], [1]]), torch.tensor([[1], [2]]), oracle.code_sizes
+    )
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    start = torch.tensor([[[0, 0]], [[0, 4]]])
+    goal = torch.tensor([[[14, 12]], [[14, 12]]])
+    td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
+    td = policy(td)
+    assert td["dorp_failed"].all() and (td["dorp_mode"] == MODES["failed"]).all()
+    assert (td["action"] == 0).all()
+
+
+def count_planned_rows(policy) -> list[int]:
+    """Wraps both planners so that every planning call records how many rows it planned."""
+    planned: list[int] = []
+    for planner in (policy.waypoint_planner, policy.goal_planner):
+        planning = planner.planning
+
+        def counting(td, *args, _planning=planning, **kwargs):
+            planned.append(td.batch_size[0])
+            return _planning(td, *args, **kwargs)
+
+        planner.planning = counting
+    return planned
+
+
+def test_rows_with_different_goals_solve_independently(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    planned = count_planned_rows(policy)
+    tasks = make_task_set(env, 4, seed=3)
+    tasks["goal_state"][1] = tasks["goal_state"][0]  # two rows share a goal, two do not
+    td = fresh_batch(env, tasks)
+    rollout = env.rollout(
+        400,
+        policy,
+        tensordict=td,
+        auto_reset=False,
+        break_when_any_done=False,
+        break_when_all_done=True,
+    )
+    done = rollout["next", "done"].squeeze(-1)
+    assert rollout["next", "success"].squeeze(-1)[done].all() and done.any(-1).all()
+    # Finished rows cost no planning: at most one planned row per row and step until done.
+    steps_until_done = done.float().argmax(-1) + 1
+    assert len(set(steps_until_done.tolist())) > 1
+    assert sum(planned) <= int(steps_until_done.sum()) < 4 * rollout.shape[1]
+
+
+def test_runs_in_a_collector_and_restarts_on_new_episodes(two_objects):
+    _, oracle, graph = two_objects
+    env = ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=4, max_steps=30)
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    collector = Collector(
+        env, policy, frames_per_batch=40, total_frames=80, auto_register_policy_transforms=True
+    )
+    batches = list(collector)
+    collector.shutdown()
+    data = torch.cat(batches, dim=-1)
+    assert data["dorp_mode"].shape == (2, 40, 1)
+    assert set(data["dorp_mode"].unique().tolist()) <= set(MODES.values())
+    # Every new episode (solved, or cut at 30 steps) starts afresh with its own goal code.
+    starts = data["is_init"].squeeze(-1)
+    assert starts[:, 1:].any()
+    assert torch.equal(data["goal_code"][starts], oracle.encode(data["goal_pixels"][starts]))
+    assert (data["dorp_replans"][starts] == 0).all() and not data["dorp_failed"][starts].any()
+    assert (data["dorp_mode"][starts] != MODES["done"]).all()
+
+
+def _make_env(seed: int):
+    return ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=seed, max_steps=20)
+
+
+def _make_policy(graph_path: str):
+    env = _make_env(0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    return make_dorp_policy(env, oracle, graph_path, seed=0, **SMALL)
+
+
+def test_runs_in_a_multi_sync_collector_with_a_policy_factory(two_objects, tmp_path):
+    _, _, graph = two_objects
+    path = graph.save(tmp_path / "graph.pt")
+    collector = MultiSyncCollector(
+        [functools.partial(_make_env, 1), functools.partial(_make_env, 2)],
+        policy_factory=functools.partial(_make_policy, str(path)),
+        frames_per_batch=40,
+        total_frames=40,
+        auto_register_policy_transforms=True,
+    )
+    try:
+        batch = next(iter(collector))
+    finally:
+        collector.shutdown()
+    assert batch.numel() == 40
+    assert set(batch["dorp_mode"].unique().tolist()) <= {
+        MODES["waypoint"],
+        MODES["goal"],
+        MODES["done"],
+    }
+    assert (batch["action"] >= 0).all() and (batch["action"] < 8).all()
+
+
+def test_bad_input_gets_a_clear_error(two_objects, tmp_path):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    td = env.reset()
+    td["goal_pixels"] = torch.zeros(4, 3, 8, 8, dtype=torch.uint8)
+    with pytest.raises(ValueError, match="goal_pixels"):
+        policy(td)
+    td = env.reset()
+    td["goal_pixels"] = td["goal_pixels"].float()
+    with pytest.raises(ValueError, match="goal_pixels.*uint8"):
+        policy(td)
+    # An encoder with other code sizes than the graph's.
+    other = DiscreteCodeEncoder(EncoderConfig.small((16, 16, 16)))
+    with pytest.raises(ValueError, match=r"codes of sizes \(16, 16\), but .* \(16, 16, 16\)"):
+        make_dorp_policy(env, other, graph, **SMALL)
+    # A graph from another environment's play data.
+    three = ObjectRearrangementEnv(num_objects=3, batch_size=(4,), seed=0)
+    with pytest.raises(ValueError, match="another environment.*num_objects"):
+        make_dorp_policy(three, OracleCodeEncoder(three), graph, **SMALL)
+    path = graph.save(tmp_path / "graph.pt")
+    with pytest.raises(ValueError, match="another environment"):
+        make_dorp_policy(three, OracleCodeEncoder(three), path, **SMALL)
+    with pytest.raises(ValueError, match="order"):
+        make_dorp_policy(env, oracle, graph, order=[0, 0], **SMALL)
+    with pytest.raises(ValueError, match="planner must be one of"):
+        make_dorp_policy(env, oracle, graph, planner="mppi", **SMALL)
+    with pytest.raises(ValueError, match="different key_prefix"):
+        AbstractGoalPolicy(oracle, graph, policy.waypoint_planner, policy.waypoint_planner)

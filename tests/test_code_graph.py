@@ -1,0 +1,195 @@
+"""CodeGraph: building from transitions and play data, BFS against networkx, edge removal,
+saving and loading, and the errors on bad input."""
+
+from __future__ import annotations
+
+import networkx as nx
+import pytest
+import torch
+from tensordict import TensorDict
+
+from dorp_rl.data import collect_play_data
+from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
+from dorp_rl.planners import CodeGraph, encoder_fingerprint
+
+
+def random_walk_codes(num_onehots: int, size: int, steps: int, seed: int = 0):
+    """Codes of a random walk where one one-hot moves by +-1 per step (like play data)."""
+    gen = torch.Generator().manual_seed(seed)
+    code = torch.randint(0, size, (num_onehots,), generator=gen)
+    codes = [code.clone()]
+    for _ in range(steps):
+        which = int(torch.randint(0, num_onehots, (), generator=gen))
+        delta = int(torch.randint(0, 2, (), generator=gen)) * 2 - 1
+        code[which] = (code[which] + delta).clamp(0, size - 1)
+        codes.append(code.clone())
+    codes = torch.stack(codes)
+    return codes[:-1], codes[1:]
+
+
+def reference_graph(codes, next_codes, members):
+    graph = nx.Graph()
+    for a, b in zip(codes[:, members].tolist(), next_codes[:, members].tolist(), strict=True):
+        graph.add_node(tuple(a))
+        graph.add_node(tuple(b))
+        if a != b:
+            graph.add_edge(tuple(a), tuple(b))
+    return graph
+
+
+@pytest.mark.parametrize(
+    ("groups", "dense_limit"),
+    [("onehot", 1024), ([(0, 1), (2,)], 1024), ([(0, 1), (2,)], 4), ("full", 0)],
+)
+def test_distances_match_networkx(groups, dense_limit):
+    codes, next_codes = random_walk_codes(3, 6, 3000)
+    graph = CodeGraph.from_transitions(
+        codes, next_codes, (6, 6, 6), groups, dense_limit=dense_limit
+    )
+    for g, members in enumerate(graph.groups):
+        ref = reference_graph(codes, next_codes, members)
+        assert graph.num_nodes(g) == ref.number_of_nodes()
+        assert graph.num_edges(g) == ref.number_of_edges()
+        starts = codes[
+            torch.randperm(codes.shape[0], generator=torch.Generator().manual_seed(g))[:5]
+        ]
+        goals = next_codes[-5:]
+        for start, goal in zip(starts, goals, strict=True):
+            path = graph.shortest_path(g, start, goal)
+            expected = nx.shortest_path_length(
+                ref, tuple(start[members].tolist()), tuple(goal[members].tolist())
+            )
+            assert len(path) - 1 == expected
+            # Consecutive nodes of the path are joined in the reference graph.
+            nodes = [tuple(graph.node_code(n).tolist()) for n in path]
+            assert all(ref.has_edge(a, b) for a, b in zip(nodes[:-1], nodes[1:], strict=True))
+
+
+def test_edge_counts_and_tie_break():
+    # Two equally short routes 0 -> 1 -> 3 and 0 -> 2 -> 3; the second is seen more often.
+    pairs = [(0, 1), (1, 3), (0, 2), (2, 3), (0, 2), (2, 3), (2, 0)]
+    codes = torch.tensor([[a] for a, _ in pairs])
+    next_codes = torch.tensor([[b] for _, b in pairs])
+    graph = CodeGraph.from_transitions(codes, next_codes, (4,))
+    start, goal = int(graph.node_of(torch.tensor([0]), 0)), int(graph.node_of(torch.tensor([3]), 0))
+    nxt, edge, distance = graph.next_waypoint(start, goal)
+    assert graph.node_code(nxt).tolist() == [2] and distance == 2
+    assert int(graph.edge_counts[edge]) == 3  # (0, 2) seen twice, (2, 0) once: undirected
+    assert int(graph.node_counts.sum()) == 2 * len(pairs)
+
+
+def test_removed_edges_change_the_path_and_leave_the_graph_alone():
+    pairs = [(0, 1), (1, 3), (0, 2), (2, 3), (0, 2)]
+    codes = torch.tensor([[a] for a, _ in pairs])
+    next_codes = torch.tensor([[b] for _, b in pairs])
+    graph = CodeGraph.from_transitions(codes, next_codes, (4,))
+    node = {c: int(graph.node_of(torch.tensor([c]), 0)) for c in range(4)}
+    nxt, edge, _ = graph.next_waypoint(node[0], node[3])
+    assert nxt == node[2]
+    # Removing 0 -> 2 (given in either direction) sends the path through 1.
+    for removed in (edge, graph.edge_id(node[2], node[0])):
+        assert graph.next_waypoint(node[0], node[3], torch.tensor([removed]))[0] == node[1]
+    assert graph.next_waypoint(node[0], node[3])[0] == node[2]
+    both = torch.tensor([edge, graph.edge_id(node[0], node[1])])
+    assert graph.next_waypoint(node[0], node[3], both) == (-1, -1, -1)
+    assert graph.shortest_path(0, node[0], node[3], both) == []
+    # -1 entries are free slots, not edges.
+    assert graph.next_waypoint(node[0], node[3], torch.tensor([-1, -1]))[0] == node[2]
+
+
+def test_unseen_codes_have_no_node_and_no_path():
+    codes, next_codes = random_walk_codes(2, 4, 50)
+    graph = CodeGraph.from_transitions(codes, next_codes, (8, 8))
+    assert int(graph.node_of(torch.tensor([7, 7]), 0)) == -1
+    assert graph.shortest_path(0, codes[0], torch.tensor([7, 0])) == []
+
+
+def test_from_play_data_with_oracle_codes_joins_neighbouring_regions():
+    env = ObjectRearrangementEnv(num_objects=2, batch_size=(8,), seed=0)
+    buffer = collect_play_data(env, 4000, seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    graph = CodeGraph.from_play_data(buffer, oracle)
+    assert graph.env_config == env.config()
+    assert graph.fingerprint == encoder_fingerprint(oracle)
+    for g in range(2):
+        assert graph.num_nodes(g) == 16  # every region of a 4 x 4 grid is seen
+        src = graph.edge_source[
+            graph.indptr[graph.node_offsets[g]] : graph.indptr[graph.node_offsets[g + 1]]
+        ]
+        for a, b in zip(src.tolist(), graph.indices[: src.numel()].tolist(), strict=True):
+            (ca,), (cb,) = graph.node_code(a).tolist(), graph.node_code(b).tolist()
+            # One cell moves the block into a 4-neighbouring region, never further.
+            assert abs(ca // 4 - cb // 4) + abs(ca % 4 - cb % 4) == 1
+    # The graph can also be built from a TensorDict of transitions.
+    td = buffer[:500]
+    small = CodeGraph.from_play_data(
+        TensorDict(pixels=td["pixels"], next=td["next"].select("pixels"), batch_size=[500]), oracle
+    )
+    assert small.num_groups == 2
+
+
+def test_key_room_group_joins_agent_and_key_bit():
+    env = KeyWallEnv(batch_size=(4,), seed=0)
+    oracle = OracleCodeEncoder(env)
+    graph = CodeGraph.from_play_data(collect_play_data(env, 8000, seed=0), oracle, groups=[(0, 1)])
+    without_key = int(graph.node_of(torch.tensor([0, 0]), 0))
+    with_key = [n for n in range(graph.num_nodes(0)) if graph.node_code(n)[1] == 1]
+    assert without_key >= 0 and with_key
+    # From the start region without the key, some region with the key is reachable.
+    assert graph.shortest_path(0, without_key, with_key[0]) != []
+
+
+def test_save_load_round_trip_and_refusals(tmp_path):
+    env = ObjectRearrangementEnv(num_objects=2, batch_size=(8,), seed=0)
+    encoder = DiscreteCodeEncoder(EncoderConfig.small((8, 8)))
+    graph = CodeGraph.from_play_data(collect_play_data(env, 512, seed=0), encoder, groups="full")
+    path = graph.save(tmp_path / "graph.pt")
+    loaded = CodeGraph.load(path, encoder=encoder, env_config=env.config())
+    for key, value in graph.state_dict().items():
+        assert torch.equal(value, loaded.state_dict()[key])
+    assert loaded.groups == [[0, 1]] and loaded.code_sizes == (8, 8)
+    other = DiscreteCodeEncoder(EncoderConfig.small((8, 8)))
+    with pytest.raises(ValueError, match="another encoder"):
+        CodeGraph.load(path, encoder=other)
+    with pytest.raises(ValueError, match=r"codes of sizes \(8, 8\).*sizes \(8, 8, 8\)"):
+        CodeGraph.load(path, encoder=DiscreteCodeEncoder(EncoderConfig.small((8, 8, 8))))
+    with pytest.raises(ValueError, match="another environment.*num_objects"):
+        CodeGraph.load(path, env_config=ObjectRearrangementEnv(num_objects=3).config())
+    (tmp_path / "broken.pt").write_bytes(path.read_bytes()[:100])
+    with pytest.raises(ValueError, match="corrupted"):
+        CodeGraph.load(tmp_path / "broken.pt")
+
+
+@pytest.mark.parametrize(
+    ("groups", "message"),
+    [
+        ([(0,), (1,)], r"leave one-hots \[2\] out"),
+        ([(0, 1), (1, 2)], "one-hot 1 is in group 0 and group 1"),
+        ([(0, 1, 2, 3)], "names one-hot 3"),
+        ([(0, 1, 2), ()], "group 1 .* is empty"),
+        ("pairs", "must be 'onehot', 'full'"),
+    ],
+)
+def test_bad_groups_are_refused(groups, message):
+    codes, next_codes = random_walk_codes(3, 4, 20)
+    with pytest.raises(ValueError, match=message):
+        CodeGraph.from_transitions(codes, next_codes, (4, 4, 4), groups)
+
+
+def test_bad_codes_are_refused():
+    codes, next_codes = random_walk_codes(2, 4, 20)
+    with pytest.raises(ValueError, match=r"shape \[N, 3\]"):
+        CodeGraph.from_transitions(codes, next_codes, (4, 4, 4))
+    with pytest.raises(ValueError, match="int64"):
+        CodeGraph.from_transitions(codes.float(), next_codes, (4, 4))
+    with pytest.raises(ValueError, match="code 3 for one-hot 0, which has 2 codes"):
+        CodeGraph.from_transitions(codes.clamp_min(3), next_codes, (2, 4))
+
+
+def test_buffers_can_be_shared_between_processes():
+    codes, next_codes = random_walk_codes(3, 6, 500)
+    graph = CodeGraph.from_transitions(codes, next_codes, (6, 6, 6), [(0, 1), (2,)])
+    params = TensorDict.from_module(graph)
+    params.share_memory_()  # what torchrl's collectors do with a policy's tensors
+    assert all(t.is_shared() for t in params.values(True, True))
