@@ -18,7 +18,12 @@ from dorp_rl.planners.base import (
     select_best,
 )
 from dorp_rl.planners.cem import CategoricalCEMPlanner
-from dorp_rl.planners.code_graph import CodeGraph, encoder_fingerprint, resolve_groups
+from dorp_rl.planners.code_graph import (
+    CodeGraph,
+    encode_transitions,
+    encoder_fingerprint,
+    resolve_groups,
+)
 from dorp_rl.planners.costs import (
     STEP_AGGREGATIONS,
     CodeMatchCost,
@@ -46,6 +51,7 @@ __all__ = [
     "WeightedCostSum",
     "aggregate_steps",
     "check_step_aggregation",
+    "encode_transitions",
     "encoder_fingerprint",
     "resolve_groups",
     "select_best",

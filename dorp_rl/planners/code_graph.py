@@ -108,6 +108,58 @@ def resolve_groups(groups: str | Sequence[Sequence[int]], num_onehots: int) -> l
     return out
 
 
+def encode_transitions(
+    buffer: Any, encoder: nn.Module, *, chunk_size: int = 8192, progress: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Codes int64 ``[N, C]`` of both frames of every transition of a play buffer.
+
+    Args:
+        buffer: a play buffer (:func:`~dorp_rl.data.collect_play_data`) or a TensorDict
+            ``[N]`` holding ``pixels`` and ``("next", "pixels")``.
+        encoder: a :class:`~dorp_rl.modules.DiscreteCodeEncoder` (``encode`` and
+            ``code_sizes``), run in eval mode.
+        chunk_size: transitions encoded at a time.
+        progress: show a tqdm bar.
+
+    Returns:
+        ``(codes, next_codes)``, the codes of ``pixels`` and of ``("next", "pixels")``.
+    """
+    if getattr(encoder, "code_sizes", None) is None or not callable(
+        getattr(encoder, "encode", None)
+    ):
+        raise ValueError(
+            f"encoder must have code_sizes and encode() (a DiscreteCodeEncoder), got "
+            f"{type(encoder).__name__}."
+        )
+    storage = getattr(buffer, "storage", None)
+    n = len(buffer)
+    if n < 1:
+        raise ValueError("the play buffer is empty: no transitions to build a graph from.")
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, desc="encode play data", unit="frame")
+    codes, next_codes = [], []
+    device = module_device(encoder)
+    for start in range(0, n, chunk_size):
+        index = torch.arange(start, min(n, start + chunk_size))
+        chunk = storage[index] if storage is not None else buffer[index]
+        for key, out in (("pixels", codes), (("next", "pixels"), next_codes)):
+            pixels = chunk.get(key, None)
+            if pixels is None:
+                raise ValueError(
+                    f"the play data has no {key!r}: a graph needs both frames of each "
+                    f"transition (keys present: {sorted(map(str, chunk.keys(True, True)))})."
+                )
+            out.append(encoder.encode(pixels.to(device)).cpu())
+        if bar is not None:
+            bar.update(index.numel())
+    if bar is not None:
+        bar.close()
+    return torch.cat(codes), torch.cat(next_codes)
+
+
 class CodeGraph(nn.Module):
     """Undirected transition graphs over discrete codes, one per group of one-hots.
 
@@ -335,43 +387,14 @@ class CodeGraph(nn.Module):
             progress: show a tqdm bar.
             dense_limit: see the class docstring.
         """
-        sizes = getattr(encoder, "code_sizes", None)
-        if sizes is None or not callable(getattr(encoder, "encode", None)):
-            raise ValueError(
-                f"encoder must have code_sizes and encode() (a DiscreteCodeEncoder), got "
-                f"{type(encoder).__name__}."
-            )
-        storage = getattr(buffer, "storage", None)
-        n = len(buffer)
-        if n < 1:
-            raise ValueError("the play buffer is empty: no transitions to build a graph from.")
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=n, desc="encode play data", unit="frame")
-        codes, next_codes = [], []
-        device = module_device(encoder)
-        for start in range(0, n, chunk_size):
-            index = torch.arange(start, min(n, start + chunk_size))
-            chunk = storage[index] if storage is not None else buffer[index]
-            for key, out in (("pixels", codes), (("next", "pixels"), next_codes)):
-                pixels = chunk.get(key, None)
-                if pixels is None:
-                    raise ValueError(
-                        f"the play data has no {key!r}: a graph needs both frames of each "
-                        f"transition (keys present: {sorted(map(str, chunk.keys(True, True)))})."
-                    )
-                out.append(encoder.encode(pixels.to(device)).cpu())
-            if bar is not None:
-                bar.update(index.numel())
-        if bar is not None:
-            bar.close()
+        codes, next_codes = encode_transitions(
+            buffer, encoder, chunk_size=chunk_size, progress=progress
+        )
         metadata = getattr(buffer, "metadata", None) or {}
         return cls.from_transitions(
-            torch.cat(codes),
-            torch.cat(next_codes),
-            sizes,
+            codes,
+            next_codes,
+            encoder.code_sizes,
             groups,
             fingerprint=encoder_fingerprint(encoder),
             env_config=metadata.get("env_config"),
