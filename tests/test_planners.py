@@ -607,3 +607,41 @@ def test_visual_foresight_in_a_collector():
     cem = VisualForesightPolicy(GroundTruthModelEnv(env), "cem").planner
     assert (cem.num_candidates, cem.top_k, cem.optim_steps) == (1000, 20, 3)
     assert cem.planning_horizon == 14
+
+
+def test_finished_rows_are_not_planned_for():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(3,), seed=0)
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        num_candidates=64,
+        planning_horizon=6,
+        execution="open_loop",
+        seed=0,
+    )
+    planned: list[int] = []
+    plan = planner._plan
+
+    def counting(td, *args):
+        planned.append(td.batch_size[0])
+        return plan(td, *args)
+
+    planner._plan = counting
+    td = env.reset()
+    td["done"][1] = True
+    planner(td)
+    assert planned == [2] and td["planner_length"][1] == 0
+    # In a batched rollout, rows that are done stop costing planning calls.
+    planned.clear()
+    rollout = env.rollout(
+        200,
+        planner,
+        tensordict=env.reset(),
+        break_when_any_done=False,
+        break_when_all_done=True,
+        auto_reset=False,
+    )
+    done = rollout["next", "done"].squeeze(-1)
+    assert done.any(-1).all()
+    steps_until_done = done.float().argmax(-1) + 1
+    assert sum(planned) <= int(steps_until_done.sum())

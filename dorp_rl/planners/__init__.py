@@ -15,6 +15,7 @@ from dorp_rl.planners.base import (
     EXECUTIONS,
     DiscreteMPCPlanner,
     aggregate_steps,
+    finished_rows,
     select_best,
 )
 from dorp_rl.planners.cem import CategoricalCEMPlanner
@@ -53,6 +54,7 @@ __all__ = [
     "check_step_aggregation",
     "encode_transitions",
     "encoder_fingerprint",
+    "finished_rows",
     "resolve_groups",
     "select_best",
 ]

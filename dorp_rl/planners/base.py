@@ -55,7 +55,9 @@ planners also expose it as ``make_tensordict_primer`` so that
 ``Collector(..., auto_register_policy_transforms=True)`` adds it, together with an
 ``InitTracker``). The primer zeroes the keys of rows that reset, and a row with
 ``is_init`` set (torchrl's :class:`~torchrl.envs.InitTracker`) drops its plan, so a new
-episode never follows the previous episode's plan.
+episode never follows the previous episode's plan. Rows whose episode is over (root
+``done``, or ``_step`` False in a batched ``env.rollout``) are not planned for
+(:func:`finished_rows`): a batch costs only its unfinished rows.
 
 Randomness
     A ``torch.Generator`` owned by the planner, seeded by ``seed`` (or by torch's global
@@ -304,6 +306,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             need = ~valid | (cursor.squeeze(-1) >= length.squeeze(-1))
         else:
             need = torch.ones(rows, dtype=torch.bool, device=device)
+        need &= ~finished_rows(flat).to(device)
         index = need.nonzero().squeeze(-1)
         if index.numel():
             sub = flat[index.to(flat.device)] if index.numel() < rows else flat
@@ -480,6 +483,24 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             f"action_repeat={self.action_repeat}, execution={self.execution!r}, "
             f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}"
         )
+
+
+def finished_rows(td: TensorDictBase) -> torch.Tensor:
+    """Bool ``[rows]``: rows of a flat tensordict whose episode is over.
+
+    A batched ``env.rollout`` keeps finished rows in its batch until every row is done:
+    their root ``done`` is set, and with ``break_when_all_done`` torchrl also marks them
+    ``_step=False`` (not stepped). Planning for them would be wasted.
+    """
+    rows = td.batch_size[0]
+    finished = torch.zeros(rows, dtype=torch.bool)
+    done = td.get("done", None)
+    if done is not None:
+        finished |= done.reshape(rows, -1).any(-1).cpu()
+    stepping = td.get("_step", None)
+    if stepping is not None:
+        finished |= ~stepping.reshape(rows, -1).any(-1).cpu()
+    return finished
 
 
 def _cost_aggregation(cost: nn.Module, cost_key: NestedKey) -> str:

@@ -54,7 +54,7 @@ from torchrl.envs import Compose, EnvBase, TensorDictPrimer
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.modules.encoder import check_pixels, module_device
-from dorp_rl.planners.base import DiscreteMPCPlanner
+from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.planners.costs import CodeMatchCost, PixelDistanceCost, WeightedCostSum
@@ -268,16 +268,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             fresh |= is_init.reshape(rows, -1).any(-1).cpu()
         if fresh.any():
             self._restart(state, fresh)
-        done = flat.get("done", None)
-        finished = (
-            done.reshape(rows, -1).any(-1).cpu()
-            if done is not None
-            else torch.zeros(rows, dtype=torch.bool)
-        )
-        # Rows torchrl's rollout will not step (``_step`` False) are finished too.
-        stepping = flat.get("_step", None)
-        if stepping is not None:
-            finished |= ~stepping.reshape(rows, -1).any(-1).cpu()
+        finished = finished_rows(flat)
         finished &= ~fresh
         mode = state["dorp_mode"].squeeze(-1)
         mode[finished & (mode != _FAILED)] = _DONE
