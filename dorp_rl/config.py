@@ -1,32 +1,62 @@
 """The one config system: flat dataclasses that round-trip through plain dicts.
 
-Every config of the library (encoder, video model, trainers) is a dataclass with
+Every config of the library (video model, trainers) is a dataclass with
 :class:`ConfigMixin`: ``to_dict()`` gives JSON-friendly values (tuples as lists), the
 form stored in checkpoints, and ``from_dict()`` rebuilds the config, refusing unknown
 fields so that a checkpoint of another version fails loudly instead of half-loading.
+
+Every field has a rule (``FIELD_RULES``, see :mod:`dorp_rl.validation`), checked when
+the config is built (also by :func:`dataclasses.replace` and ``from_dict``): a wrong
+value raises ``ValueError`` naming the field and its allowed range, and values are
+normalised (``3.0`` steps become ``3``). Rules between fields live in
+:meth:`ConfigMixin.check_relations`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import typing
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
+
+from dorp_rl.validation import check_fields
 
 T = TypeVar("T", bound="ConfigMixin")
 
 
 class ConfigMixin:
-    """``to_dict`` / ``from_dict`` for dataclass configs.
+    """``to_dict`` / ``from_dict`` and field validation for dataclass configs.
 
     Examples:
         >>> from dataclasses import dataclass
         >>> from dorp_rl.config import ConfigMixin
+        >>> from dorp_rl.validation import Int
         >>> @dataclass
         ... class Sizes(ConfigMixin):
+        ...     FIELD_RULES = {"widths": lambda name, v: tuple(v), "depth": Int(low=1)}
         ...     widths: tuple[int, ...] = (32, 32)
+        ...     depth: int = 2
         >>> Sizes.from_dict(Sizes().to_dict())
-        Sizes(widths=(32, 32))
+        Sizes(widths=(32, 32), depth=2)
+        >>> Sizes(depth=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: depth must be >= 1, got 0.
     """
+
+    #: field name -> rule ``rule(name, value) -> normalised value`` (raises ``ValueError``)
+    FIELD_RULES: ClassVar[dict[str, Any]] = {}
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Checks every field against its rule, then :meth:`check_relations`."""
+        names = [f.name for f in dataclasses.fields(self)]  # type: ignore[arg-type]
+        check_fields(self, self.FIELD_RULES, names)
+        self.check_relations()
+
+    def check_relations(self) -> None:
+        """Rules between fields (e.g. ``trajectory_length >= horizon``); none by default."""
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)  # type: ignore[call-overload]
@@ -46,3 +76,9 @@ class ConfigMixin:
             if isinstance(value, list) and "tuple" in str(hints.get(name, "")):
                 values[name] = tuple(value)
         return cls(**values)
+
+
+def config_differences(stored: dict[str, Any], current: dict[str, Any]) -> dict[str, tuple]:
+    """``{field: (stored value, current value)}`` for the fields two config dicts disagree on."""
+    keys = sorted(set(stored) | set(current))
+    return {k: (stored.get(k), current.get(k)) for k in keys if stored.get(k) != current.get(k)}

@@ -4,7 +4,7 @@ Importing this package also registers the gymnasium ids ``dorp_rl/ObjectRearrang
 (kwarg ``num_objects``), ``dorp_rl/KeyWall-v0`` and ``dorp_rl/KeyCorridor-v0``.
 """
 
-from dorp_rl.envs.factory import ENV_NAMES, make_env
+from dorp_rl.envs.factory import ENV_NAMES, env_class, make_env
 from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
 from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_envs
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
@@ -17,6 +17,7 @@ __all__ = [
     "DEFAULT_MAX_STEPS",
     "DIRECTIONS",
     "ENV_NAMES",
+    "env_class",
     "GRID_SIZE",
     "GridWorldEnv",
     "GroundTruthModelEnv",

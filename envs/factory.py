@@ -9,6 +9,18 @@ from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyWallEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
 
 ENV_NAMES = ("rearrangement", "key-wall", "key-corridor")
+_CLASSES: dict[str, type[GridWorldEnv]] = {
+    "rearrangement": ObjectRearrangementEnv,
+    "key-wall": KeyWallEnv,
+    "key-corridor": KeyCorridorEnv,
+}
+
+
+def env_class(name: str) -> type[GridWorldEnv]:
+    """The class of the environment called ``name`` (one of :data:`ENV_NAMES`)."""
+    if name not in _CLASSES:
+        raise ValueError(f"env must be one of {ENV_NAMES}, got {name!r}.")
+    return _CLASSES[name]
 
 
 def make_env(name: str, num_objects: int = 1, **kwargs: Any) -> GridWorldEnv:
@@ -24,10 +36,7 @@ def make_env(name: str, num_objects: int = 1, **kwargs: Any) -> GridWorldEnv:
         >>> make_env("rearrangement", num_objects=2, batch_size=(4,)).batch_size
         torch.Size([4])
     """
-    if name == "rearrangement":
-        return ObjectRearrangementEnv(num_objects=num_objects, **kwargs)
-    if name == "key-wall":
-        return KeyWallEnv(**kwargs)
-    if name == "key-corridor":
-        return KeyCorridorEnv(**kwargs)
-    raise ValueError(f"env must be one of {ENV_NAMES}, got {name!r}.")
+    cls = env_class(name)
+    if cls is ObjectRearrangementEnv:
+        return cls(num_objects=num_objects, **kwargs)
+    return cls(**kwargs)

@@ -10,12 +10,22 @@ configurations are.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
+
+from dorp_rl.validation import (
+    check_action,
+    check_batch_size,
+    check_bool,
+    check_int,
+    check_seed,
+    check_state_layout,
+)
 
 GRID_SIZE = 16
 
@@ -49,6 +59,35 @@ def paint_layers(masks: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
     )  # [L + 1, 3]
     image = palette[top]  # [*B, H, W, 3]
     return image.movedim(-1, -3).contiguous()
+
+
+class _EmittedTensors:
+    """The last few state tensors an env produced, with their version counters.
+
+    ``step`` checks a state only when it is not one of these, unchanged: a state the env
+    produced itself is valid by construction, so a rollout checks nothing per step (no
+    device synchronisation), while a state written into the tensordict by hand (or
+    changed in place) is checked like a state given to ``reset``. Not copied or pickled:
+    a copied env starts trusting nothing.
+    """
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = size
+        self.entries: list[tuple[weakref.ref, int]] = []
+
+    def add(self, *tensors: torch.Tensor) -> None:
+        self.entries = [(ref, v) for ref, v in self.entries if ref() is not None]
+        self.entries += [(weakref.ref(t), t._version) for t in tensors]
+        self.entries = self.entries[-self.size :]
+
+    def __contains__(self, tensor: torch.Tensor) -> bool:
+        return any(ref() is tensor and tensor._version == v for ref, v in self.entries)
+
+    def __deepcopy__(self, memo: dict) -> _EmittedTensors:
+        return _EmittedTensors(self.size)
+
+    def __reduce__(self):
+        return (_EmittedTensors, (self.size,))
 
 
 class GridWorldEnv(EnvBase):
@@ -95,13 +134,15 @@ class GridWorldEnv(EnvBase):
         batch_locked: bool = True,
         terminate_on_success: bool = True,
     ) -> None:
-        batch_size = torch.Size(batch_size)
+        batch_size = check_batch_size(batch_size)
+        batch_locked = check_bool("batch_locked", batch_locked)
         if not batch_locked and batch_size != torch.Size([]):
             raise ValueError(
                 f"batch_locked=False needs batch_size=(), got batch_size={tuple(batch_size)}."
             )
-        if int(max_steps) < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+        max_steps = check_int("max_steps", max_steps, low=1)
+        seed = check_seed(seed, optional=True)
+        terminate_on_success = check_bool("terminate_on_success", terminate_on_success)
         super().__init__(
             device=torch.device("cpu") if device is None else device, batch_size=batch_size
         )
@@ -110,6 +151,7 @@ class GridWorldEnv(EnvBase):
         self.max_steps = int(max_steps)
         self.terminate_on_success = bool(terminate_on_success)
         self.rng = torch.Generator(device=self.device)
+        self._emitted = _EmittedTensors()
         self._make_specs()
         self.set_seed(torch.empty((), dtype=torch.int64).random_().item() if seed is None else seed)
 
@@ -165,19 +207,13 @@ class GridWorldEnv(EnvBase):
     # Checks with errors that say what was expected
     # ------------------------------------------------------------------ #
     def check_state(self, state: torch.Tensor, name: str = "state") -> torch.Tensor:
-        """Validates dtype, shape and rules of a batch of states and returns it on device."""
-        if not isinstance(state, torch.Tensor):
-            raise ValueError(f"{name} must be a torch.Tensor, got {type(state).__name__}.")
-        if state.dtype != torch.int64:
-            raise ValueError(f"{name} must have dtype torch.int64, got {state.dtype}.")
-        expected = tuple(self.state_shape)
-        if state.dim() < len(expected) or tuple(state.shape[state.dim() - len(expected) :]) != (
-            expected
-        ):
-            raise ValueError(
-                f"{name} must have shape [*B, {', '.join(map(str, expected))}], "
-                f"got {list(state.shape)}."
-            )
+        """Validates dtype, shape and rules of a batch of states and returns it on device.
+
+        Reads the values (one device synchronisation): used at the boundary (``reset``
+        with given states, states written into a tensordict before ``step``), never on
+        the env's own outputs.
+        """
+        state = check_state_layout(state, self.state_shape, name, owner=type(self).__name__)
         state = state.to(self.device)
         bad = self.invalid_states(state)
         if bad.any():
@@ -195,18 +231,7 @@ class GridWorldEnv(EnvBase):
 
     def check_action(self, action: torch.Tensor) -> torch.Tensor:
         """Validates an action tensor ``[*B, 1]`` and returns it as int64 ``[*B]``."""
-        if not isinstance(action, torch.Tensor):
-            raise ValueError(f"action must be a torch.Tensor, got {type(action).__name__}.")
-        if action.dtype.is_floating_point or action.dtype == torch.bool:
-            raise ValueError(f"action must be an integer tensor, got dtype {action.dtype}.")
-        if action.shape[-1:] != (1,):
-            raise ValueError(f"action must have shape [*B, 1], got {list(action.shape)}.")
-        if action.numel() and ((action < 0).any() or (action >= self.num_actions).any()):
-            raise ValueError(
-                f"action out of range: expected integers in [0, {self.num_actions - 1}], got "
-                f"min {int(action.min())} and max {int(action.max())}."
-            )
-        return action.squeeze(-1).to(torch.int64)
+        return check_action(action, self.num_actions).squeeze(-1)
 
     # ------------------------------------------------------------------ #
     # EnvBase
@@ -242,6 +267,10 @@ class GridWorldEnv(EnvBase):
             shape=shape,
         )
 
+    def set_seed(self, seed: int | None = None, static_seed: bool = False) -> int | None:
+        """Seeds the env's generator (an integer in ``[0, 2**63 - 1]``, or ``None``)."""
+        return super().set_seed(check_seed(seed, optional=True), static_seed=static_seed)
+
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             seed = torch.empty((), dtype=torch.int64).random_().item()
@@ -273,6 +302,7 @@ class GridWorldEnv(EnvBase):
         )
         success = self._success(state, goal_state)
         false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        self._emitted.add(state, goal_state)
         return TensorDict(
             pixels=self.render_state(state),
             goal_pixels=self.render_state(goal_state),
@@ -303,8 +333,8 @@ class GridWorldEnv(EnvBase):
                 f"action must have shape [*B, 1] with B = {list(shape)}, got {list(action.shape)}."
             )
         action = self.check_action(action)
-        state = tensordict.get("state")
-        goal_state = tensordict.get("goal_state")
+        state = self._trusted_state(tensordict, "state")
+        goal_state = self._trusted_state(tensordict, "goal_state")
         step_count = tensordict.get("step_count", None)
         if step_count is None:
             step_count = torch.zeros((*shape, 1), dtype=torch.int64, device=self.device)
@@ -316,6 +346,7 @@ class GridWorldEnv(EnvBase):
         goal_pixels = tensordict.get("goal_pixels", None)
         if goal_pixels is None:
             goal_pixels = self.render_state(goal_state)
+        self._emitted.add(next_state, goal_state)
         return TensorDict(
             pixels=self.render_state(next_state),
             goal_pixels=goal_pixels,
@@ -330,6 +361,21 @@ class GridWorldEnv(EnvBase):
             batch_size=shape,
             device=self.device,
         )
+
+    def _trusted_state(self, tensordict: TensorDictBase, key: str) -> torch.Tensor:
+        """``tensordict[key]``, checked unless it is a state this env produced and nobody changed."""
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"{type(self).__name__}.step needs {key!r} in the tensordict (reset() writes it)."
+            )
+        if value in self._emitted:
+            return value
+        value = self.check_state(value, key)
+        shape = (*tensordict.batch_size, *self.state_shape)
+        if tuple(value.shape) != shape:
+            raise ValueError(f"{key} must have shape {list(shape)}, got {list(value.shape)}.")
+        return value
 
     def _success(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         dims = tuple(range(-len(self.state_shape), 0))

@@ -13,6 +13,7 @@ from tensordict import TensorDict
 from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyWallEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
+from dorp_rl.validation import check_int, check_seed
 from dorp_rl.viz.frames import frames_to_rgb_array
 
 ENV_CLASSES: dict[str, type[GridWorldEnv]] = {
@@ -59,7 +60,7 @@ class GymnasiumGridEnv(gymnasium.Env):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.env = ENV_CLASSES[env_name](batch_size=(), **env_kwargs)
         self.render_mode = render_mode
-        self.render_scale = int(render_scale)
+        self.render_scale = check_int("render_scale", render_scale, low=1)
         image = spaces.Box(0, 255, (GRID_SIZE, GRID_SIZE, 3), dtype=np.uint8)
         self.observation_space = spaces.Dict({"pixels": image, "goal_pixels": image})
         self.action_space = spaces.Discrete(self.env.num_actions)
@@ -82,6 +83,7 @@ class GymnasiumGridEnv(gymnasium.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        seed = check_seed(seed, optional=True)
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(seed)

@@ -34,6 +34,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
+from dorp_rl.validation import check_action, check_frames, check_int, check_state_layout
 
 _FRAME = (3, GRID_SIZE, GRID_SIZE)
 
@@ -54,38 +55,10 @@ def check_planning_action(
 ) -> torch.Tensor:
     """Validates an action tensor int ``[*B, 1]`` in ``[0, num_actions)``; returns int64 ``[*B, 1]``.
 
-    ``batch_shape``, if given, is the expected ``B``.
-
-    Raises:
-        ValueError: naming ``action`` for a non-tensor, a float or bool dtype, a last
-            dimension other than 1, or a value out of range.
+    ``batch_shape``, if given, is the expected ``B`` (see :func:`dorp_rl.validation.check_action`).
     """
-    if not isinstance(action, torch.Tensor):
-        raise ValueError(f"action must be a torch.Tensor, got {type(action).__name__}.")
-    if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
-        raise ValueError(f"action must be an integer tensor, got dtype {action.dtype}.")
-    if action.shape[-1:] != (1,) or (
-        batch_shape is not None and action.shape[:-1] != torch.Size(batch_shape)
-    ):
-        expected = "*B" if batch_shape is None else ", ".join(map(str, batch_shape))
-        expected = f"[{expected}, 1]" if expected else "[1]"
-        raise ValueError(f"action must have shape {expected}, got {list(action.shape)}.")
-    if action.numel() and ((action < 0).any() or (action >= num_actions).any()):
-        raise ValueError(
-            f"action out of range: expected integers in [0, {num_actions - 1}], got "
-            f"min {int(action.min())} and max {int(action.max())}."
-        )
-    return action.to(torch.int64)
-
-
-def _check_frames(pixels: torch.Tensor, name: str) -> torch.Tensor:
-    if not isinstance(pixels, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor, got {type(pixels).__name__}.")
-    if pixels.dtype != torch.uint8:
-        raise ValueError(f"{name} must have dtype torch.uint8, got {pixels.dtype}.")
-    if pixels.dim() < 3 or tuple(pixels.shape[-3:]) != _FRAME:
-        raise ValueError(f"{name} must have shape [*B, 3, 16, 16], got {list(pixels.shape)}.")
-    return pixels
+    shape = None if batch_shape is None else (*batch_shape, 1)
+    return check_action(action, num_actions, shape=shape)
 
 
 class _PlanningEnvBase(EnvBase):
@@ -94,9 +67,7 @@ class _PlanningEnvBase(EnvBase):
     _supports_set_state = True
 
     def __init__(self, num_actions: int, device: torch.device | str | None) -> None:
-        num_actions = int(num_actions)
-        if num_actions < 1:
-            raise ValueError(f"num_actions must be >= 1, got {num_actions}.")
+        num_actions = check_int("num_actions", num_actions, low=1)
         super().__init__(device=torch.device("cpu") if device is None else device, batch_size=())
         self.__dict__["_batch_locked"] = False
         self.num_actions = num_actions
@@ -217,7 +188,7 @@ class GroundTruthModelEnv(_PlanningEnvBase):
             )
             goal_pixels = env.render_state(goal_state)
         else:
-            goal_pixels = _check_frames(goal_pixels, "goal_pixels").expand(*shape, *_FRAME).clone()
+            goal_pixels = check_frames(goal_pixels, "goal_pixels").expand(*shape, *_FRAME).clone()
         return self._outputs(shape, env.render_state(state), goal_pixels, reward=False, state=state)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -231,6 +202,11 @@ class GroundTruthModelEnv(_PlanningEnvBase):
                 "GroundTruthModelEnv.step needs 'state' (the true configuration) in the "
                 "tensordict; the acting env's tensordict holds it."
             )
+        # Shapes only (no device synchronisation): a state of another env (e.g. another
+        # number of objects) fails here instead of deep inside the dynamics.
+        check_state_layout(
+            state, env.state_shape, "state", owner=f"the planning model of {type(env).__name__}"
+        )
         next_state = env.transition(state, action)
         return self._outputs(
             tensordict.batch_size,
@@ -363,6 +339,14 @@ class WorldModelEnv(_PlanningEnvBase):
             )
         if chunk_size is not None and int(chunk_size) < 1:
             raise ValueError(f"chunk_size must be >= 1 or None, got {chunk_size}.")
+        num_actions = check_int("num_actions", num_actions, low=1)
+        model_actions = getattr(model, "num_actions", None)
+        if isinstance(model_actions, int) and model_actions != num_actions:
+            raise ValueError(
+                f"num_actions={num_actions} does not match the model, which was trained with "
+                f"{model_actions} actions: the planner would plan with the wrong actions. Pass "
+                "the acting env's num_actions with a model trained on that env."
+            )
         if device is None and isinstance(model, torch.nn.Module):
             param = next(iter(model.parameters()), None)
             device = param.device if param is not None else None
@@ -390,13 +374,13 @@ class WorldModelEnv(_PlanningEnvBase):
             frames[key] = (
                 black.clone()
                 if value is None
-                else _check_frames(value, key).expand(*shape, *_FRAME).clone()
+                else check_frames(value, key).expand(*shape, *_FRAME).clone()
             )
         return self._outputs(shape, frames["pixels"], frames["goal_pixels"], reward=False)
 
     def predict_frames(self, pixels: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]``, int ``[*B, 1]``."""
-        pixels = _check_frames(pixels, "pixels")
+        pixels = check_frames(pixels, "pixels")
         shape = pixels.shape[:-3]
         action = check_planning_action(action, self.num_actions, shape)
         flat_pixels = pixels.reshape(-1, *_FRAME)

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import torch
 
 from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
+from dorp_rl.validation import check_int
 
 #: Block colours in object order (the authors' first five, then two more).
 OBJECT_COLOURS = torch.tensor(
@@ -64,9 +65,7 @@ class ObjectRearrangementEnv(GridWorldEnv):
         max_steps: int | None = None,
         **kwargs,
     ) -> None:
-        num_objects = int(num_objects)
-        if num_objects < 1:
-            raise ValueError(f"num_objects must be >= 1, got {num_objects}.")
+        num_objects = check_int("num_objects", num_objects, low=1)
         self.num_objects = num_objects
         self.block_shapes = self._parse_block_shapes(block_shapes, num_objects)
         if colours is None:
@@ -76,7 +75,13 @@ class ObjectRearrangementEnv(GridWorldEnv):
                     f"has {len(OBJECT_COLOURS)}; pass colours=[k, 3] for more."
                 )
             colours = OBJECT_COLOURS[:num_objects]
-        colours = torch.as_tensor(colours, dtype=torch.uint8)
+        colours = torch.as_tensor(colours)
+        out_of_range = colours.numel() and (int(colours.min()) < 0 or int(colours.max()) > 255)
+        if colours.is_floating_point() or colours.dtype == torch.bool or out_of_range:
+            raise ValueError(
+                f"colours must hold integer RGB values in [0, 255], got {colours.tolist()}."
+            )
+        colours = colours.to(torch.uint8)
         if colours.shape != (num_objects, 3):
             raise ValueError(
                 f"colours must have shape [{num_objects}, 3], got {list(colours.shape)}."
@@ -118,7 +123,12 @@ class ObjectRearrangementEnv(GridWorldEnv):
 
     @staticmethod
     def _parse_block_shapes(block_shapes, num_objects: int) -> torch.Tensor:
-        shapes = torch.as_tensor(block_shapes, dtype=torch.int64)
+        shapes = torch.as_tensor(block_shapes)
+        if shapes.is_floating_point() and not bool((shapes == shapes.round()).all()):
+            raise ValueError(f"block_shapes must hold integer sides, got {shapes.tolist()}.")
+        if shapes.dtype == torch.bool or shapes.is_complex():
+            raise ValueError(f"block_shapes must hold integer sides, got {shapes.tolist()}.")
+        shapes = shapes.to(torch.int64)
         if shapes.shape == (2,):
             shapes = shapes.expand(num_objects, 2).clone()
         if shapes.shape != (num_objects, 2):

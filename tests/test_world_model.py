@@ -153,7 +153,7 @@ def test_bad_inputs_name_what_was_expected(
         model.predict(pixels.float(), action)
     with pytest.raises(ValueError, match=r"\[N, 3, 16, 16\]"):
         model.predict(pixels[:, :, :8], action)
-    with pytest.raises(ValueError, match=r"in \[0, 8\)"):
+    with pytest.raises(ValueError, match=r"in \[0, 7\] \(num_actions = 8\)"):
         model.predict(pixels, action + 8)
     with pytest.raises(ValueError, match="integer"):
         model.predict(pixels, action.float())

@@ -36,10 +36,12 @@ from typing import Any
 import numpy as np
 import torch
 
-# Submodules, not the package: dorp_rl.envs imports dorp_rl.viz, which imports this module.
 from dorp_rl.envs.grid_base import GRID_SIZE
 from dorp_rl.envs.key_rooms import KeyRoomEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
+
+# Submodules, not the package: dorp_rl.envs imports dorp_rl.viz, which imports this module.
+from dorp_rl.validation import check_int, check_seed
 
 #: ``encode(pixels uint8 [N, 3, 16, 16]) -> int64 [N, C]``: one code index per one-hot.
 Encoder = Callable[[torch.Tensor], torch.Tensor]
@@ -429,9 +431,9 @@ def rearrangement_diagnostics(
             f"env must be an ObjectRearrangementEnv, got {type(env).__name__} "
             "(key rooms: use key_room_diagnostics)."
         )
-    if num_samples < 2:
-        raise ValueError(f"num_samples must be >= 2, got {num_samples}.")
-    generator = torch.Generator().manual_seed(int(seed))
+    num_samples = check_int("num_samples", num_samples, low=2)
+    seed = check_seed(seed)
+    generator = torch.Generator().manual_seed(seed)
     k = env.num_objects
     states = sample_rearrangement_states(env, num_samples, generator)  # [N, k, 2]
     movable, moved, after = _single_object_moves(env, states, generator)

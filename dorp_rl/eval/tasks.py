@@ -17,6 +17,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
+from dorp_rl.validation import check_int, check_seed
 
 
 def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDict:
@@ -36,10 +37,10 @@ def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDic
         >>> tasks["state"].shape, bool((tasks["lower_bound"] > 0).all())
         (torch.Size([5, 2, 2]), True)
     """
-    if int(num_tasks) < 1:
-        raise ValueError(f"num_tasks must be >= 1, got {num_tasks}.")
+    num_tasks = check_int("num_tasks", num_tasks, low=1)
+    seed = check_seed(seed)
     saved = env.rng.get_state()
-    env.rng.manual_seed(int(seed))
+    env.rng.manual_seed(seed)
     try:
         shape = torch.Size([int(num_tasks)])
         state = env.sample_states(shape)
@@ -96,11 +97,8 @@ def evaluate_policy(
         none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``,
         and one list per entry of ``report_keys``.
     """
-    limit = int(env.max_steps if max_steps is None else max_steps)
-    if limit < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
-    if tasks_per_rollout < 1:
-        raise ValueError(f"tasks_per_rollout must be >= 1, got {tasks_per_rollout}.")
+    limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
+    tasks_per_rollout = check_int("tasks_per_rollout", tasks_per_rollout, low=1)
     for key in ("state", "goal_state"):
         if key not in tasks.keys():
             raise ValueError(

@@ -9,6 +9,8 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from dorp_rl.validation import as_tensor, check_choice, check_int, frames_to_unit_float
+
 
 @dataclass
 class EncoderConfig:
@@ -58,16 +60,12 @@ def module_device(module: nn.Module) -> torch.device:
 
 
 def check_pixels(pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
-    """Validates images ``[*B, 3, 16, 16]`` (uint8, or float in [0, 1]) and returns floats in [0, 1]."""
-    if not isinstance(pixels, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor, got {type(pixels).__name__}.")
-    if pixels.dim() < 3 or tuple(pixels.shape[-3:]) != (3, 16, 16):
-        raise ValueError(f"{name} must have shape [*B, 3, 16, 16], got {list(pixels.shape)}.")
-    if pixels.dtype == torch.uint8:
-        return pixels.float() / 255.0
-    if pixels.dtype.is_floating_point:
-        return pixels
-    raise ValueError(f"{name} must be uint8 (0-255) or floating point (0-1), got {pixels.dtype}.")
+    """Images ``[*B, 3, 16, 16]`` (uint8, or floats in ``[0, 1]``; numpy arrays are taken) as floats in ``[0, 1]``.
+
+    Float frames outside ``[0, 1]`` (a forgotten ``/ 255``) are refused
+    (:func:`dorp_rl.validation.frames_to_unit_float`).
+    """
+    return frames_to_unit_float(pixels, name)
 
 
 class DiscreteCodeEncoder(nn.Module):
@@ -100,20 +98,23 @@ class DiscreteCodeEncoder(nn.Module):
 
     def __init__(self, config: EncoderConfig) -> None:
         super().__init__()
-        sizes = tuple(int(z) for z in config.code_sizes)
-        if not sizes or min(sizes) < 2:
+        sizes = tuple(
+            check_int(f"code_sizes[{i}]", z, low=2) for i, z in enumerate(config.code_sizes)
+        )
+        if not sizes:
             raise ValueError(f"code_sizes needs at least one one-hot of >= 2 codes, got {sizes}.")
-        if config.map_competition not in ("sigmoid", "softmax"):
-            raise ValueError(
-                f"map_competition must be 'sigmoid' or 'softmax', got {config.map_competition!r}."
-            )
+        check_choice("map_competition", config.map_competition, ("sigmoid", "softmax"))
         self.config = config
         self.code_sizes = sizes
         self.num_onehots = len(sizes)
         self.max_codes = max(sizes)
-        k = int(config.kernel_size)
-        if k < 1 or k % 2 == 0:
+        k = check_int("kernel_size", config.kernel_size, low=1)
+        if k % 2 == 0:
             raise ValueError(f"kernel_size must be an odd int >= 1, got {config.kernel_size}.")
+        check_int("channels", config.channels, low=1)
+        check_int("conv_layers", config.conv_layers, low=0)
+        for i, width in enumerate(config.mlp_sizes):
+            check_int(f"mlp_sizes[{i}]", width, low=1)
         layers: list[nn.Module] = []
         in_channels = 3
         for _ in range(config.conv_layers):
@@ -178,11 +179,16 @@ class DiscreteCodeEncoder(nn.Module):
 
     @torch.no_grad()
     def encode(self, pixels: torch.Tensor, chunk_size: int = 4096) -> torch.Tensor:
-        """Codes int64 ``[N, C]`` of many images, in eval mode and in chunks."""
+        """Codes int64 ``[*B, C]`` of many images ``[*B, 3, 16, 16]``, in eval mode and in chunks.
+
+        Takes what :meth:`forward` takes (uint8 or floats in ``[0, 1]``, tensors or numpy
+        arrays).
+        """
         was_training = self.training
         self.eval()
         try:
             device = self.code_mask.device
+            pixels = as_tensor(pixels, "pixels")
             flat = pixels.reshape(-1, *pixels.shape[-3:])
             codes = [self(chunk.to(device))[0] for chunk in flat.split(chunk_size)]
             return torch.cat(codes).reshape(*pixels.shape[:-3], self.num_onehots)

@@ -43,6 +43,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from dorp_rl.config import ConfigMixin
+from dorp_rl.validation import Choice, Flag, Float, Int, Ints, check_action, check_frames, check_int
 
 FRAME_SHAPE = (3, 16, 16)
 
@@ -131,6 +132,18 @@ class VideoModelConfig(ConfigMixin):
     :meth:`default` (more accurate), then override fields.
     """
 
+    FIELD_RULES = {
+        "channels": Int(low=1),
+        "dilations": Ints(low=1),
+        "global_context": Flag(),
+        "latent_dim": Int(low=0),
+        "prior": Choice(("fixed", "learned")),
+        "latent_channels": Int(low=1),
+        "copy_init": Float(),
+        "advection": Flag(),
+        "collision_features": Flag(),
+    }
+
     channels: int = 32
     dilations: tuple[int, ...] = (1, 2, 4, 1)
     global_context: bool = True
@@ -157,18 +170,6 @@ class VideoModelConfig(ConfigMixin):
         if name not in ("small", "default"):
             raise ValueError(f"video model preset must be 'small' or 'default', got {name!r}.")
         return getattr(cls, name)(**overrides)
-
-    def validate(self) -> None:
-        if self.channels < 1:
-            raise ValueError(f"channels must be >= 1, got {self.channels}.")
-        if len(self.dilations) < 1 or any(int(d) < 1 for d in self.dilations):
-            raise ValueError(
-                f"dilations must be a non-empty tuple of ints >= 1, got {self.dilations}."
-            )
-        if self.latent_dim < 0:
-            raise ValueError(f"latent_dim must be >= 0, got {self.latent_dim}.")
-        if self.prior not in ("fixed", "learned"):
-            raise ValueError(f"prior must be 'fixed' or 'learned', got {self.prior!r}.")
 
 
 # --------------------------------------------------------------------------- blocks
@@ -262,8 +263,7 @@ class VideoPredictionModel(nn.Module):
         super().__init__()
         config = VideoModelConfig.default() if config is None else config
         config.validate()
-        if int(num_actions) < 1:
-            raise ValueError(f"num_actions must be >= 1, got {num_actions}.")
+        num_actions = check_int("num_actions", num_actions, low=1)
         palette = check_palette(palette)
         self.config = config
         self.num_actions = int(num_actions)
@@ -303,37 +303,13 @@ class VideoPredictionModel(nn.Module):
         )
 
     # ------------------------------------------------------------------ checks
-    def _check_pixels(self, pixels: torch.Tensor, name: str = "pixels") -> None:
-        if not isinstance(pixels, torch.Tensor):
-            raise ValueError(
-                f"{name} must be a uint8 tensor [N, 3, 16, 16], got {type(pixels).__name__}."
-            )
-        if pixels.dtype != torch.uint8:
-            raise ValueError(
-                f"{name} must be uint8 [N, 3, 16, 16] (0-255), got dtype {pixels.dtype}."
-            )
-        if pixels.dim() != 4 or tuple(pixels.shape[1:]) != FRAME_SHAPE:
-            raise ValueError(f"{name} must have shape [N, 3, 16, 16], got {list(pixels.shape)}.")
+    def _check_pixels(self, pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
+        return check_frames(pixels, name, lead="N")
 
     def _check_action(
         self, action: torch.Tensor, shape: tuple[int, ...], name: str = "action"
-    ) -> None:
-        expected = "[" + ", ".join(str(s) for s in shape) + "]"
-        if not isinstance(action, torch.Tensor):
-            raise ValueError(
-                f"{name} must be an int64 tensor {expected}, got {type(action).__name__}."
-            )
-        if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
-            raise ValueError(
-                f"{name} must be an integer tensor {expected}, got dtype {action.dtype}."
-            )
-        if tuple(action.shape) != tuple(shape):
-            raise ValueError(f"{name} must have shape {expected}, got {list(action.shape)}.")
-        if action.numel() and (action.min() < 0 or action.max() >= self.num_actions):
-            raise ValueError(
-                f"{name} values must be in [0, {self.num_actions}), got values in "
-                f"[{int(action.min())}, {int(action.max())}]."
-            )
+    ) -> torch.Tensor:
+        return check_action(action, self.num_actions, name, shape=shape)
 
     def _check_z(self, z: torch.Tensor, n: int) -> None:
         if not isinstance(z, torch.Tensor) or tuple(z.shape) != (n, self.latent_dim):
@@ -510,7 +486,7 @@ class VideoPredictionModel(nn.Module):
         Returns:
             float ``[N, K, 16, 16]``.
         """
-        self._check_pixels(pixels)
+        pixels = self._check_pixels(pixels)
         n = pixels.shape[0]
         self._check_action(action, (n, 1))
         if z is not None:
@@ -535,7 +511,7 @@ class VideoPredictionModel(nn.Module):
             deterministic: use the prior mean of ``z`` (else draw ``z`` from the prior).
             generator: random generator for the draws (default: torch's global one).
         """
-        self._check_pixels(pixels)
+        pixels = self._check_pixels(pixels)
         n = pixels.shape[0]
         self._check_action(action, (n, 1))
         probs = self.frame_probs(pixels)
@@ -554,7 +530,7 @@ class VideoPredictionModel(nn.Module):
 
         Each step feeds on the previous predicted frame (its per-pixel argmax).
         """
-        self._check_pixels(pixels)
+        pixels = self._check_pixels(pixels)
         n = pixels.shape[0]
         if not isinstance(actions, torch.Tensor) or actions.dim() != 3:
             got = (

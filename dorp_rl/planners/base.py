@@ -70,8 +70,6 @@ Randomness
 
 from __future__ import annotations
 
-import numbers
-
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
 from torch import nn
@@ -84,6 +82,7 @@ from dorp_rl.planners.costs import (
     MissingRolloutKeyError,
     check_step_aggregation,
 )
+from dorp_rl.validation import check_int, check_seed
 
 __all__ = [
     "EXECUTIONS",
@@ -165,9 +164,9 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 "batch_size=() and batch_locked=False, or wrap the env's dynamics in "
                 "dorp_rl.envs.GroundTruthModelEnv / WorldModelEnv."
             )
-        check_integer("num_candidates", num_candidates)
-        check_integer("planning_horizon", planning_horizon)
-        check_integer("action_repeat", action_repeat)
+        check_int("num_candidates", num_candidates, low=1)
+        check_int("planning_horizon", planning_horizon, low=1)
+        check_int("action_repeat", action_repeat, low=1)
         if int(planning_horizon) % int(action_repeat):
             raise ValueError(
                 f"action_repeat must divide planning_horizon (it counts env steps: "
@@ -238,9 +237,10 @@ class DiscreteMPCPlanner(MPCPlannerBase):
     # ------------------------------------------------------------------ #
     def set_seed(self, seed: int | None) -> None:
         """Reseeds the planner's generator (``None``: a seed from torch's global generator)."""
+        seed = check_seed(seed, optional=True)
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self.generator.manual_seed(int(seed) % (2**63))
+        self.generator.manual_seed(seed)
 
     def make_primer(self) -> TensorDictPrimer:
         """A :class:`~torchrl.envs.TensorDictPrimer` declaring the state keys (zeros at reset).
@@ -291,6 +291,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         """
         batch = td.batch_size
         flat = td.reshape(-1) if td.batch_dims != 1 else td
+        self._check_inputs(flat)
         rows = flat.batch_size[0]
         device = self.generator.device
         h = self.planning_horizon
@@ -452,6 +453,28 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         keys += [k for k in env.full_state_spec.keys(True, True) if k not in keys]
         return keys
 
+    def _check_inputs(self, flat: TensorDictBase) -> None:
+        """Shapes of the acting rows against what the planning env takes (no device sync).
+
+        A planning env of another world (e.g. 2 objects while 1 is acting) would
+        otherwise fail deep inside its dynamics, or plan on a misread state.
+        """
+        specs = self.env.full_observation_spec.clone()
+        specs.update(self.env.full_state_spec)
+        for key in self._env_in_keys:
+            value = flat.get(key, None)
+            if not isinstance(value, torch.Tensor) or key not in specs.keys(True, True):
+                continue
+            expected = tuple(specs[key].shape)
+            if tuple(value.shape[1:]) != expected:
+                raise ValueError(
+                    f"the acting tensordict's {key!r} has shape {list(value.shape[1:])} per "
+                    f"row, but the planning env {type(self.env).__name__} takes "
+                    f"{list(expected)}: it models another environment than the acting one "
+                    "(e.g. another number of objects). Build the planning env from the "
+                    "acting env."
+                )
+
     def _check_cost_keys(self, td: TensorDictBase) -> None:
         present = set(td.keys(True, True))
         for key in self._root_keys:
@@ -547,18 +570,6 @@ def aggregate_steps(
     if step_aggregation == "sum":
         return per_step.sum(-1), full
     return per_step[..., -1], full
-
-
-def check_integer(
-    name: str, value: object, low: int = 1, high: int | None = None, high_name: str = ""
-) -> int:
-    """``int(value)``, or a ``ValueError`` naming ``name`` unless it is an integer in range."""
-    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and int(value) == value
-    if not ok or int(value) < low or (high is not None and int(value) > high):
-        upper = f"{high_name} = {high}" if high_name else f"{high}"
-        bounds = f">= {low}" if high is None else f"in [{low}, {upper}]"
-        raise ValueError(f"{name} must be an integer {bounds}, got {value!r}.")
-    return int(value)
 
 
 def select_best(score: torch.Tensor, step: torch.Tensor) -> torch.Tensor:

@@ -7,7 +7,8 @@ from tensordict import NestedKey, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from dorp_rl.planners.base import DiscreteMPCPlanner, check_integer, select_best
+from dorp_rl.planners.base import DiscreteMPCPlanner, select_best
+from dorp_rl.validation import check_bool, check_float, check_int
 
 __all__ = ["CategoricalCEMPlanner"]
 
@@ -103,23 +104,14 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
         )
-        self.optim_steps = check_integer("optim_steps", optim_steps)
-        self.top_k = check_integer(
-            "top_k", top_k, high=self.num_candidates, high_name="num_candidates"
+        self.optim_steps = check_int("optim_steps", optim_steps, low=1)
+        self.top_k = check_int("top_k", top_k, low=1, high=self.num_candidates)
+        self.warm_start = check_bool("warm_start", warm_start)
+        self.warm_start_mix = check_float("warm_start_mix", warm_start_mix, low=0.0, high=1.0)
+        self.smoothing = check_float("smoothing", smoothing, low=0.0, high=1.0, high_open=True)
+        self.min_probability = check_float(
+            "min_probability", min_probability, low=0.0, high=1.0 / self.num_actions
         )
-        if not 0.0 <= float(warm_start_mix) <= 1.0:
-            raise ValueError(f"warm_start_mix must be in [0, 1], got {warm_start_mix}.")
-        if not 0.0 <= float(smoothing) < 1.0:
-            raise ValueError(f"smoothing must be in [0, 1), got {smoothing}.")
-        if not 0.0 <= float(min_probability) <= 1.0 / self.num_actions:
-            raise ValueError(
-                f"min_probability must be in [0, 1 / num_actions = {1.0 / self.num_actions}], "
-                f"got {min_probability}."
-            )
-        self.warm_start = bool(warm_start)
-        self.warm_start_mix = float(warm_start_mix)
-        self.smoothing = float(smoothing)
-        self.min_probability = float(min_probability)
 
     def initial_probs(
         self, previous_plan: torch.Tensor, shift: torch.Tensor, valid: torch.Tensor

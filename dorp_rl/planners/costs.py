@@ -475,11 +475,29 @@ class CodeMatchCost(RolloutCost):
         else:
             chosen = torch.zeros(num_onehots, dtype=torch.bool, device=code.device)
             chosen[self.onehots if self.onehots is not None else slice(None)] = True
+        self._check_target(target, chosen, probs.shape[-1])
         wanted = torch.where(chosen, target.to(code.device), start_code)  # [*B, N, H, C]
         wanted = wanted.expand_as(code)
         match = (code == wanted).all(-1)
         confidence = probs.gather(-1, wanted.unsqueeze(-1)).squeeze(-1).mean(-1)
         return (~match).to(torch.float32) - self.tie_break * confidence.to(torch.float32)
+
+    def _check_target(self, target: torch.Tensor, chosen: torch.Tensor, max_codes: int) -> None:
+        """Refuses a target code outside its one-hot's codes (on the broadcast rows only)."""
+        sizes = getattr(self.encoder, "code_sizes", None) or (max_codes,) * target.shape[-1]
+        sizes = torch.as_tensor(sizes, device=target.device)
+        chosen = compact_broadcast(chosen.to(target.device).expand_as(target), keep_last=1)
+        target = compact_broadcast(target, keep_last=1)
+        bad = ((target < 0) | (target >= sizes)) & chosen
+        target = target.expand_as(bad)
+        if bad.any():
+            index = bad.nonzero()[0].tolist()
+            onehot = index[-1]
+            raise ValueError(
+                f"{self.target_key!r} holds code {int(target[tuple(index)])} for one-hot "
+                f"{onehot}, which has {int(sizes[onehot])} codes (valid: 0 to "
+                f"{int(sizes[onehot]) - 1})."
+            )
 
     def extra_repr(self) -> str:
         which = self.onehots_key if self.onehots_key is not None else self.onehots

@@ -8,22 +8,17 @@ import numpy as np
 import torch
 from PIL import Image
 
+from dorp_rl.validation import check_frames, check_int
+
 
 def _check_frames(frames: torch.Tensor) -> torch.Tensor:
-    if not isinstance(frames, torch.Tensor):
-        raise ValueError(f"frames must be a torch.Tensor, got {type(frames).__name__}.")
-    if frames.dtype != torch.uint8:
-        raise ValueError(f"frames must be uint8, got {frames.dtype}.")
-    if frames.dim() < 3 or frames.shape[-3] != 3:
-        raise ValueError(f"frames must have shape [..., 3, H, W], got {list(frames.shape)}.")
-    return frames
+    return check_frames(frames, "frames", lead="...", size=None)
 
 
 def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
     """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``."""
     frames = _check_frames(frames)
-    if scale < 1:
-        raise ValueError(f"scale must be >= 1, got {scale}.")
+    scale = check_int("scale", scale, low=1)
     return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
 
 

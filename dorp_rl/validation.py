@@ -1,0 +1,441 @@
+"""The checks of user input, in one place: numbers, seeds, batch sizes, frames, actions, states.
+
+Every public entry point of dorp-rl checks its arguments with these helpers, so a mistake
+always raises ``ValueError`` with a message that names the argument, what is allowed and
+what was given. They run at the public boundary (constructors, ``reset``, a planner or
+policy call, a trainer's construction). The checks that read tensor values (an action's
+range, the range of float pixels) synchronise with the device, so they never run inside
+per-step loops (an env's ``_step`` on its own output, a planner's imagined rollouts).
+
+Config dataclasses declare one rule per field (:class:`Int`, :class:`Float`,
+:class:`Choice`, :class:`Flag`, :class:`Text`, :class:`Seed`) and are checked with
+:func:`check_fields` when they are built (see :class:`~dorp_rl.config.ConfigMixin`).
+
+Examples:
+    >>> from dorp_rl.validation import check_int, check_seed
+    >>> check_int("num_steps", 3.0, low=1)
+    3
+    >>> check_int("num_steps", 2.5, low=1)
+    Traceback (most recent call last):
+    ...
+    ValueError: num_steps must be an integer >= 1, got 2.5.
+    >>> check_seed(-1)
+    Traceback (most recent call last):
+    ...
+    ValueError: seed must be an integer in [0, 9223372036854775807], got -1.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import operator
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+#: Largest seed accepted anywhere (torch generators take 64-bit seeds; derived seeds add
+#: small offsets, which still fit).
+SEED_MAX = 2**63 - 1
+#: Channels, height and width of every frame of the paper's environments.
+FRAME_SHAPE = (3, 16, 16)
+
+__all__ = [
+    "FRAME_SHAPE",
+    "SEED_MAX",
+    "Choice",
+    "Device",
+    "Flag",
+    "Float",
+    "Int",
+    "Ints",
+    "Seed",
+    "Text",
+    "check_action",
+    "check_batch_size",
+    "check_bool",
+    "check_choice",
+    "check_fields",
+    "check_float",
+    "check_frames",
+    "check_int",
+    "check_seed",
+    "check_state_layout",
+    "derive_seed",
+    "frames_to_unit_float",
+]
+
+
+# --------------------------------------------------------------------------- numbers
+def _bounds(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    if low is not None and high is not None:
+        return f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low}"
+    if high is not None:
+        return f"{'<' if high_open else '<='} {high}"
+    return ""
+
+
+def _as_int(value: Any) -> int | None:
+    """``value`` as an int if it is an integer (int, numpy int, integral float), else ``None``."""
+    if isinstance(value, bool):
+        return None
+    try:
+        return operator.index(value)
+    except TypeError:
+        pass
+    if isinstance(value, numbers.Real) and math.isfinite(float(value)):
+        as_int = int(value)
+        return as_int if as_int == value else None
+    return None
+
+
+def check_int(
+    name: str,
+    value: Any,
+    *,
+    low: int | None = None,
+    high: int | None = None,
+    optional: bool = False,
+) -> int | None:
+    """``value`` as an ``int``; refuses non-integers (``2.5``, ``True``) and values out of range.
+
+    Integral floats (``3.0``) are taken as ints; ``None`` is taken when ``optional``.
+    """
+    if value is None and optional:
+        return None
+    bounds = _bounds(low, high, False, False)
+    as_int = _as_int(value)
+    if as_int is None:
+        what = " ".join(filter(None, ["an integer", bounds, "or None" if optional else ""]))
+        raise ValueError(f"{name} must be {what}, got {value!r}.")
+    if (low is not None and as_int < low) or (high is not None and as_int > high):
+        raise ValueError(f"{name} must be {bounds}, got {value!r}.")
+    return as_int
+
+
+def check_float(
+    name: str,
+    value: Any,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    allow_inf: bool = False,
+    optional: bool = False,
+) -> float | None:
+    """``value`` as a finite ``float`` in range (``nan`` is always refused; ``inf`` if asked)."""
+    if value is None and optional:
+        return None
+    bounds = _bounds(low, high, low_open, high_open)
+    finite = "" if allow_inf else "finite "
+    what = f"a {finite}number {bounds}".rstrip()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be {what}, got {value!r}.")
+    number = float(value)
+    if math.isnan(number) or (math.isinf(number) and not allow_inf):
+        raise ValueError(f"{name} must be {what}, got {value!r}.")
+    too_low = low is not None and (number <= low if low_open else number < low)
+    too_high = high is not None and (number >= high if high_open else number > high)
+    if too_low or too_high:
+        raise ValueError(f"{name} must be {what}, got {value!r}.")
+    return number
+
+
+def check_bool(name: str, value: Any) -> bool:
+    """``value`` if it is a ``bool`` (numpy bools too); refuses ``0``, ``"yes"``, ..."""
+    if isinstance(value, bool) or type(value).__name__ == "bool_":
+        return bool(value)
+    raise ValueError(f"{name} must be True or False, got {value!r}.")
+
+
+def check_choice(name: str, value: Any, choices: Sequence[Any], *, optional: bool = False) -> Any:
+    """``value`` if it is one of ``choices``."""
+    if value is None and optional:
+        return None
+    if value not in tuple(choices):
+        extra = " or None" if optional else ""
+        raise ValueError(f"{name} must be one of {tuple(choices)}{extra}, got {value!r}.")
+    return value
+
+
+def check_seed(seed: Any, name: str = "seed", *, optional: bool = False) -> int | None:
+    """A seed: an integer in ``[0, 2**63 - 1]`` (``None`` when ``optional``)."""
+    return check_int(name, seed, low=0, high=SEED_MAX, optional=optional)
+
+
+def derive_seed(seed: int, offset: int) -> int:
+    """``seed + offset`` wrapped into ``[0, SEED_MAX]``: the seed of a derived generator."""
+    return (int(seed) + int(offset)) % (SEED_MAX + 1)
+
+
+def check_batch_size(batch_size: Any, name: str = "batch_size") -> torch.Size:
+    """A batch shape: an int ``n`` (taken as ``(n,)``) or a sequence of ints ``>= 1``; ``()`` is allowed."""
+    if _as_int(batch_size) is not None:
+        batch_size = (batch_size,)
+    if isinstance(batch_size, (str, bytes)) or not isinstance(batch_size, Iterable):
+        raise ValueError(
+            f"{name} must be a sequence of integers >= 1 (e.g. (8,) or ()), got {batch_size!r}."
+        )
+    dims = list(batch_size)
+    if any(_as_int(d) is None or _as_int(d) < 1 for d in dims):
+        raise ValueError(
+            f"{name} must hold integers >= 1 (every dimension at least one env), got "
+            f"{tuple(dims)!r}."
+        )
+    return torch.Size([_as_int(d) for d in dims])
+
+
+# --------------------------------------------------------------------------- config rules
+@dataclass(frozen=True)
+class Int:
+    """Rule of an integer config field."""
+
+    low: int | None = None
+    high: int | None = None
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> int | None:
+        return check_int(name, value, low=self.low, high=self.high, optional=self.optional)
+
+
+@dataclass(frozen=True)
+class Ints:
+    """Rule of a tuple-of-integers field (e.g. conv dilations), each ``>= low``."""
+
+    low: int | None = None
+    min_length: int = 1
+
+    def __call__(self, name: str, value: Any) -> tuple[int, ...]:
+        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+            raise ValueError(f"{name} must be a sequence of integers, got {value!r}.")
+        items = tuple(value)
+        if len(items) < self.min_length:
+            raise ValueError(
+                f"{name} must hold at least {self.min_length} integer(s), got {value!r}."
+            )
+        return tuple(check_int(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(items))
+
+
+@dataclass(frozen=True)
+class Float:
+    """Rule of a float config field (finite unless ``allow_inf``)."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    allow_inf: bool = False
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> float | None:
+        return check_float(
+            name,
+            value,
+            low=self.low,
+            high=self.high,
+            low_open=self.low_open,
+            high_open=self.high_open,
+            allow_inf=self.allow_inf,
+            optional=self.optional,
+        )
+
+
+@dataclass(frozen=True)
+class Choice:
+    """Rule of a field taking one of a few values."""
+
+    options: tuple[Any, ...]
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> Any:
+        return check_choice(name, value, self.options, optional=self.optional)
+
+
+@dataclass(frozen=True)
+class Flag:
+    """Rule of a ``bool`` field."""
+
+    def __call__(self, name: str, value: Any) -> bool:
+        return check_bool(name, value)
+
+
+@dataclass(frozen=True)
+class Text:
+    """Rule of a non-empty string field (paths too: a ``pathlib.Path`` is stored as ``str``)."""
+
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> str | None:
+        if value is None and self.optional:
+            return None
+        if isinstance(value, os.PathLike):
+            value = os.fspath(value)
+        if not isinstance(value, str) or not value:
+            extra = " or None" if self.optional else ""
+            raise ValueError(f"{name} must be a non-empty string{extra}, got {value!r}.")
+        return value
+
+
+@dataclass(frozen=True)
+class Seed:
+    """Rule of a seed field (see :func:`check_seed`)."""
+
+    def __call__(self, name: str, value: Any) -> int:
+        return check_seed(value, name)
+
+
+@dataclass(frozen=True)
+class Device:
+    """Rule of a torch device field, stored as a string (``"cpu"``, ``"cuda:0"``)."""
+
+    def __call__(self, name: str, value: Any) -> str:
+        try:
+            return str(torch.device(value))
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(
+                f"{name} must name a torch device (e.g. 'cpu'), got {value!r}."
+            ) from err
+
+
+def check_fields(obj: Any, rules: Mapping[str, Any], fields: Iterable[str]) -> None:
+    """Checks every field of a dataclass ``obj`` with its rule and stores the normalised value.
+
+    Raises:
+        ValueError: the first field that breaks its rule (the message names it).
+        TypeError: a field without a rule (a bug of the config class, not of its user).
+    """
+    missing = [name for name in fields if name not in rules]
+    if missing:
+        raise TypeError(f"{type(obj).__name__} has no validation rule for fields {missing}.")
+    for name in fields:
+        object.__setattr__(obj, name, rules[name](name, getattr(obj, name)))
+
+
+# --------------------------------------------------------------------------- tensors
+def as_tensor(value: Any, name: str) -> torch.Tensor:
+    """``value`` as a tensor: tensors pass, numpy arrays are wrapped without a copy."""
+    if isinstance(value, torch.Tensor):
+        return value
+    if type(value).__module__ == "numpy" and hasattr(value, "__array__"):
+        import numpy as np
+
+        return torch.from_numpy(np.ascontiguousarray(value))
+    raise ValueError(f"{name} must be a torch.Tensor or a numpy array, got {type(value).__name__}.")
+
+
+def _lead_text(lead: str | Sequence[int]) -> str:
+    return lead if isinstance(lead, str) else ", ".join(str(d) for d in lead)
+
+
+def check_frames(
+    pixels: Any,
+    name: str = "pixels",
+    *,
+    floats: bool = False,
+    lead: str | Sequence[int] = "*B",
+    size: int | None = 16,
+) -> torch.Tensor:
+    """Checks frames ``[*B, 3, H, W]`` and returns them as a tensor (numpy arrays are taken).
+
+    Args:
+        pixels: uint8 frames, or floats in ``[0, 1]`` when ``floats`` is set.
+        name: the argument's name, for the message.
+        floats: also take floating-point frames; their values must lie in ``[0, 1]``
+            (one device synchronisation): a float frame in ``0..255`` is a forgotten
+            ``/ 255`` and is refused rather than silently misread.
+        lead: the leading dimensions, ``"*B"`` or ``"..."`` (any), ``"N"`` (exactly one)
+            or a shape.
+        size: height and width (``None``: any).
+    """
+    pixels = as_tensor(pixels, name)
+    hw = "H, W" if size is None else f"{size}, {size}"
+    layout = f"[{_lead_text(lead)}, 3, {hw}]"
+    lead_ok = (
+        pixels.dim() >= 3
+        if lead in ("*B", "...")
+        else pixels.dim() == 4
+        if lead == "N"
+        else tuple(pixels.shape[:-3]) == tuple(lead) and pixels.dim() >= 3
+    )
+    frame_ok = pixels.dim() >= 3 and pixels.shape[-3] == 3
+    if size is not None:
+        frame_ok = frame_ok and tuple(pixels.shape[-2:]) == (size, size)
+    if not (lead_ok and frame_ok):
+        raise ValueError(f"{name} must have shape {layout}, got {list(pixels.shape)}.")
+    if pixels.dtype == torch.uint8:
+        return pixels
+    if not floats or not pixels.dtype.is_floating_point:
+        allowed = "uint8 (0-255) or floating point (0-1)" if floats else "uint8 (0-255)"
+        raise ValueError(f"{name} must be {allowed}, got dtype {pixels.dtype}.")
+    if pixels.numel():
+        low, high = torch.stack(torch.aminmax(pixels.detach())).tolist()  # one sync
+        if not (low >= 0.0 and high <= 1.0):
+            raise ValueError(
+                f"{name} are floats with values in [{low:g}, {high:g}]: float frames must lie "
+                "in [0, 1] (divide uint8 frames by 255, or pass the uint8 frames as they are)."
+            )
+    return pixels
+
+
+def frames_to_unit_float(pixels: Any, name: str = "pixels") -> torch.Tensor:
+    """Frames ``[*B, 3, 16, 16]`` (uint8, or floats in ``[0, 1]``) as floats in ``[0, 1]``."""
+    pixels = check_frames(pixels, name, floats=True)
+    return pixels.float() / 255.0 if pixels.dtype == torch.uint8 else pixels
+
+
+def check_action(
+    action: Any,
+    num_actions: int,
+    name: str = "action",
+    *,
+    shape: Sequence[int] | None = None,
+) -> torch.Tensor:
+    """Checks discrete actions int ``[*B, 1]`` in ``[0, num_actions - 1]``; returns them as int64.
+
+    ``shape`` is the exact expected shape (else any ``[*B, 1]``). The range check reads the
+    values (one device synchronisation).
+    """
+    if not isinstance(action, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(action).__name__}.")
+    if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
+        raise ValueError(f"{name} must be an integer tensor, got dtype {action.dtype}.")
+    if shape is not None and tuple(action.shape) != tuple(shape):
+        raise ValueError(f"{name} must have shape {list(shape)}, got {list(action.shape)}.")
+    if action.shape[-1:] != (1,):
+        raise ValueError(f"{name} must have shape [*B, 1], got {list(action.shape)}.")
+    if action.numel():
+        low, high = torch.stack(torch.aminmax(action)).tolist()  # one sync
+        if low < 0 or high >= num_actions:
+            raise ValueError(
+                f"{name} out of range: expected integers in [0, {num_actions - 1}] "
+                f"(num_actions = {num_actions}), got min {low} and max {high}."
+            )
+    return action.to(torch.int64)
+
+
+def check_state_layout(
+    state: Any, state_shape: Sequence[int], name: str = "state", *, owner: str = ""
+) -> torch.Tensor:
+    """Checks the dtype (int64) and trailing shape of a batch of states ``[*B, *state_shape]``.
+
+    Reads no values (no device synchronisation); the rules of a world (no overlap, no
+    wall) are checked by the env (:meth:`~dorp_rl.envs.GridWorldEnv.check_state`).
+    """
+    if not isinstance(state, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(state).__name__}.")
+    if state.dtype != torch.int64:
+        raise ValueError(f"{name} must have dtype torch.int64, got {state.dtype}.")
+    expected = tuple(state_shape)
+    if state.dim() < len(expected) or tuple(state.shape[state.dim() - len(expected) :]) != expected:
+        where = f" for {owner}" if owner else ""
+        raise ValueError(
+            f"{name} must have shape [*B, {', '.join(map(str, expected))}]{where}, "
+            f"got {list(state.shape)}."
+        )
+    return state
