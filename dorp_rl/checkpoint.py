@@ -1,19 +1,32 @@
 """The one checkpoint format of dorp-rl: config, state dicts, step, RNG states, versions.
 
-Checkpoints are written to a temporary file and renamed, so an interrupted write never
-leaves a half file under the real name. Loading checks the kind of checkpoint and the
-environment it was trained on, and says what does not fit.
+A checkpoint file is a torch file holding ``{"format", "kind", "sha256", "payload"}``:
+``payload`` is the serialised checkpoint and ``sha256`` its checksum, so a changed byte
+anywhere in the payload is refused instead of loaded. Files are written to a temporary
+name, flushed and renamed, so an interrupted write never leaves a half file under the
+real name; weights with NaN or infinite values are neither written nor loaded. Loading
+checks the kind of checkpoint, its entries and the environment it was trained on, and
+says what does not fit.
 """
 
 from __future__ import annotations
 
-import os
+import hashlib
+import io
+import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+from torch import nn
 
-CHECKPOINT_FORMAT = 1
+from dorp_rl.integrity import IntegrityError, atomic_write_bytes, non_finite_entries
+
+#: 2: checksummed payload. 1 (read with a warning): the payload itself, no checksum.
+CHECKPOINT_FORMAT = 2
+#: Entries every checkpoint payload has.
+REQUIRED_ENTRIES = ("format", "kind", "config", "env_config", "state", "step")
 
 
 def library_versions() -> dict[str, str]:
@@ -29,6 +42,14 @@ def library_versions() -> dict[str, str]:
         "torchrl": str(torchrl.__version__),
         "tensordict": str(tensordict.__version__),
     }
+
+
+def _non_finite_message(path: Path, entries: list[str], verb: str) -> str:
+    shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
+    return (
+        f"{verb} checkpoint {path}: NaN or infinite values in {shown}. The run it "
+        "comes from diverged; use an earlier checkpoint."
+    )
 
 
 def save_checkpoint(
@@ -53,9 +74,15 @@ def save_checkpoint(
         step: gradient steps done.
         rng: generator states needed to continue identically.
         extra: anything else JSON-like (metrics, restart counters).
+
+    Raises:
+        IntegrityError: ``state`` holds NaN or infinite values (the file is not written,
+            so an earlier checkpoint under ``path`` stays as it was).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    bad = non_finite_entries(state)
+    if bad:
+        raise IntegrityError(_non_finite_message(path, bad, "refusing to write"))
     payload = {
         "format": CHECKPOINT_FORMAT,
         "kind": kind,
@@ -67,10 +94,59 @@ def save_checkpoint(
         "extra": extra or {},
         "versions": library_versions(),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-    return path
+    inner = io.BytesIO()
+    torch.save(payload, inner)
+    data = inner.getvalue()
+    outer = io.BytesIO()
+    torch.save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "kind": kind,
+            "sha256": hashlib.sha256(data).hexdigest(),
+            "payload": data,
+        },
+        outer,
+    )
+    return atomic_write_bytes(path, outer.getvalue())
+
+
+def _read_payload(path: Path, map_location: str | torch.device) -> dict[str, Any]:
+    try:
+        outer = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:
+        raise IntegrityError(
+            f"checkpoint {path} is corrupted or not a torch file ({err})."
+        ) from err
+    if not isinstance(outer, dict) or "format" not in outer:
+        raise IntegrityError(f"{path} is not a dorp-rl checkpoint (no 'format' entry).")
+    if outer["format"] == 1:  # written before checksums
+        warnings.warn(
+            f"checkpoint {path} has format 1, written without a checksum: a damaged file "
+            "cannot be told from a good one. Save it again to protect it.",
+            UserWarning,
+            stacklevel=3,
+        )
+        return outer
+    if outer["format"] != CHECKPOINT_FORMAT:
+        raise IntegrityError(
+            f"checkpoint {path} has format {outer['format']!r}, this version reads formats 1 "
+            f"and {CHECKPOINT_FORMAT}."
+        )
+    data, expected = outer.get("payload"), outer.get("sha256")
+    if not isinstance(data, bytes) or not isinstance(expected, str):
+        raise IntegrityError(f"checkpoint {path} is corrupted: no payload or checksum.")
+    if hashlib.sha256(data).hexdigest() != expected:
+        raise IntegrityError(
+            f"checkpoint {path} is corrupted: its content does not match its SHA-256 "
+            "checksum (the file changed after it was written)."
+        )
+    try:
+        payload = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
+    except Exception as err:  # a checksummed payload that does not load: another version
+        raise IntegrityError(f"checkpoint {path} could not be read ({err}).") from err
+    if not isinstance(payload, dict):
+        raise IntegrityError(f"checkpoint {path} is corrupted: its payload is not a dict.")
+    return payload
 
 
 def load_checkpoint(
@@ -79,35 +155,47 @@ def load_checkpoint(
     kind: str | None = None,
     env_config: dict[str, Any] | None = None,
     map_location: str | torch.device = "cpu",
+    state_keys: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Reads a checkpoint written by :func:`save_checkpoint` and checks that it fits.
 
+    Args:
+        path: the checkpoint file.
+        kind: the kind it must hold (``None``: any).
+        env_config: the environment it must come from (``None``: any).
+        map_location: where tensors are loaded.
+        state_keys: entries its ``state`` must have (e.g. ``("encoder",)``).
+
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: the file is not a readable dorp-rl checkpoint (corrupted or foreign),
-            is of another ``kind``, or comes from another environment (the message lists
-            the differing entries).
+        IntegrityError: the file is damaged (checksum mismatch, unreadable), lacks an
+            entry, or holds NaN or infinite values (a ``ValueError``).
+        ValueError: the file is of another ``kind`` or comes from another environment
+            (the message lists the differing entries).
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}.")
-    try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:
-        raise ValueError(f"checkpoint {path} is corrupted or not a torch file ({err}).") from err
-    if not isinstance(payload, dict) or "format" not in payload:
-        raise ValueError(f"{path} is not a dorp-rl checkpoint (no 'format' entry).")
-    if payload["format"] != CHECKPOINT_FORMAT:
-        raise ValueError(
-            f"checkpoint {path} has format {payload['format']}, this version reads "
-            f"format {CHECKPOINT_FORMAT}."
+    payload = _read_payload(path, map_location)
+    missing = [k for k in REQUIRED_ENTRIES if k not in payload]
+    if missing:
+        raise IntegrityError(
+            f"checkpoint {path} is incomplete: it has no {', '.join(map(repr, missing))} "
+            f"entry (it holds {sorted(payload)})."
         )
-    if kind is not None and payload.get("kind") != kind:
-        raise ValueError(
-            f"checkpoint {path} holds a {payload.get('kind')!r} model, expected {kind!r}."
+    if kind is not None and payload["kind"] != kind:
+        raise ValueError(f"checkpoint {path} holds a {payload['kind']!r} model, expected {kind!r}.")
+    state = payload["state"]
+    if not isinstance(state, dict):
+        raise IntegrityError(f"checkpoint {path} is corrupted: its 'state' is not a dict.")
+    missing = [k for k in state_keys if k not in state]
+    if missing:
+        raise IntegrityError(
+            f"checkpoint {path} is incomplete: its state has no {', '.join(map(repr, missing))} "
+            f"entry (it holds {sorted(state)}); was it written by another trainer?"
         )
     if env_config is not None:
-        stored = payload.get("env_config", {})
+        stored = payload.get("env_config") or {}
         keys = sorted(set(stored) | set(env_config))
         diff = [k for k in keys if stored.get(k) != env_config.get(k)]
         if diff:
@@ -115,4 +203,20 @@ def load_checkpoint(
                 f"{k}: checkpoint {stored.get(k)!r}, requested {env_config.get(k)!r}" for k in diff
             )
             raise ValueError(f"checkpoint {path} was trained on another environment ({details}).")
+    bad = non_finite_entries(state)
+    if bad:
+        raise IntegrityError(_non_finite_message(path, bad, "refusing to load"))
     return payload
+
+
+def load_module_state(
+    module: nn.Module, state: dict[str, Any], path: str | Path, entry: str
+) -> None:
+    """``module.load_state_dict(state)``; a mismatch raises a ``ValueError`` naming the file and entry."""
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, KeyError, ValueError, TypeError) as err:
+        raise ValueError(
+            f"checkpoint {path}: its {entry!r} weights do not fit this {type(module).__name__} "
+            f"({err})."
+        ) from err
