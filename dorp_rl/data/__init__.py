@@ -1,8 +1,10 @@
 """Play data: collection into TorchRL replay buffers, pair and sequence samplers."""
 
 from dorp_rl.data.play import (
+    MATCH_FIELDS,
     PLAY_KEYS,
     UniformRandomPolicy,
+    check_play_buffer,
     collect_play_data,
     load_play_data,
     play_env,
@@ -13,8 +15,10 @@ __all__ = [
     "FuturePairSampler",
     "SequenceSampler",
     "future_pairs",
+    "MATCH_FIELDS",
     "PLAY_KEYS",
     "UniformRandomPolicy",
+    "check_play_buffer",
     "collect_play_data",
     "load_play_data",
     "play_env",

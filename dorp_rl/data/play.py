@@ -1,21 +1,46 @@
-"""Play data: the paper's goal-free exploration, collected with torchrl's ``Collector``."""
+"""Play data: the paper's goal-free exploration, collected with torchrl's ``Collector``.
+
+On disk (``collect_play_data(..., directory=...)``) a collection is a folder holding
+
+- ``storage/``: the transitions as memory-mapped tensors (tensordict's layout);
+- ``play_data.json``: what was collected (every argument that changes the data), the
+  dtype and shape of every stored tensor, and the size and SHA-256 checksum of every
+  file under ``storage/``, written last: its presence marks a complete collection;
+- ``play_data.lock``: locked while a process writes here, so that two collections
+  never mix their data; it also marks ``storage/`` as written by this library.
+
+Loading checks the checksums before any tensor is mapped and maps the files
+copy-on-write: loading never writes to the data, and changing a loaded buffer never
+reaches the disk.
+"""
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import shutil
+import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import Sampler
+from torchrl.data.replay_buffers.storages import TensorStorage
 
 from dorp_rl.envs.grid_base import GridWorldEnv
+from dorp_rl.integrity import (
+    DirectoryLock,
+    IntegrityError,
+    atomic_write_bytes,
+    file_manifest,
+    verify_manifest,
+)
+from dorp_rl.validation import check_int, check_seed, derive_seed
 
 #: Keys kept for every transition of the play data.
 PLAY_KEYS = (
@@ -28,7 +53,13 @@ PLAY_KEYS = (
     ("next", "state"),
 )
 _METADATA_FILE = "play_data.json"
-_FORMAT_VERSION = 1
+_LOCK_FILE = "play_data.lock"
+_STORAGE = "storage"
+#: 2: checksums of every file and of the metadata. 1 (read with a warning): no checksums.
+_FORMAT_VERSION = 2
+#: Every argument that changes the collected data; a stored collection is reused only
+#: when all of them match the request.
+MATCH_FIELDS = ("env_config", "num_frames", "seed", "trajectory_length", "num_envs", "device")
 
 
 class UniformRandomPolicy:
@@ -41,10 +72,10 @@ class UniformRandomPolicy:
     """
 
     def __init__(self, num_actions: int, seed: int = 0, device: torch.device | str = "cpu") -> None:
-        self.num_actions = int(num_actions)
+        self.num_actions = check_int("num_actions", num_actions, low=1)
         self.device = torch.device(device)
         self.rng = torch.Generator(device=self.device)
-        self.rng.manual_seed(int(seed))
+        self.rng.manual_seed(check_seed(seed))
 
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = torch.randint(
@@ -65,9 +96,8 @@ def play_env(env: GridWorldEnv, trajectory_length: int | None = None) -> GridWor
     """
     if not isinstance(env, GridWorldEnv):
         raise ValueError(f"env must be a dorp_rl GridWorldEnv, got {type(env).__name__}.")
-    length = env.PLAY_TRAJECTORY_LENGTH if trajectory_length is None else int(trajectory_length)
-    if length < 1:
-        raise ValueError(f"trajectory_length must be >= 1, got {trajectory_length}.")
+    length = check_int("trajectory_length", trajectory_length, low=1, optional=True)
+    length = env.PLAY_TRAJECTORY_LENGTH if length is None else length
     if env.batch_size == torch.Size([]) and not env.batch_locked:
         raise ValueError("env must be batch-locked to collect play data (batch_locked=True).")
     out = copy.deepcopy(env)
@@ -84,6 +114,7 @@ def _metadata(env: GridWorldEnv, num_frames: int, seed: int, trajectory_length: 
         "seed": int(seed),
         "trajectory_length": int(trajectory_length),
         "num_envs": int(env.batch_size.numel()),
+        "device": str(env.device),
     }
 
 
@@ -97,11 +128,131 @@ def _make_buffer(
     if directory is None:
         storage = LazyTensorStorage(num_frames, device=device)
     else:
-        storage = LazyMemmapStorage(num_frames, scratch_dir=directory / "storage")
+        storage = LazyMemmapStorage(num_frames, scratch_dir=directory / _STORAGE)
+    return _buffer(storage, sampler, batch_size)
+
+
+def _buffer(
+    storage: Any, sampler: Sampler | None, batch_size: int | None
+) -> TensorDictReplayBuffer:
     kwargs: dict[str, Any] = {"storage": storage, "batch_size": batch_size}
     if sampler is not None:
         kwargs["sampler"] = sampler
     return TensorDictReplayBuffer(**kwargs)
+
+
+def _metadata_digest(metadata: dict) -> str:
+    """SHA-256 of the metadata's own content (all entries but the digest)."""
+    body = {k: v for k, v in metadata.items() if k != "metadata_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def _key_name(key: str | tuple[str, ...]) -> str:
+    return "/".join(key) if isinstance(key, tuple) else key
+
+
+def _tensor_entries(data: TensorDictBase, directory: Path) -> dict[str, dict[str, Any]]:
+    """``{"next/pixels": {"dtype", "shape", "file"}}`` of a memory-mapped storage."""
+    entries = {}
+    for key, tensor in data.items(include_nested=True, leaves_only=True):
+        entries[_key_name(key)] = {
+            "dtype": str(tensor.dtype).removeprefix("torch."),
+            "shape": list(tensor.shape),
+            "file": Path(tensor.filename).resolve().relative_to(directory.resolve()).as_posix(),
+        }
+    return entries
+
+
+def _legacy_entries(directory: Path, what: str) -> dict[str, dict[str, Any]]:
+    """Tensor entries of a format-1 collection, read from tensordict's ``meta.json`` files."""
+    entries: dict[str, dict[str, Any]] = {}
+
+    def walk(folder: Path, prefix: tuple[str, ...]) -> None:
+        meta_file = folder / "meta.json"
+        try:
+            meta = json.loads(meta_file.read_text())
+        except (OSError, ValueError) as err:
+            raise IntegrityError(f"{what} is damaged: {meta_file} cannot be read ({err}).") from err
+        for name, value in meta.items():
+            if not isinstance(value, dict):
+                continue
+            if value.get("type") == "TensorDict":
+                walk(folder / name, (*prefix, name))
+            elif "shape" in value and "dtype" in value:
+                entries[_key_name((*prefix, name))] = {
+                    "dtype": str(value["dtype"]).removeprefix("torch."),
+                    "shape": list(value["shape"]),
+                    "file": (folder / f"{name}.memmap").relative_to(directory).as_posix(),
+                }
+
+    walk(directory / _STORAGE, ())
+    return entries
+
+
+def _dtype(name: str, what: str) -> torch.dtype:
+    dtype = getattr(torch, str(name), None)
+    if not isinstance(dtype, torch.dtype):
+        raise IntegrityError(f"{what} is damaged: unknown dtype {name!r} in its metadata.")
+    return dtype
+
+
+def _read_metadata(directory: Path) -> dict[str, Any]:
+    meta_path = directory / _METADATA_FILE
+    if not meta_path.exists():
+        raise FileNotFoundError(f"no play data at {directory}: {_METADATA_FILE} is missing.")
+    try:
+        metadata = json.loads(meta_path.read_text())
+    except (ValueError, UnicodeDecodeError) as err:
+        raise IntegrityError(f"play data metadata {meta_path} is corrupted: {err}.") from err
+    required = ["format_version", "env_config", "num_frames", "seed", "trajectory_length"]
+    if not isinstance(metadata, dict) or any(k not in metadata for k in required):
+        raise IntegrityError(
+            f"play data metadata {meta_path} is corrupted: expected a JSON object with {required}."
+        )
+    version = metadata["format_version"]
+    if version not in (1, _FORMAT_VERSION):
+        raise ValueError(
+            f"play data at {directory} has format_version {version!r}, expected "
+            f"{_FORMAT_VERSION} (or 1)."
+        )
+    if version == _FORMAT_VERSION:
+        required += ["num_envs", "device", "tensors", "files", "metadata_sha256"]
+        missing = [k for k in required if k not in metadata]
+        if missing:
+            raise IntegrityError(f"play data metadata {meta_path} is corrupted: no {missing}.")
+    return metadata
+
+
+def _check_tensor_files(directory: Path, tensors: dict[str, dict], what: str) -> None:
+    """Every tensor's file exists and holds exactly ``numel * itemsize`` bytes (reads nothing)."""
+    for key, entry in tensors.items():
+        path = directory / entry["file"]
+        dtype = _dtype(entry["dtype"], what)
+        expected = math.prod(entry["shape"]) * dtype.itemsize
+        if not path.is_file():
+            raise IntegrityError(f"{what} is incomplete: {path} (key {key!r}) is missing.")
+        if path.stat().st_size != expected:
+            raise IntegrityError(
+                f"{what} is damaged: {path} (key {key!r}) holds {path.stat().st_size} bytes, "
+                f"its {entry['shape']} {entry['dtype']} tensor needs {expected}."
+            )
+
+
+def _map_tensors(
+    directory: Path, tensors: dict[str, dict], num_frames: int, what: str
+) -> TensorDict:
+    """The stored tensors, mapped copy-on-write: nothing written to them reaches the files."""
+    data = TensorDict(batch_size=[num_frames])
+    for key, entry in tensors.items():
+        shape = torch.Size(entry["shape"])
+        tensor = torch.from_file(
+            str(directory / entry["file"]),
+            shared=False,
+            size=shape.numel(),
+            dtype=_dtype(entry["dtype"], what),
+        )
+        data.set(tuple(key.split("/")), tensor.view(shape))
+    return data
 
 
 def load_play_data(
@@ -113,52 +264,103 @@ def load_play_data(
 ) -> TensorDictReplayBuffer:
     """Loads play data written by :func:`collect_play_data` (memory-mapped, no copy).
 
+    Before any tensor is mapped, the files are checked against the sizes and SHA-256
+    checksums written when the collection completed; the files are then mapped
+    copy-on-write, so loading never writes to the data and changes to the returned
+    buffer stay in memory. Data of format 1 (written before checksums) are checked for
+    their keys and file sizes only, with a warning.
+
     Args:
         directory: folder given to :func:`collect_play_data`.
         sampler: sampler of the returned buffer (e.g. :class:`FuturePairSampler`).
         batch_size: default sample size of the returned buffer.
-        expected: metadata the data must match (keys of :func:`play_data_metadata`);
-            a mismatch raises ``ValueError`` naming the differing entries.
+        expected: metadata the data must match (entries of :data:`MATCH_FIELDS`); a
+            mismatch raises ``ValueError`` naming the differing entries.
+
+    Raises:
+        FileNotFoundError: no complete collection in ``directory``.
+        IntegrityError: a missing, truncated or changed file, missing keys, or damaged
+            metadata (a ``ValueError``; the message names the file).
+        ValueError: another format, or data that do not match ``expected``.
     """
     directory = Path(directory)
-    meta_path = directory / _METADATA_FILE
-    if not meta_path.exists():
-        raise FileNotFoundError(f"no play data at {directory}: {_METADATA_FILE} is missing.")
-    try:
-        metadata = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"play data metadata {meta_path} is corrupted: {err}.") from err
-    required = ("format_version", "env_config", "num_frames", "seed", "trajectory_length")
-    if not isinstance(metadata, dict) or any(k not in metadata for k in required):
-        raise ValueError(
-            f"play data metadata {meta_path} is corrupted: expected a JSON object with {list(required)}."
+    what = f"play data at {directory}"
+    metadata = _read_metadata(directory)
+    legacy = metadata["format_version"] == 1
+    if legacy:
+        warnings.warn(
+            f"{what} has format_version 1, written without checksums: only its keys and file "
+            "sizes can be checked. Collect it again into an empty directory to protect it.",
+            UserWarning,
+            stacklevel=2,
         )
-    if metadata.get("format_version") != _FORMAT_VERSION:
-        raise ValueError(
-            f"play data at {directory} has format_version {metadata.get('format_version')}, "
-            f"expected {_FORMAT_VERSION}."
+        tensors = _legacy_entries(directory, what)
+        metadata.setdefault("device", "cpu")  # format 1 was only ever collected on CPU
+    else:
+        tensors = metadata["tensors"]
+        if not isinstance(tensors, dict) or not tensors:
+            raise IntegrityError(f"{what} is damaged: its metadata lists no tensors.")
+    num_frames = metadata["num_frames"]
+    for key, entry in tensors.items():
+        if list(entry["shape"][:1]) != [num_frames]:
+            raise IntegrityError(
+                f"{what} holds {entry['shape'][0]} frames of {key!r}, its metadata says "
+                f"{num_frames}: the collection was probably interrupted, or the metadata edited."
+            )
+    if not legacy and _metadata_digest(metadata) != metadata["metadata_sha256"]:
+        raise IntegrityError(
+            f"{what} is damaged: {directory / _METADATA_FILE} changed after it was written "
+            "(its checksum does not match its content)."
         )
     if expected is not None:
         diff = {k: (metadata.get(k), v) for k, v in expected.items() if metadata.get(k) != v}
         if diff:
             lines = "; ".join(f"{k}: stored {a!r}, requested {b!r}" for k, (a, b) in diff.items())
-            raise ValueError(f"play data at {directory} does not match the request ({lines}).")
-    buffer = _make_buffer(
-        metadata["num_frames"], directory, sampler, batch_size, torch.device("cpu")
-    )
-    try:
-        buffer.loads(directory)
-    except Exception as err:  # a partial or damaged dump
-        raise ValueError(f"play data at {directory} could not be loaded ({err}).") from err
-    # ReplayBuffer.loads restores the batch size saved at collection time; use the requested one.
-    buffer._batch_size = batch_size
-    if len(buffer) != metadata["num_frames"]:
-        raise ValueError(
-            f"play data at {directory} holds {len(buffer)} frames, its metadata says "
-            f"{metadata['num_frames']}: the collection was probably interrupted."
+            raise ValueError(
+                f"{what} does not match the request ({lines}); collect into another directory."
+            )
+    missing = [_key_name(k) for k in PLAY_KEYS if _key_name(k) not in tensors]
+    if missing:
+        raise IntegrityError(
+            f"{what} is incomplete: it holds no {missing} (files under "
+            f"{directory / _STORAGE} are missing)."
         )
+    if not legacy:
+        verify_manifest(directory, metadata["files"], what)
+    _check_tensor_files(directory, tensors, what)
+    data = _map_tensors(directory, tensors, num_frames, what)
+    buffer = _buffer(TensorStorage(data), sampler, batch_size)
     buffer.metadata = metadata
     return buffer
+
+
+def _seal(directory: Path, buffer: TensorDictReplayBuffer, metadata: dict) -> None:
+    """Writes ``play_data.json``: tensors, file sizes and checksums (flushed), then its own."""
+    metadata = dict(metadata)
+    metadata["tensors"] = _tensor_entries(buffer.storage._storage, directory)
+    metadata["files"] = file_manifest(directory, _STORAGE)
+    metadata["metadata_sha256"] = _metadata_digest(metadata)
+    atomic_write_bytes(directory / _METADATA_FILE, json.dumps(metadata, indent=2).encode())
+
+
+def _claim(directory: Path, wait: bool | float) -> DirectoryLock:
+    """Locks ``directory`` for a collection and removes what an interrupted one of ours left.
+
+    Refuses a ``storage/`` folder this library did not write (no lock file next to it):
+    nothing is deleted that the library did not write.
+    """
+    lock = DirectoryLock(directory, _LOCK_FILE, purpose="play data collection")
+    storage = directory / _STORAGE
+    if storage.exists() and not lock.path.exists():
+        raise ValueError(
+            f"{directory} already holds a {_STORAGE!r} folder that collect_play_data did not "
+            f"write (there is no {_LOCK_FILE} next to it): it is left untouched. Collect into "
+            "another directory, or move that folder away."
+        )
+    lock.acquire(wait)
+    if not (directory / _METADATA_FILE).exists():
+        shutil.rmtree(storage, ignore_errors=True)  # an interrupted collection of ours
+    return lock
 
 
 def collect_play_data(
@@ -171,6 +373,7 @@ def collect_play_data(
     sampler: Sampler | None = None,
     batch_size: int | None = None,
     progress: bool = False,
+    wait: bool | float = False,
 ) -> TensorDictReplayBuffer:
     """Collects ``num_frames`` transitions of random play into a replay buffer.
 
@@ -186,14 +389,25 @@ def collect_play_data(
     Args:
         env: a batch-locked :class:`~dorp_rl.envs.GridWorldEnv` (its batch = parallel envs).
         num_frames: transitions to keep.
-        directory: if given, data live in a ``LazyMemmapStorage`` there; when the folder
-            already holds data collected with the same env, size, seed and trajectory
-            length, it is loaded instead of collected again.
+        directory: if given, data are written there (see the module docstring) and
+            checked when loaded. When the folder already holds a complete collection
+            made with the same :data:`MATCH_FIELDS` (env, size, seed, trajectory length,
+            number of parallel envs, device), it is loaded instead of collected again;
+            another collection raises ``ValueError`` naming the differing fields.
         seed: seeds both the env and the exploration policy: same seed, same data.
         trajectory_length: overrides the env's play trajectory length.
         sampler: sampler of the returned buffer (default: uniform over transitions).
         batch_size: default sample size of the returned buffer.
         progress: show a tqdm bar.
+        wait: when another process is collecting into ``directory``: ``False`` raises
+            :class:`~dorp_rl.integrity.DirectoryLockedError` at once, ``True`` waits for
+            it (and then loads its data if they match), a number waits that many seconds.
+
+    Raises:
+        ValueError: bad arguments, a stored collection that does not match, or a
+            ``storage`` folder in ``directory`` that this library did not write.
+        DirectoryLockedError: another process is collecting into ``directory``.
+        IntegrityError: the stored data are damaged (see :func:`load_play_data`).
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -203,23 +417,41 @@ def collect_play_data(
         >>> len(buffer), buffer[0]["pixels"].shape
         (256, torch.Size([3, 16, 16]))
     """
-    num_frames = int(num_frames)
-    if num_frames < 1:
-        raise ValueError(f"num_frames must be >= 1, got {num_frames}.")
+    num_frames = check_int("num_frames", num_frames, low=1)
+    seed = check_seed(seed)
+    batch_size = check_int("batch_size", batch_size, low=1, optional=True)
     collect_env = play_env(env, trajectory_length)
-    length = collect_env.max_steps
-    metadata = _metadata(collect_env, num_frames, seed, length)
-    if directory is not None:
-        directory = Path(directory)
-        if (directory / _METADATA_FILE).exists():
-            check = {
-                k: metadata[k] for k in ("env_config", "num_frames", "seed", "trajectory_length")
-            }
-            return load_play_data(directory, sampler=sampler, batch_size=batch_size, expected=check)
-        # No metadata: nothing complete is here. Clear what an interrupted collection left.
-        shutil.rmtree(directory / "storage", ignore_errors=True)
-        directory.mkdir(parents=True, exist_ok=True)
+    metadata = _metadata(collect_env, num_frames, seed, collect_env.max_steps)
+    if directory is None:
+        buffer = _collect(collect_env, num_frames, seed, None, sampler, batch_size, progress)
+        buffer.metadata = metadata
+        return buffer
+    directory = Path(directory)
+    request = {k: metadata[k] for k in MATCH_FIELDS}
+    if (directory / _METADATA_FILE).exists():
+        return load_play_data(directory, sampler=sampler, batch_size=batch_size, expected=request)
+    lock = _claim(directory, wait)
+    try:
+        if not (directory / _METADATA_FILE).exists():  # else: done by the process we waited for
+            buffer = _collect(collect_env, num_frames, seed, directory, sampler, None, progress)
+            _seal(directory, buffer, metadata)
+            del buffer
+    finally:
+        lock.release()
+    return load_play_data(directory, sampler=sampler, batch_size=batch_size, expected=request)
 
+
+def _collect(
+    collect_env: GridWorldEnv,
+    num_frames: int,
+    seed: int,
+    directory: Path | None,
+    sampler: Sampler | None,
+    batch_size: int | None,
+    progress: bool,
+) -> TensorDictReplayBuffer:
+    """Runs the collector into a fresh buffer (in memory, or memory-mapped in ``directory``)."""
+    length = collect_env.max_steps
     num_envs = int(collect_env.batch_size.numel())
     # Whole trajectories per collector batch keep each walk contiguous in storage.
     steps_per_batch = max(1, min(length if length > 1 else 64, math.ceil(num_frames / num_envs)))
@@ -227,7 +459,9 @@ def collect_play_data(
     total_frames = math.ceil(num_frames / frames_per_batch) * frames_per_batch
 
     collect_env.set_seed(seed)
-    policy = UniformRandomPolicy(collect_env.num_actions, seed=seed + 1, device=collect_env.device)
+    policy = UniformRandomPolicy(
+        collect_env.num_actions, seed=derive_seed(seed, 1), device=collect_env.device
+    )
     collector = Collector(
         collect_env,
         policy,
@@ -258,9 +492,57 @@ def collect_play_data(
         collector.shutdown()
         if bar is not None:
             bar.close()
-    buffer.metadata = metadata
-    if directory is not None:
-        buffer.dumps(directory)
-        # Written last: its presence marks a complete collection.
-        (directory / _METADATA_FILE).write_text(json.dumps(metadata, indent=2))
     return buffer
+
+
+def check_play_buffer(
+    buffer: Any,
+    env: GridWorldEnv,
+    *,
+    min_trajectory_length: int = 1,
+    name: str = "buffer",
+) -> None:
+    """Checks that a replay buffer holds play data of ``env`` that a trainer can use.
+
+    A buffer from :func:`collect_play_data` / :func:`load_play_data` carries its
+    ``metadata``: its environment must be ``env``'s and its trajectories at least
+    ``min_trajectory_length`` steps long. Any other buffer must hold :data:`PLAY_KEYS`
+    with ``env``'s frame and state shapes.
+
+    Raises:
+        ValueError: naming ``name`` and what does not fit.
+    """
+    if not isinstance(buffer, TensorDictReplayBuffer):
+        raise ValueError(
+            f"{name} must be a TensorDictReplayBuffer of play data (collect_play_data), "
+            f"got {type(buffer).__name__}."
+        )
+    if len(buffer) == 0:
+        raise ValueError(f"{name} is empty.")
+    metadata = getattr(buffer, "metadata", None)
+    if isinstance(metadata, dict) and "env_config" in metadata:
+        stored, wanted = metadata["env_config"], env.config()
+        diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+        if diff:
+            details = "; ".join(
+                f"{k}: {name} {stored.get(k)!r}, config {wanted.get(k)!r}" for k in diff
+            )
+            raise ValueError(f"{name} holds play data of another environment ({details}).")
+        length = metadata.get("trajectory_length", min_trajectory_length)
+        if length < min_trajectory_length:
+            raise ValueError(
+                f"{name} holds trajectories of {length} step(s), this config needs at least "
+                f"{min_trajectory_length}."
+            )
+        return
+    first = buffer[:1]
+    keys = set(first.keys(True, True))
+    missing = [k for k in PLAY_KEYS if k not in keys]
+    if missing:
+        raise ValueError(f"{name} lacks the play-data keys {missing} (see collect_play_data).")
+    state = first.get("state")
+    if tuple(state.shape[1:]) != tuple(env.state_shape):
+        raise ValueError(
+            f"{name} holds states of shape {list(state.shape[1:])}, {type(env).__name__} has "
+            f"{list(env.state_shape)}: the data come from another environment."
+        )
