@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from dorp_rl.config import config_differences, format_differences
 from dorp_rl.integrity import IntegrityError, atomic_write_bytes, non_finite_entries
 
 #: 2: checksummed payload. 1 (read with a warning): the payload itself, no checksum.
@@ -195,13 +196,9 @@ def load_checkpoint(
             f"entry (it holds {sorted(state)}); was it written by another trainer?"
         )
     if env_config is not None:
-        stored = payload.get("env_config") or {}
-        keys = sorted(set(stored) | set(env_config))
-        diff = [k for k in keys if stored.get(k) != env_config.get(k)]
+        diff = config_differences(payload.get("env_config") or {}, env_config)
         if diff:
-            details = "; ".join(
-                f"{k}: checkpoint {stored.get(k)!r}, requested {env_config.get(k)!r}" for k in diff
-            )
+            details = format_differences(diff, "checkpoint", "requested")
             raise ValueError(f"checkpoint {path} was trained on another environment ({details}).")
     bad = non_finite_entries(state)
     if bad:

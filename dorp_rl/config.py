@@ -82,3 +82,16 @@ def config_differences(stored: dict[str, Any], current: dict[str, Any]) -> dict[
     """``{field: (stored value, current value)}`` for the fields two config dicts disagree on."""
     keys = sorted(set(stored) | set(current))
     return {k: (stored.get(k), current.get(k)) for k in keys if stored.get(k) != current.get(k)}
+
+
+def format_differences(diff: dict[str, tuple], left: str, right: str, width: int = 60) -> str:
+    """``"seed: stored 0, requested 1; ..."`` for :func:`config_differences`-style entries.
+
+    Long values (an env layout) are cut to ``width`` characters.
+    """
+
+    def show(value: Any) -> str:
+        text = repr(value)
+        return text if len(text) <= width else text[: width - 3] + "..."
+
+    return "; ".join(f"{k}: {left} {show(a)}, {right} {show(b)}" for k, (a, b) in diff.items())

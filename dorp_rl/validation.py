@@ -232,18 +232,25 @@ class Float:
     high_open: bool = False
     allow_inf: bool = False
     optional: bool = False
+    #: appended to the error message (what the value means, how to turn a feature off)
+    hint: str = ""
 
     def __call__(self, name: str, value: Any) -> float | None:
-        return check_float(
-            name,
-            value,
-            low=self.low,
-            high=self.high,
-            low_open=self.low_open,
-            high_open=self.high_open,
-            allow_inf=self.allow_inf,
-            optional=self.optional,
-        )
+        try:
+            return check_float(
+                name,
+                value,
+                low=self.low,
+                high=self.high,
+                low_open=self.low_open,
+                high_open=self.high_open,
+                allow_inf=self.allow_inf,
+                optional=self.optional,
+            )
+        except ValueError as err:
+            if not self.hint:
+                raise
+            raise ValueError(f"{err} {self.hint}") from None
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayB
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import TensorStorage
 
+from dorp_rl.config import config_differences, format_differences
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.integrity import (
     DirectoryLock,
@@ -313,9 +314,9 @@ def load_play_data(
             "(its checksum does not match its content)."
         )
     if expected is not None:
-        diff = {k: (metadata.get(k), v) for k, v in expected.items() if metadata.get(k) != v}
+        diff = config_differences({k: metadata.get(k) for k in expected}, expected)
         if diff:
-            lines = "; ".join(f"{k}: stored {a!r}, requested {b!r}" for k, (a, b) in diff.items())
+            lines = format_differences(diff, "stored", "requested")
             raise ValueError(
                 f"{what} does not match the request ({lines}); collect into another directory."
             )
@@ -521,12 +522,9 @@ def check_play_buffer(
         raise ValueError(f"{name} is empty.")
     metadata = getattr(buffer, "metadata", None)
     if isinstance(metadata, dict) and "env_config" in metadata:
-        stored, wanted = metadata["env_config"], env.config()
-        diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+        diff = config_differences(metadata["env_config"], env.config())
         if diff:
-            details = "; ".join(
-                f"{k}: {name} {stored.get(k)!r}, config {wanted.get(k)!r}" for k in diff
-            )
+            details = format_differences(diff, name, "config")
             raise ValueError(f"{name} holds play data of another environment ({details}).")
         length = metadata.get("trajectory_length", min_trajectory_length)
         if length < min_trajectory_length:
