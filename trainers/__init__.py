@@ -1,6 +1,6 @@
 """Trainers: RepresentationTrainer (codes), WorldModelTrainer (video model), their Trainer base."""
 
-from dorp_rl.trainers.base import Trainer
+from dorp_rl.trainers.base import Trainer, TrainingDivergedError
 from dorp_rl.trainers.representation import (
     ENV_NAMES,
     RepresentationConfig,
@@ -15,6 +15,7 @@ __all__ = [
     "RepresentationConfig",
     "RepresentationTrainer",
     "Trainer",
+    "TrainingDivergedError",
     "WorldModelConfig",
     "WorldModelTrainer",
     "diagnose",

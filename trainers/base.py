@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import math
+import warnings
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+from dorp_rl.config import config_differences, format_differences
 from dorp_rl.envs import GridWorldEnv
+from dorp_rl.integrity import DirectoryLock, IntegrityError
+
+
+class TrainingDivergedError(ValueError):
+    """Training produced a non-finite loss, gradient or weight; nothing was saved after it."""
 
 
 class Trainer:
@@ -26,7 +35,16 @@ class Trainer:
     - one checkpoint format (:func:`~dorp_rl.checkpoint.save_checkpoint`): config,
       env config, state dicts, step, the torch and data RNG states, and
       :meth:`extra_state`; ``train(resume=True)`` continues from the last checkpoint
-      and ends exactly where an uninterrupted run with the same seed would.
+      and ends exactly where an uninterrupted run with the same seed would. A resume
+      refuses a config that differs from the checkpoint's in a field that changes the
+      result (the message lists them); :attr:`resume_adjustable_fields` (e.g.
+      ``num_steps``) are taken with a warning, :attr:`bookkeeping_fields` silently;
+    - a divergence stop: a non-finite loss or gradient raises
+      :class:`TrainingDivergedError` naming the step before the weights are updated (a
+      non-finite weight after an update too), and no checkpoint is written after it, so
+      the last good one stays;
+    - a lock on ``out_dir`` while :meth:`train` runs, so two runs never write into one
+      directory (:class:`~dorp_rl.integrity.DirectoryLockedError`).
 
     The config must have ``to_dict``, ``num_steps``, ``log_every``,
     ``checkpoint_every``, ``out_dir`` and ``progress``.
@@ -35,6 +53,17 @@ class Trainer:
     kind = "base"
     #: the metric shown in the progress bar
     progress_metric = "loss"
+    #: entries of :meth:`state_dict` a checkpoint must hold
+    state_keys: ClassVar[tuple[str, ...]] = ()
+    #: config fields that never change the weights: a resume takes new values silently
+    bookkeeping_fields: ClassVar[tuple[str, ...]] = (
+        "progress",
+        "out_dir",
+        "data_dir",
+        "checkpoint_every",
+    )
+    #: config fields a resume takes from the new config, with a warning
+    resume_adjustable_fields: ClassVar[tuple[str, ...]] = ("num_steps",)
 
     def __init__(self, config: Any, env: GridWorldEnv, logger: Any | None = None) -> None:
         self.config = config
@@ -47,6 +76,8 @@ class Trainer:
             logger = CSVLogger(exp_name="logs", log_dir=str(self.out_dir))
         self.logger = logger
         self.step = 0
+        #: step of the last checkpoint written or loaded under :attr:`checkpoint_path`
+        self.saved_step: int | None = None
         self.history: list[dict[str, float]] = []
         #: the scalar results of every evaluation, with the step it was made at
         self.evaluations: list[dict[str, float]] = []
@@ -106,7 +137,7 @@ class Trainer:
 
     def save(self, path: str | Path | None = None) -> Path:
         """Writes a checkpoint (default: ``<out_dir>/checkpoints/last.pt``)."""
-        return save_checkpoint(
+        out = save_checkpoint(
             path or self.checkpoint_path,
             kind=self.kind,
             config=self.config.to_dict(),
@@ -116,24 +147,119 @@ class Trainer:
             rng={"torch": torch.get_rng_state(), "data": self.data_generator.get_state()},
             extra=self.extra_state(),
         )
+        if Path(out) == self.checkpoint_path:
+            self.saved_step = self.step
+        return out
+
+    def read_checkpoint(self, path: str | Path | None = None) -> dict[str, Any]:
+        """The checked payload of a checkpoint of this trainer (nothing is restored).
+
+        Raises:
+            FileNotFoundError: no file.
+            ValueError: a damaged or incomplete file (:class:`~dorp_rl.integrity.IntegrityError`),
+                another kind of checkpoint, another environment, or a config this trainer
+                cannot take.
+        """
+        path = path or self.checkpoint_path
+        payload = load_checkpoint(
+            path, kind=self.kind, env_config=self.env.config(), state_keys=self.state_keys
+        )
+        rng = payload.get("rng") or {}
+        missing = [k for k in ("torch", "data") if k not in rng]
+        if missing:
+            raise IntegrityError(f"checkpoint {path} is incomplete: it has no RNG state {missing}.")
+        self.check_checkpoint_config(payload["config"])
+        return payload
 
     def load(self, path: str | Path | None = None) -> dict[str, Any]:
         """Restores a checkpoint of this trainer and returns its payload.
 
+        Weights, optimiser state, step and RNG states come from the checkpoint; this
+        trainer's config stays in force (e.g. its learning rate). To continue a run
+        with the checkpoint's own config, use ``train(resume=True)``.
+
         Raises:
-            ValueError: a corrupted file, another kind of checkpoint, another
-                environment, or a config this trainer cannot take.
+            ValueError: see :meth:`read_checkpoint`.
         """
-        payload = load_checkpoint(
-            path or self.checkpoint_path, kind=self.kind, env_config=self.env.config()
-        )
-        self.check_checkpoint_config(payload["config"])
+        payload = self.read_checkpoint(path)
+        self._restore(payload)
+        if path is None or Path(path) == self.checkpoint_path:
+            self.saved_step = self.step
+        return payload
+
+    def _restore(self, payload: dict[str, Any]) -> None:
         self.load_extra_state(payload["extra"])
         self.load_state_dict(payload["state"])
         self.step = int(payload["step"])
         torch.set_rng_state(payload["rng"]["torch"])
         self.data_generator.set_state(payload["rng"]["data"])
-        return payload
+
+    def check_resume_config(self, stored: dict[str, Any], path: Path) -> None:
+        """Refuses to resume with a config that changes the result; warns about taken changes.
+
+        Raises:
+            ValueError: listing every field (other than :attr:`bookkeeping_fields` and
+                :attr:`resume_adjustable_fields`) whose value differs from the checkpoint's.
+        """
+        diff = config_differences(stored, self.config.to_dict())
+        refused = {
+            k: v
+            for k, v in diff.items()
+            if k not in self.bookkeeping_fields and k not in self.resume_adjustable_fields
+        }
+        if refused:
+            details = format_differences(refused, "checkpoint", "now")
+            raise ValueError(
+                f"cannot resume from {path}: the config differs in fields that change the "
+                f"result ({details}). Resume with the checkpoint's values, start a new run "
+                "in another out_dir, or load the weights into a new run with "
+                "trainer.load(path)."
+            )
+        taken = {k: v for k, v in diff.items() if k in self.resume_adjustable_fields}
+        if taken:
+            details = "; ".join(f"{k}={b!r} (checkpoint {a!r})" for k, (a, b) in taken.items())
+            warnings.warn(
+                f"resuming from {path} with {details}: the new value is used from here on.",
+                UserWarning,
+                stacklevel=3,
+            )
+
+    # ------------------------------------------------------------------ divergence
+    def _diverged(self, reason: str) -> TrainingDivergedError:
+        step = self.step + 1
+        if self.saved_step is not None and self.checkpoint_path.exists():
+            kept = f"the last good checkpoint, {self.checkpoint_path} (step {self.saved_step}), is kept"
+        else:
+            kept = "no checkpoint had been written yet"
+        return TrainingDivergedError(
+            f"{self.kind} training diverged at step {step}: {reason}. Nothing was saved after "
+            f"it; {kept}. Lower the learning rate (lr={getattr(self.config, 'lr', '?')}) or "
+            "check the data."
+        )
+
+    def check_gradients(
+        self, loss: torch.Tensor, parameters: Iterable[torch.Tensor]
+    ) -> torch.Tensor:
+        """Total gradient norm (a 0-dim tensor) after ``backward``; raises if the loss or a gradient is not finite.
+
+        Called before the optimiser step, so a failing step leaves the weights as they were.
+        """
+        grads = [p.grad for p in parameters if p.grad is not None]
+        norm = torch.nn.utils.get_total_norm(grads) if grads else loss.new_zeros(())
+        loss_value, norm_value = torch.stack(
+            [loss.detach().float(), norm.detach().float()]
+        ).tolist()
+        if not math.isfinite(loss_value):
+            raise self._diverged(f"the loss is {loss_value}")
+        if not math.isfinite(norm_value):
+            raise self._diverged(f"the gradient norm is {norm_value}")
+        return norm
+
+    def check_parameters(self, parameters: Iterable[torch.Tensor]) -> None:
+        """Raises if the optimiser step made a weight NaN or infinite."""
+        flags = [torch.isfinite(p.detach()).all() for p in parameters]
+        if flags and not bool(torch.stack(flags).all()):
+            raise self._diverged("the update made weights NaN or infinite")
 
     # ------------------------------------------------------------------ loop
     def log_metrics(self, metrics: dict[str, float], prefix: str = "") -> None:
@@ -153,11 +279,28 @@ class Trainer:
         """Trains until :meth:`done` and returns the last metrics and evaluation.
 
         Args:
-            resume: continue from ``<out_dir>/checkpoints/last.pt`` if it exists.
+            resume: continue from ``<out_dir>/checkpoints/last.pt`` if it exists (its
+                config must match, see :meth:`check_resume_config`).
+
+        Raises:
+            TrainingDivergedError: a non-finite loss, gradient or weight (names the step).
+            DirectoryLockedError: another run is training in ``out_dir``.
+            ValueError: a damaged checkpoint or a differing config on resume.
         """
+        lock = DirectoryLock(self.out_dir, ".train.lock", purpose=f"{self.kind} training")
+        lock.acquire()
+        try:
+            return self._train(resume)
+        finally:
+            lock.release()
+
+    def _train(self, resume: bool) -> dict[str, Any]:
         cfg = self.config
         if resume and self.checkpoint_path.exists():
-            self.load()
+            payload = self.read_checkpoint()
+            self.check_resume_config(payload["config"], self.checkpoint_path)
+            self._restore(payload)
+            self.saved_step = self.step
         bar = None
         if cfg.progress:
             from tqdm.auto import tqdm

@@ -12,14 +12,19 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
-from dorp_rl.checkpoint import load_checkpoint
+from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import ConfigMixin
-from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
-from dorp_rl.envs import ENV_NAMES, GridWorldEnv, KeyRoomEnv, make_env
+from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
+from dorp_rl.envs import ENV_NAMES, GridWorldEnv, KeyRoomEnv, env_class, make_env
 from dorp_rl.eval.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
+from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.trainers.base import Trainer
+from dorp_rl.validation import Choice, Device, Flag, Float, Int, Seed, Text, derive_seed
+
+#: Upper bound of ``num_objects`` (the default colour palette).
+_MAX_OBJECTS = 8
 
 # What the key-room presets share (docs/RESULTS.md, "key-wall"): the motion-coverage
 # term, which puts the agent's object map on the agent, the map-sparsity and code-usage
@@ -43,6 +48,54 @@ class RepresentationConfig(ConfigMixin):
     Use the presets :meth:`rearrangement`, :meth:`key_wall` and :meth:`key_corridor`, then
     override fields with :func:`dataclasses.replace`.
     """
+
+    FIELD_RULES = {
+        "env": Choice(ENV_NAMES),
+        "num_objects": Int(low=1, high=_MAX_OBJECTS),
+        "num_frames": Int(low=1),
+        "num_envs": Int(low=1),
+        "trajectory_length": Int(low=1, optional=True),
+        "min_offset": Int(low=1),
+        "max_offset": Int(low=1),
+        "data_dir": Text(optional=True),
+        "code_size": Int(low=2),
+        "encoder_preset": Choice(("small", "authors")),
+        "map_competition": Choice(("sigmoid", "softmax")),
+        "extractor_kernel_size": Int(low=1),
+        "similarity": Choice(tuple(SIMILARITIES)),
+        "dddp_sign": Choice(("paper", "authors")),
+        "alpha": Float(low=1.0),
+        "gumbel_side": Choice(("positive", "anchor")),
+        "gumbel_temperature": Float(low=0.0, low_open=True),
+        "gumbel_temperature_start": Float(low=0.0, low_open=True, optional=True),
+        "gumbel_anneal_steps": Int(low=0),
+        "ce_temperature": Float(low=0.0, low_open=True),
+        "usage_weight": Float(low=0.0),
+        "exclusivity_weight": Float(low=0.0),
+        "sparsity_weight": Float(low=0.0),
+        "motion_weight": Float(low=0.0),
+        "batch_size": Int(low=2),
+        "lr": Float(low=0.0),
+        "similarity_lr_scale": Float(low=0.0),
+        "num_steps": Int(low=1),
+        "seed": Seed(),
+        "device": Device(),
+        "out_dir": Text(),
+        "log_every": Int(low=1),
+        "diagnostics_every": Int(low=1),
+        "diagnostics_samples": Int(low=1),
+        "checkpoint_every": Int(low=1),
+        "progress": Flag(),
+        "collapse_check_after": Int(low=0),
+        "collapse_min_codes": Int(low=0),
+        "collapse_loss_margin": Float(),
+        "entanglement_check_after": Int(low=0),
+        "entanglement_threshold": Float(low=0.0),
+        "max_restarts": Int(low=0),
+        "num_candidates": Int(low=1),
+        "candidate_steps": Int(low=1),
+        "screening_frames": Int(low=1),
+    }
 
     # environment and play data
     env: str = "rearrangement"
@@ -167,24 +220,45 @@ class RepresentationConfig(ConfigMixin):
             return (self.code_size,) * self.num_objects
         return (self.code_size, 2)
 
-    def validate(self) -> None:
-        if self.env not in ENV_NAMES:
-            raise ValueError(f"env must be one of {ENV_NAMES}, got {self.env!r}.")
-        for name in ("num_steps", "batch_size", "num_frames", "log_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}.")
-        screening = self.num_candidates > 1
-        if self.num_candidates < 1 or (
-            screening and not 1 <= self.candidate_steps <= self.num_steps
-        ):
+    @property
+    def play_trajectory_length(self) -> int:
+        """Steps of each play trajectory: ``trajectory_length`` or the env's default."""
+        return self.trajectory_length or env_class(self.env).PLAY_TRAJECTORY_LENGTH
+
+    def check_relations(self) -> None:
+        """Rules between fields; each message names the fields and what they allow."""
+        if self.env != "rearrangement" and self.num_objects != 1:
+            raise ValueError(
+                f"num_objects={self.num_objects} applies to env='rearrangement' only; "
+                f"{self.env} has one agent (use num_objects=1)."
+            )
+        if not self.min_offset <= self.max_offset <= self.play_trajectory_length:
+            raise ValueError(
+                "offsets must satisfy 1 <= min_offset <= max_offset <= the play trajectory "
+                f"length ({self.play_trajectory_length} for env={self.env!r}, "
+                f"trajectory_length={self.trajectory_length}): got min_offset="
+                f"{self.min_offset}, max_offset={self.max_offset}. Longer offsets would never "
+                "be drawn."
+            )
+        if self.num_candidates > 1 and self.candidate_steps > self.num_steps:
             raise ValueError(
                 "need num_candidates >= 1 and, to screen, 1 <= candidate_steps <= num_steps; got "
                 f"num_candidates={self.num_candidates}, candidate_steps={self.candidate_steps}, "
                 f"num_steps={self.num_steps}."
             )
-        if self.encoder_preset not in ("small", "authors"):
+        if self.extractor_kernel_size % 2 == 0:
             raise ValueError(
-                f"encoder_preset must be 'small' or 'authors', got {self.encoder_preset!r}."
+                f"extractor_kernel_size must be an odd integer >= 1, got {self.extractor_kernel_size}."
+            )
+        if self.gumbel_temperature_start is not None and self.gumbel_anneal_steps < 1:
+            raise ValueError(
+                "gumbel_temperature_start needs gumbel_anneal_steps >= 1 (it is the start of "
+                f"the annealing), got gumbel_anneal_steps={self.gumbel_anneal_steps}."
+            )
+        if self.similarity != "dddp" and (self.alpha != 1.0 or self.dddp_sign != "paper"):
+            raise ValueError(
+                f"alpha and dddp_sign apply to similarity='dddp' only; similarity="
+                f"{self.similarity!r} would ignore alpha={self.alpha}, dddp_sign={self.dddp_sign!r}."
             )
 
     def make_env(self, **kwargs: Any) -> GridWorldEnv:
@@ -210,7 +284,10 @@ class RepresentationTrainer(Trainer):
     """Trains a :class:`~dorp_rl.modules.DiscreteCodeEncoder` with :class:`~dorp_rl.objectives.CPCLoss`.
 
     Data come from a play buffer (collected, or loaded from ``config.data_dir``) through a
-    :class:`~dorp_rl.data.FuturePairSampler`. Logging, checkpoints and resume follow
+    :class:`~dorp_rl.data.FuturePairSampler` of the config's offsets. A ``buffer`` given
+    instead must hold play data of the config's environment, with trajectories of at
+    least ``max_offset`` steps (:func:`~dorp_rl.data.check_play_buffer`); it gets this
+    trainer's sampler and generator. Logging, checkpoints and resume follow
     :class:`~dorp_rl.trainers.Trainer`: a torchrl CSV logger, a tqdm bar, ground-truth
     diagnostics every ``diagnostics_every`` steps, a checkpoint (config, weights,
     optimiser, step, RNG states, restarts) every ``checkpoint_every`` steps and at the
@@ -258,6 +335,7 @@ class RepresentationTrainer(Trainer):
 
     kind = "representation"
     progress_metric = "loss_cpc"
+    state_keys = ("encoder", "similarity", "optimizer")
 
     def __init__(
         self,
@@ -269,7 +347,10 @@ class RepresentationTrainer(Trainer):
         super().__init__(config, config.make_env(batch_size=(config.num_envs,)), logger)
         self.device = torch.device(config.device)
         self.sampler = FuturePairSampler(config.min_offset, config.max_offset)
-        if buffer is None:
+        if buffer is not None:
+            check_play_buffer(buffer, self.env, min_trajectory_length=config.max_offset)
+            buffer.set_sampler(self.sampler)
+        else:
             buffer = collect_play_data(
                 self.env,
                 config.num_frames,
@@ -317,7 +398,13 @@ class RepresentationTrainer(Trainer):
         if sim_params:
             groups.append({"params": sim_params, "lr": cfg.lr * cfg.similarity_lr_scale})
         self.optimizer = torch.optim.Adam(groups)
-        self.data_generator.manual_seed(seed + 1)
+        self.data_generator.manual_seed(derive_seed(seed, 1))
+
+    def _apply_learning_rates(self) -> None:
+        """The config's learning rates on the optimiser's groups (after loading its state)."""
+        lrs = [self.config.lr, self.config.lr * self.config.similarity_lr_scale]
+        for group, lr in zip(self.optimizer.param_groups, lrs, strict=False):
+            group["lr"] = lr
 
     def gumbel_temperature_at(self, step: int) -> float:
         """Exponential annealing from ``gumbel_temperature_start`` to ``gumbel_temperature``."""
@@ -337,9 +424,16 @@ class RepresentationTrainer(Trainer):
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.encoder.load_state_dict(state["encoder"])
-        self.similarity.load_state_dict(state["similarity"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        path = self.checkpoint_path
+        load_module_state(self.encoder, state["encoder"], path, "encoder")
+        load_module_state(self.similarity, state["similarity"], path, "similarity")
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (ValueError, KeyError) as err:
+            raise ValueError(
+                f"checkpoint {path}: its optimizer state does not fit ({err})."
+            ) from err
+        self._apply_learning_rates()
 
     def extra_state(self) -> dict[str, Any]:
         return {
@@ -372,7 +466,7 @@ class RepresentationTrainer(Trainer):
             )
 
     def _attempt_seed(self, attempt: int) -> int:
-        return self.config.seed + 7919 * attempt
+        return derive_seed(self.config.seed, 7919 * attempt)
 
     # ------------------------------------------------------------------ collapse
     def collapse_reason(self, metrics: dict[str, float], attempt_steps: int) -> str | None:
@@ -475,7 +569,12 @@ class RepresentationTrainer(Trainer):
         if best["attempt"] != self.attempt:
             self.attempt = best["attempt"]
             self._build(seed=self._attempt_seed(self.attempt))
-            payload = load_checkpoint(best["path"], kind=self.kind, env_config=self.env.config())
+            payload = load_checkpoint(
+                best["path"],
+                kind=self.kind,
+                env_config=self.env.config(),
+                state_keys=self.state_keys,
+            )
             self.load_state_dict(payload["state"])
         self.attempt_start = self.step - self.config.candidate_steps
         self.history_start = self.step
@@ -527,7 +626,10 @@ class RepresentationTrainer(Trainer):
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
+        parameters = [*self.encoder.parameters(), *self.similarity.parameters()]
+        self.check_gradients(total, parameters)
         self.optimizer.step()
+        self.check_parameters(parameters)
         self.step += 1
         return {k: float(v.detach()) for k, v in out.items()}
 
@@ -586,12 +688,18 @@ def load_encoder(
         device: where to put the encoder.
 
     Raises:
-        ValueError: a corrupted file, another kind of checkpoint or another environment.
+        FileNotFoundError: no file at ``path``.
+        ValueError: a damaged, incomplete or non-finite file
+            (:class:`~dorp_rl.integrity.IntegrityError`), another kind of checkpoint or
+            another environment.
     """
     payload = load_checkpoint(
-        path, kind="representation", env_config=None if env is None else env.config()
+        path,
+        kind="representation",
+        env_config=None if env is None else env.config(),
+        state_keys=("encoder",),
     )
     cfg = RepresentationConfig.from_dict(payload["config"])
     encoder = DiscreteCodeEncoder(cfg.encoder_config())
-    encoder.load_state_dict(payload["state"]["encoder"])
+    load_module_state(encoder, payload["state"]["encoder"], path, "encoder")
     return encoder.to(device).eval()

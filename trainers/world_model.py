@@ -11,14 +11,16 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
-from dorp_rl.checkpoint import load_checkpoint
+from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import ConfigMixin
-from dorp_rl.data import SequenceSampler, collect_play_data
+from dorp_rl.data import SequenceSampler, check_play_buffer, collect_play_data
 from dorp_rl.envs import ENV_NAMES, GridWorldEnv, make_env
 from dorp_rl.eval.world_model import open_loop_accuracy
+from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
 from dorp_rl.trainers.base import Trainer
+from dorp_rl.validation import Choice, Device, Flag, Float, Int, Seed, Text, derive_seed
 
 #: seed offset of the held-out play data used for evaluation
 HELD_OUT_SEED_OFFSET = 100_003
@@ -38,6 +40,43 @@ class WorldModelConfig(ConfigMixin):
     Use :meth:`rearrangement`, :meth:`key_wall` or :meth:`key_corridor`, then override
     fields with :func:`dataclasses.replace`.
     """
+
+    FIELD_RULES = {
+        "env": Choice(ENV_NAMES),
+        "num_objects": Int(low=1, high=8),
+        "num_frames": Int(low=1),
+        "num_envs": Int(low=1),
+        "trajectory_length": Int(low=1),
+        "horizon": Int(low=1),
+        "data_dir": Text(optional=True),
+        "eval_frames": Int(low=1),
+        "eval_sequences": Int(low=1),
+        "model_preset": Choice(("small", "default")),
+        "latent_dim": Int(low=0),
+        "prior": Choice(("fixed", "learned")),
+        "feedback": Choice(FEEDBACK_MODES),
+        "kl_weight": Float(low=0.0),
+        "free_bits": Float(low=0.0),
+        "deterministic_fraction": Float(low=0.0, high=1.0),
+        "open_loop_ramp": Float(low=0.0, high=1.0),
+        "batch_size": Int(low=1),
+        "lr": Float(low=0.0),
+        "lr_final": Float(low=0.0),
+        "grad_clip": Float(
+            low=0.0,
+            low_open=True,
+            allow_inf=True,
+            hint="(0 would freeze every weight; math.inf turns clipping off)",
+        ),
+        "num_steps": Int(low=1),
+        "seed": Seed(),
+        "device": Device(),
+        "out_dir": Text(),
+        "log_every": Int(low=1),
+        "eval_every": Int(low=1),
+        "checkpoint_every": Int(low=1),
+        "progress": Flag(),
+    }
 
     # environment and play data
     env: str = "rearrangement"
@@ -89,31 +128,18 @@ class WorldModelConfig(ConfigMixin):
         """Key-corridor: windows from the 1500-step random walks of the play data."""
         return replace(cls(env="key-corridor", trajectory_length=1500), **overrides)
 
-    def validate(self) -> None:
-        if self.env not in ENV_NAMES:
-            raise ValueError(f"env must be one of {ENV_NAMES}, got {self.env!r}.")
-        for name in (
-            "num_steps",
-            "batch_size",
-            "num_frames",
-            "horizon",
-            "log_every",
-            "checkpoint_every",
-            "eval_every",
-            "eval_sequences",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}.")
+    def check_relations(self) -> None:
+        """Rules between fields; each message names the fields and what they allow."""
+        if self.env != "rearrangement" and self.num_objects != 1:
+            raise ValueError(
+                f"num_objects={self.num_objects} applies to env='rearrangement' only; "
+                f"{self.env} has one agent (use num_objects=1)."
+            )
         if self.trajectory_length < self.horizon:
             raise ValueError(
                 f"trajectory_length ({self.trajectory_length}) must be >= horizon "
                 f"({self.horizon}): windows never cross a trajectory boundary."
             )
-        if self.feedback not in FEEDBACK_MODES:
-            raise ValueError(f"feedback must be one of {FEEDBACK_MODES}, got {self.feedback!r}.")
-        if not 0.0 <= self.open_loop_ramp <= 1.0:
-            raise ValueError(f"open_loop_ramp must be in [0, 1], got {self.open_loop_ramp}.")
-        VideoModelConfig.preset(self.model_preset)  # raises on an unknown preset
 
     def make_env(self, **kwargs: Any) -> GridWorldEnv:
         """The environment this config trains on."""
@@ -149,6 +175,7 @@ class WorldModelTrainer(Trainer):
 
     kind = "world_model"
     progress_metric = "loss_reconstruction"
+    state_keys = ("model", "optimizer")
 
     def __init__(
         self,
@@ -160,6 +187,10 @@ class WorldModelTrainer(Trainer):
         config.validate()
         super().__init__(config, config.make_env(batch_size=(config.num_envs,)), logger)
         self.device = torch.device(config.device)
+        for name, given in (("buffer", buffer), ("eval_buffer", eval_buffer)):
+            if given is not None:
+                check_play_buffer(given, self.env, min_trajectory_length=config.horizon, name=name)
+                given.set_sampler(SequenceSampler(config.horizon))
         if buffer is None:
             buffer = collect_play_data(
                 self.env,
@@ -175,7 +206,7 @@ class WorldModelTrainer(Trainer):
             eval_buffer = collect_play_data(
                 self.env,
                 config.eval_frames,
-                seed=config.seed + HELD_OUT_SEED_OFFSET,
+                seed=derive_seed(config.seed, HELD_OUT_SEED_OFFSET),
                 trajectory_length=config.trajectory_length,
                 sampler=SequenceSampler(config.horizon),
             )
@@ -185,7 +216,7 @@ class WorldModelTrainer(Trainer):
         eval_buffer.set_rng(eval_generator)
         self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
         torch.manual_seed(config.seed)
-        self.data_generator.manual_seed(config.seed + 1)
+        self.data_generator.manual_seed(derive_seed(config.seed, 1))
         palette = palette_from_frames(buffer[: min(len(buffer), 20_000)]["pixels"])
         self.model = VideoPredictionModel(self.env.num_actions, palette, config.model_config()).to(
             self.device
@@ -219,8 +250,13 @@ class WorldModelTrainer(Trainer):
         return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        load_module_state(self.model, state["model"], self.checkpoint_path, "model")
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (ValueError, KeyError) as err:
+            raise ValueError(
+                f"checkpoint {self.checkpoint_path}: its optimizer state does not fit ({err})."
+            ) from err
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_model = WorldModelConfig.from_dict(stored).model_config()
@@ -241,8 +277,11 @@ class WorldModelTrainer(Trainer):
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
+        parameters = list(self.model.parameters())
+        grad_norm = self.check_gradients(total, parameters)
+        torch.nn.utils.clip_grads_with_norm_(parameters, self.config.grad_clip, grad_norm)
         self.optimizer.step()
+        self.check_parameters(parameters)
         self.step += 1
         metrics = {k: float(v.detach()) for k, v in out.items()}
         metrics["grad_norm"] = float(grad_norm)
@@ -276,14 +315,22 @@ def load_video_model(
         device: where to put the model.
 
     Raises:
-        ValueError: a corrupted file, another kind of checkpoint or another environment.
+        FileNotFoundError: no file at ``path``.
+        ValueError: a damaged, incomplete or non-finite file
+            (:class:`~dorp_rl.integrity.IntegrityError`), another kind of checkpoint or
+            another environment.
     """
     payload = load_checkpoint(
-        path, kind=WorldModelTrainer.kind, env_config=None if env is None else env.config()
+        path,
+        kind=WorldModelTrainer.kind,
+        env_config=None if env is None else env.config(),
+        state_keys=("model",),
     )
     cfg = WorldModelConfig.from_dict(payload["config"])
     state = payload["state"]["model"]
+    if "palette" not in state:
+        raise IntegrityError(f"checkpoint {path} is incomplete: its model has no 'palette'.")
     num_actions = make_env(cfg.env, num_objects=cfg.num_objects).num_actions
     model = VideoPredictionModel(num_actions, state["palette"], cfg.model_config())
-    model.load_state_dict(state)
+    load_module_state(model, state, path, "model")
     return model.to(device).eval()
