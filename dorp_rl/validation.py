@@ -71,12 +71,13 @@ __all__ = [
 
 # --------------------------------------------------------------------------- numbers
 def _bounds(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    lo, hi = (f"{b:g}" if isinstance(b, float) else str(b) for b in (low, high))
     if low is not None and high is not None:
-        return f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+        return f"in {'(' if low_open else '['}{lo}, {hi}{')' if high_open else ']'}"
     if low is not None:
-        return f"{'>' if low_open else '>='} {low}"
+        return f"{'>' if low_open else '>='} {lo}"
     if high is not None:
-        return f"{'<' if high_open else '<='} {high}"
+        return f"{'<' if high_open else '<='} {hi}"
     return ""
 
 
@@ -143,7 +144,7 @@ def check_float(
     too_low = low is not None and (number <= low if low_open else number < low)
     too_high = high is not None and (number >= high if high_open else number > high)
     if too_low or too_high:
-        raise ValueError(f"{name} must be {what}, got {value!r}.")
+        raise ValueError(f"{name} must be {bounds}, got {value!r}.")
     return number
 
 

@@ -17,6 +17,8 @@ from tensordict import TensorDictBase
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
+from dorp_rl.validation import check_int
+
 
 def _column(storage: Storage, key: str) -> torch.Tensor:
     """One column of the stored transitions, without reading the pixels."""
@@ -116,13 +118,16 @@ class FuturePairSampler(_WindowSampler):
         step_key: str = "step_count",
     ) -> None:
         super().__init__(traj_key, step_key)
-        max_offset = min_offset if max_offset is None else max_offset
-        if int(min_offset) < 1 or int(max_offset) < int(min_offset):
+        min_offset = check_int("min_offset", min_offset, low=1)
+        max_offset = check_int(
+            "max_offset", min_offset if max_offset is None else max_offset, low=1
+        )
+        if max_offset < min_offset:
             raise ValueError(
                 f"offsets must satisfy 1 <= min_offset <= max_offset, got "
                 f"min_offset={min_offset}, max_offset={max_offset}."
             )
-        self.min_offset, self.max_offset = int(min_offset), int(max_offset)
+        self.min_offset, self.max_offset = min_offset, max_offset
 
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:
@@ -170,9 +175,7 @@ class SequenceSampler(_WindowSampler):
         self, horizon: int, traj_key: str = "traj_id", step_key: str = "step_count"
     ) -> None:
         super().__init__(traj_key, step_key)
-        if int(horizon) < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}.")
-        self.horizon = int(horizon)
+        self.horizon = check_int("horizon", horizon, low=1)
 
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:

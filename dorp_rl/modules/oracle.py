@@ -19,6 +19,7 @@ from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
 from dorp_rl.envs.key_rooms import AGENT_COLOUR, KEY_COLOUR, KeyRoomEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
 from dorp_rl.modules.encoder import check_pixels
+from dorp_rl.validation import check_int
 
 
 class OracleCodeEncoder(nn.Module):
@@ -46,9 +47,7 @@ class OracleCodeEncoder(nn.Module):
 
     def __init__(self, env: GridWorldEnv, cell_size: int = 4) -> None:
         super().__init__()
-        if int(cell_size) < 1:
-            raise ValueError(f"cell_size must be >= 1, got {cell_size}.")
-        self.cell_size = int(cell_size)
+        self.cell_size = check_int("cell_size", cell_size, low=1)
         side = math.ceil(GRID_SIZE / self.cell_size)
         if isinstance(env, ObjectRearrangementEnv):
             colours = env.colours.to(torch.int64)

@@ -14,13 +14,13 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from dorp_rl.validation import check_choice, check_float, check_int
+
 
 class _Similarity(nn.Module):
     def __init__(self, dim: int) -> None:
         super().__init__()
-        if int(dim) < 1:
-            raise ValueError(f"dim must be >= 1, got {dim}.")
-        self.dim = int(dim)
+        self.dim = check_int("dim", dim, low=1)
 
     def matrix(self) -> torch.Tensor:
         raise NotImplementedError
@@ -63,12 +63,9 @@ class DDDPSimilarity(_Similarity):
         self, dim: int, alpha: float = 1.0, sign: str = "paper", init_scale: float = 1.0
     ) -> None:
         super().__init__(dim)
-        if sign not in ("paper", "authors"):
-            raise ValueError(f"sign must be 'paper' or 'authors', got {sign!r}.")
-        if alpha < 1.0:
-            raise ValueError(f"alpha must be >= 1 for a diagonally dominant matrix, got {alpha}.")
-        self.alpha = float(alpha)
-        self.sign = sign
+        self.sign = check_choice("sign", sign, ("paper", "authors"))
+        self.alpha = check_float("alpha", alpha, low=1.0)  # >= 1: diagonally dominant
+        init_scale = check_float("init_scale", init_scale, low=0.0, low_open=True)
         self.log_scale = nn.Parameter(torch.tensor(float(init_scale)).log())
         self.psi = nn.Parameter(torch.zeros(self.dim, self.dim))
 

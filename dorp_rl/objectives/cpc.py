@@ -13,6 +13,7 @@ from torchrl.objectives import LossModule
 
 from dorp_rl.modules.encoder import DiscreteCodeEncoder
 from dorp_rl.modules.similarity import _Similarity
+from dorp_rl.validation import check_choice, check_float
 
 
 def standardize_codes(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -173,34 +174,23 @@ class CPCLoss(LossModule):
         motion_weight: float = 0.0,
     ) -> None:
         super().__init__()
-        if gumbel_side not in ("positive", "anchor"):
-            raise ValueError(f"gumbel_side must be 'positive' or 'anchor', got {gumbel_side!r}.")
+        check_choice("gumbel_side", gumbel_side, ("positive", "anchor"))
         dim = encoder.num_onehots * encoder.max_codes
         if similarity.dim != dim:
             raise ValueError(
                 f"similarity has dim {similarity.dim}, the encoder's flattened codes have "
                 f"{encoder.num_onehots} x {encoder.max_codes} = {dim}."
             )
-        if gumbel_temperature <= 0 or ce_temperature <= 0:
-            raise ValueError("gumbel_temperature and ce_temperature must be > 0.")
         self.encoder = encoder
         self.similarity = similarity
         self.gumbel_side = gumbel_side
-        self.gumbel_temperature = float(gumbel_temperature)
-        self.ce_temperature = float(ce_temperature)
-        weights = {
-            "usage_weight": usage_weight,
-            "exclusivity_weight": exclusivity_weight,
-            "sparsity_weight": sparsity_weight,
-            "motion_weight": motion_weight,
-        }
-        for name, value in weights.items():
-            if value < 0:
-                raise ValueError(f"{name} must be >= 0, got {value}.")
-        self.usage_weight = float(usage_weight)
-        self.exclusivity_weight = float(exclusivity_weight)
-        self.sparsity_weight = float(sparsity_weight)
-        self.motion_weight = float(motion_weight)
+        positive = {"low": 0.0, "low_open": True}
+        self.gumbel_temperature = check_float("gumbel_temperature", gumbel_temperature, **positive)
+        self.ce_temperature = check_float("ce_temperature", ce_temperature, **positive)
+        self.usage_weight = check_float("usage_weight", usage_weight, low=0.0)
+        self.exclusivity_weight = check_float("exclusivity_weight", exclusivity_weight, low=0.0)
+        self.sparsity_weight = check_float("sparsity_weight", sparsity_weight, low=0.0)
+        self.motion_weight = check_float("motion_weight", motion_weight, low=0.0)
         sizes = torch.tensor(encoder.code_sizes)
         self._wide_onehots = (
             sizes > 2 if (sizes > 2).any() else torch.ones_like(sizes, dtype=torch.bool)

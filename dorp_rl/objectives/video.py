@@ -11,6 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
 from dorp_rl.modules.video import FRAME_SHAPE, VideoPredictionModel
+from dorp_rl.validation import check_choice, check_float, check_int
 
 FEEDBACK_MODES = ("straight_through", "soft", "hard")
 
@@ -110,22 +111,14 @@ class VideoPredictionLoss(LossModule):
         super().__init__()
         if not isinstance(model, VideoPredictionModel):
             raise ValueError(f"model must be a VideoPredictionModel, got {type(model).__name__}.")
-        if feedback not in FEEDBACK_MODES:
-            raise ValueError(f"feedback must be one of {FEEDBACK_MODES}, got {feedback!r}.")
-        if kl_weight < 0 or free_bits < 0:
-            raise ValueError(
-                f"kl_weight and free_bits must be >= 0, got {kl_weight} and {free_bits}."
-            )
-        if not 0.0 <= deterministic_fraction <= 1.0:
-            raise ValueError(
-                f"deterministic_fraction must be in [0, 1], got {deterministic_fraction}."
-            )
         self.model = model
         self.open_loop_length = open_loop_length
-        self.feedback = feedback
-        self.kl_weight = float(kl_weight)
-        self.free_bits = float(free_bits)
-        self.deterministic_fraction = float(deterministic_fraction)
+        self.feedback = check_choice("feedback", feedback, FEEDBACK_MODES)
+        self.kl_weight = check_float("kl_weight", kl_weight, low=0.0)
+        self.free_bits = check_float("free_bits", free_bits, low=0.0)
+        self.deterministic_fraction = check_float(
+            "deterministic_fraction", deterministic_fraction, low=0.0, high=1.0
+        )
 
     @property
     def open_loop_length(self) -> int | None:
@@ -134,9 +127,7 @@ class VideoPredictionLoss(LossModule):
 
     @open_loop_length.setter
     def open_loop_length(self, value: int | None) -> None:
-        if value is not None and int(value) < 1:
-            raise ValueError(f"open_loop_length must be >= 1 or None, got {value}.")
-        self._open_loop_length = None if value is None else int(value)
+        self._open_loop_length = check_int("open_loop_length", value, low=1, optional=True)
 
     def _read(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         keys = self.tensor_keys
