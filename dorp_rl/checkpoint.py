@@ -1,7 +1,8 @@
 """The one checkpoint format of dorp-rl: config, state dicts, step, RNG states, versions.
 
 A checkpoint file is a torch file holding ``{"format", "kind", "sha256", "payload"}``:
-``payload`` is the serialised checkpoint and ``sha256`` its checksum, so a changed byte
+``payload`` is the serialised checkpoint (a uint8 tensor of its bytes) and ``sha256``
+its checksum, so a changed byte
 anywhere in the payload is refused instead of loaded. Files are written to a temporary
 name, flushed and renamed, so an interrupted write never leaves a half file under the
 real name; weights with NaN or infinite values are neither written nor loaded. Loading
@@ -104,7 +105,8 @@ def save_checkpoint(
             "format": CHECKPOINT_FORMAT,
             "kind": kind,
             "sha256": hashlib.sha256(data).hexdigest(),
-            "payload": data,
+            # raw bytes as a uint8 tensor: stored as is (pickled bytes would be re-encoded)
+            "payload": torch.frombuffer(bytearray(data), dtype=torch.uint8),
         },
         outer,
     )
@@ -134,8 +136,13 @@ def _read_payload(path: Path, map_location: str | torch.device) -> dict[str, Any
             f"and {CHECKPOINT_FORMAT}."
         )
     data, expected = outer.get("payload"), outer.get("sha256")
-    if not isinstance(data, bytes) or not isinstance(expected, str):
+    if (
+        not isinstance(data, torch.Tensor)
+        or data.dtype != torch.uint8
+        or not isinstance(expected, str)
+    ):
         raise IntegrityError(f"checkpoint {path} is corrupted: no payload or checksum.")
+    data = data.cpu().numpy().tobytes()
     if hashlib.sha256(data).hexdigest() != expected:
         raise IntegrityError(
             f"checkpoint {path} is corrupted: its content does not match its SHA-256 "
