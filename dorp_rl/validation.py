@@ -45,6 +45,8 @@ FRAME_SHAPE = (3, 16, 16)
 
 __all__ = [
     "FRAME_SHAPE",
+    "BatchShapeError",
+    "MissingKeyError",
     "SEED_MAX",
     "Choice",
     "Device",
@@ -67,6 +69,17 @@ __all__ = [
     "derive_seed",
     "frames_to_unit_float",
 ]
+
+
+class MissingKeyError(KeyError, ValueError):
+    """A tensordict lacks a key a function needs (both a ``KeyError`` and a ``ValueError``)."""
+
+    def __str__(self) -> str:  # KeyError would print the repr of the message
+        return str(self.args[0]) if self.args else ""
+
+
+class BatchShapeError(ValueError, RuntimeError):
+    """A tensordict's batch shape does not fit the env (a ``ValueError``; torchrl raises ``RuntimeError``)."""
 
 
 # --------------------------------------------------------------------------- numbers

@@ -19,6 +19,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from dorp_rl.validation import (
+    BatchShapeError,
+    MissingKeyError,
     check_action,
     check_batch_size,
     check_bool,
@@ -362,11 +364,20 @@ class GridWorldEnv(EnvBase):
             device=self.device,
         )
 
+    def _assert_tensordict_shape(self, tensordict: TensorDictBase) -> None:
+        if (
+            self.batch_locked or self.batch_size != ()
+        ) and tensordict.batch_size != self.batch_size:
+            raise BatchShapeError(
+                f"the tensordict has batch_size {list(tensordict.batch_size)}, this "
+                f"{type(self).__name__} has batch_size {list(self.batch_size)} (one row per env)."
+            )
+
     def _trusted_state(self, tensordict: TensorDictBase, key: str) -> torch.Tensor:
         """``tensordict[key]``, checked unless it is a state this env produced and nobody changed."""
         value = tensordict.get(key, None)
         if value is None:
-            raise KeyError(
+            raise MissingKeyError(
                 f"{type(self).__name__}.step needs {key!r} in the tensordict (reset() writes it)."
             )
         if value in self._emitted:

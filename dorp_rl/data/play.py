@@ -428,6 +428,8 @@ def collect_play_data(
         buffer.metadata = metadata
         return buffer
     directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise ValueError(f"directory must be a folder, got the file {directory}.")
     request = {k: metadata[k] for k in MATCH_FIELDS}
     if (directory / _METADATA_FILE).exists():
         return load_play_data(directory, sampler=sampler, batch_size=batch_size, expected=request)

@@ -17,7 +17,7 @@ from tensordict import TensorDictBase
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
-from dorp_rl.validation import check_int
+from dorp_rl.validation import MissingKeyError, check_int
 
 
 def _column(storage: Storage, key: str) -> torch.Tensor:
@@ -50,7 +50,7 @@ class _WindowSampler(Sampler):
             else:
                 for key in (self.traj_key, self.step_key):
                     if key not in storage[:1].keys():
-                        raise KeyError(
+                        raise MissingKeyError(
                             f"{type(self).__name__} needs the key {key!r} in the stored data "
                             "(collect_play_data writes 'traj_id' and 'step_count')."
                         )

@@ -17,7 +17,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
-from dorp_rl.validation import check_int, check_seed
+from dorp_rl.validation import MissingKeyError, check_int, check_seed
 
 
 def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDict:
@@ -152,7 +152,7 @@ def evaluate_policy(
             steps.append(int(first_done[row]) + 1 if success[-1] else limit)
         for key in report_keys:
             if key not in rollout.keys(True, True):
-                raise KeyError(
+                raise MissingKeyError(
                     f"report key {key!r} is not in the rollout: does the policy write it?"
                 )
             values = rollout.get(key)[:rows]

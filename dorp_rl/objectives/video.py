@@ -11,7 +11,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
 from dorp_rl.modules.video import FRAME_SHAPE, VideoPredictionModel
-from dorp_rl.validation import check_choice, check_float, check_int
+from dorp_rl.validation import MissingKeyError, check_choice, check_float, check_int
 
 FEEDBACK_MODES = ("straight_through", "soft", "hard")
 
@@ -136,7 +136,7 @@ class VideoPredictionLoss(LossModule):
             key = getattr(keys, name)
             value = tensordict.get(key, None)
             if value is None:
-                raise KeyError(f"VideoPredictionLoss needs the key {key!r} ({name}).")
+                raise MissingKeyError(f"VideoPredictionLoss needs the key {key!r} ({name}).")
             values.append(value)
         pixels, action, next_pixels = values
         for name, value in (("pixels", pixels), ("next_pixels", next_pixels)):
