@@ -58,6 +58,11 @@ class ConfigMixin:
     def check_relations(self) -> None:
         """Rules between fields (e.g. ``trajectory_length >= horizon``); none by default."""
 
+    @classmethod
+    def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """Stored values of an older version, made valid (``from_dict`` calls it); as is by default."""
+        return values
+
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)  # type: ignore[call-overload]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in out.items()}
@@ -71,7 +76,7 @@ class ConfigMixin:
         if unknown:
             raise ValueError(f"unknown {cls.__name__} fields {unknown}.")
         hints = typing.get_type_hints(cls)
-        values = dict(values)
+        values = cls.upgrade(dict(values))
         for name, value in values.items():
             if isinstance(value, list) and "tuple" in str(hints.get(name, "")):
                 values[name] = tuple(value)

@@ -11,9 +11,37 @@ from typing import Any, ClassVar
 import torch
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
-from dorp_rl.config import config_differences, format_differences
+from dorp_rl.config import ConfigMixin, config_differences, format_differences
 from dorp_rl.envs import GridWorldEnv
 from dorp_rl.integrity import DirectoryLock, IntegrityError
+
+
+class EnvConfigMixin(ConfigMixin):
+    """The ``env`` / ``num_objects`` fields shared by the trainer configs.
+
+    ``num_objects=None`` means :attr:`default_num_objects` for rearrangement and 1 for the
+    key rooms (one agent); any other count with a key room would be ignored, so it is
+    refused. Stored configs of older versions (whose key-room presets kept the
+    rearrangement default) are read with ``num_objects=1``.
+    """
+
+    #: objects of a rearrangement config that does not say
+    default_num_objects: ClassVar[int] = 2
+
+    def check_num_objects(self) -> None:
+        if self.num_objects is None:
+            self.num_objects = self.default_num_objects if self.env == "rearrangement" else 1
+        elif self.env != "rearrangement" and self.num_objects != 1:
+            raise ValueError(
+                f"num_objects={self.num_objects} applies to env='rearrangement' only; "
+                f"{self.env} has one agent (use num_objects=1 or None)."
+            )
+
+    @classmethod
+    def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
+        if values.get("env", "rearrangement") != "rearrangement":
+            values["num_objects"] = 1  # it never had an effect on key rooms
+        return values
 
 
 class TrainingDivergedError(ValueError):
@@ -151,8 +179,13 @@ class Trainer:
             self.saved_step = self.step
         return out
 
-    def read_checkpoint(self, path: str | Path | None = None) -> dict[str, Any]:
+    def read_checkpoint(
+        self, path: str | Path | None = None, *, resume: bool = False
+    ) -> dict[str, Any]:
         """The checked payload of a checkpoint of this trainer (nothing is restored).
+
+        With ``resume``, its config must also match this trainer's
+        (:meth:`check_resume_config`).
 
         Raises:
             FileNotFoundError: no file.
@@ -168,6 +201,8 @@ class Trainer:
         missing = [k for k in ("torch", "data") if k not in rng]
         if missing:
             raise IntegrityError(f"checkpoint {path} is incomplete: it has no RNG state {missing}.")
+        if resume:
+            self.check_resume_config(payload["config"], Path(path))
         self.check_checkpoint_config(payload["config"])
         return payload
 
@@ -201,6 +236,12 @@ class Trainer:
             ValueError: listing every field (other than :attr:`bookkeeping_fields` and
                 :attr:`resume_adjustable_fields`) whose value differs from the checkpoint's.
         """
+        try:  # compare in this version's terms (older key-room configs stored num_objects=3)
+            stored = type(self.config).from_dict(stored).to_dict()
+        except (ValueError, TypeError) as err:
+            raise ValueError(
+                f"cannot resume from {path}: its config cannot be read ({err})."
+            ) from err
         diff = config_differences(stored, self.config.to_dict())
         refused = {
             k: v
@@ -221,7 +262,7 @@ class Trainer:
             warnings.warn(
                 f"resuming from {path} with {details}: the new value is used from here on.",
                 UserWarning,
-                stacklevel=3,
+                stacklevel=5,
             )
 
     # ------------------------------------------------------------------ divergence
@@ -255,9 +296,10 @@ class Trainer:
             raise self._diverged(f"the gradient norm is {norm_value}")
         return norm
 
-    def check_parameters(self, parameters: Iterable[torch.Tensor]) -> None:
-        """Raises if the optimiser step made a weight NaN or infinite."""
-        flags = [torch.isfinite(p.detach()).all() for p in parameters]
+    def check_weights(self, *modules: torch.nn.Module) -> None:
+        """Raises if the step made a weight or a floating buffer (BatchNorm statistics) non-finite."""
+        tensors = [t for m in modules for t in (*m.parameters(), *m.buffers())]
+        flags = [torch.isfinite(t.detach()).all() for t in tensors if t.is_floating_point()]
         if flags and not bool(torch.stack(flags).all()):
             raise self._diverged("the update made weights NaN or infinite")
 
@@ -297,9 +339,7 @@ class Trainer:
     def _train(self, resume: bool) -> dict[str, Any]:
         cfg = self.config
         if resume and self.checkpoint_path.exists():
-            payload = self.read_checkpoint()
-            self.check_resume_config(payload["config"], self.checkpoint_path)
-            self._restore(payload)
+            self._restore(self.read_checkpoint(resume=True))
             self.saved_step = self.step
         bar = None
         if cfg.progress:

@@ -13,14 +13,13 @@ from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
-from dorp_rl.config import ConfigMixin
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
 from dorp_rl.envs import ENV_NAMES, GridWorldEnv, KeyRoomEnv, env_class, make_env
 from dorp_rl.eval.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
-from dorp_rl.trainers.base import Trainer
+from dorp_rl.trainers.base import EnvConfigMixin, Trainer
 from dorp_rl.validation import Choice, Device, Flag, Float, Int, Seed, Text, derive_seed
 
 #: Upper bound of ``num_objects`` (the default colour palette).
@@ -42,7 +41,7 @@ KEY_ROOM_RECIPE: dict[str, Any] = {
 
 
 @dataclass
-class RepresentationConfig(ConfigMixin):
+class RepresentationConfig(EnvConfigMixin):
     """Everything that defines a representation run (a CleanRL-style flat dataclass).
 
     Use the presets :meth:`rearrangement`, :meth:`key_wall` and :meth:`key_corridor`, then
@@ -51,7 +50,7 @@ class RepresentationConfig(ConfigMixin):
 
     FIELD_RULES = {
         "env": Choice(ENV_NAMES),
-        "num_objects": Int(low=1, high=_MAX_OBJECTS),
+        "num_objects": Int(low=1, high=_MAX_OBJECTS, optional=True),
         "num_frames": Int(low=1),
         "num_envs": Int(low=1),
         "trajectory_length": Int(low=1, optional=True),
@@ -99,7 +98,7 @@ class RepresentationConfig(ConfigMixin):
 
     # environment and play data
     env: str = "rearrangement"
-    num_objects: int = 2
+    num_objects: int | None = None
     num_frames: int = 100_000
     num_envs: int = 64
     trajectory_length: int | None = None
@@ -227,11 +226,7 @@ class RepresentationConfig(ConfigMixin):
 
     def check_relations(self) -> None:
         """Rules between fields; each message names the fields and what they allow."""
-        if self.env != "rearrangement" and self.num_objects != 1:
-            raise ValueError(
-                f"num_objects={self.num_objects} applies to env='rearrangement' only; "
-                f"{self.env} has one agent (use num_objects=1)."
-            )
+        self.check_num_objects()
         if not self.min_offset <= self.max_offset <= self.play_trajectory_length:
             raise ValueError(
                 "offsets must satisfy 1 <= min_offset <= max_offset <= the play trajectory "
@@ -629,7 +624,7 @@ class RepresentationTrainer(Trainer):
         parameters = [*self.encoder.parameters(), *self.similarity.parameters()]
         self.check_gradients(total, parameters)
         self.optimizer.step()
-        self.check_parameters(parameters)
+        self.check_weights(self.encoder, self.similarity)
         self.step += 1
         return {k: float(v.detach()) for k, v in out.items()}
 

@@ -12,14 +12,13 @@ from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
-from dorp_rl.config import ConfigMixin
 from dorp_rl.data import SequenceSampler, check_play_buffer, collect_play_data
 from dorp_rl.envs import ENV_NAMES, GridWorldEnv, make_env
 from dorp_rl.eval.world_model import open_loop_accuracy
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
-from dorp_rl.trainers.base import Trainer
+from dorp_rl.trainers.base import EnvConfigMixin, Trainer
 from dorp_rl.validation import Choice, Device, Flag, Float, Int, Seed, Text, derive_seed
 
 #: seed offset of the held-out play data used for evaluation
@@ -27,7 +26,7 @@ HELD_OUT_SEED_OFFSET = 100_003
 
 
 @dataclass
-class WorldModelConfig(ConfigMixin):
+class WorldModelConfig(EnvConfigMixin):
     """Everything that defines a world-model run (a CleanRL-style flat dataclass).
 
     Play data are random-action trajectories of ``trajectory_length`` steps (for
@@ -43,7 +42,7 @@ class WorldModelConfig(ConfigMixin):
 
     FIELD_RULES = {
         "env": Choice(ENV_NAMES),
-        "num_objects": Int(low=1, high=8),
+        "num_objects": Int(low=1, high=8, optional=True),
         "num_frames": Int(low=1),
         "num_envs": Int(low=1),
         "trajectory_length": Int(low=1),
@@ -78,9 +77,11 @@ class WorldModelConfig(ConfigMixin):
         "progress": Flag(),
     }
 
+    default_num_objects = 3
+
     # environment and play data
     env: str = "rearrangement"
-    num_objects: int = 3
+    num_objects: int | None = None
     num_frames: int = 100_000
     num_envs: int = 64
     trajectory_length: int = 16
@@ -121,20 +122,16 @@ class WorldModelConfig(ConfigMixin):
     @classmethod
     def key_wall(cls, **overrides: Any) -> WorldModelConfig:
         """Key-wall: windows from the 1000-step random walks of the play data."""
-        return replace(cls(env="key-wall", trajectory_length=1000), **overrides)
+        return replace(cls(env="key-wall", num_objects=1, trajectory_length=1000), **overrides)
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> WorldModelConfig:
         """Key-corridor: windows from the 1500-step random walks of the play data."""
-        return replace(cls(env="key-corridor", trajectory_length=1500), **overrides)
+        return replace(cls(env="key-corridor", num_objects=1, trajectory_length=1500), **overrides)
 
     def check_relations(self) -> None:
         """Rules between fields; each message names the fields and what they allow."""
-        if self.env != "rearrangement" and self.num_objects != 1:
-            raise ValueError(
-                f"num_objects={self.num_objects} applies to env='rearrangement' only; "
-                f"{self.env} has one agent (use num_objects=1)."
-            )
+        self.check_num_objects()
         if self.trajectory_length < self.horizon:
             raise ValueError(
                 f"trajectory_length ({self.trajectory_length}) must be >= horizon "
@@ -281,7 +278,7 @@ class WorldModelTrainer(Trainer):
         grad_norm = self.check_gradients(total, parameters)
         torch.nn.utils.clip_grads_with_norm_(parameters, self.config.grad_clip, grad_norm)
         self.optimizer.step()
-        self.check_parameters(parameters)
+        self.check_weights(self.model)
         self.step += 1
         metrics = {k: float(v.detach()) for k, v in out.items()}
         metrics["grad_norm"] = float(grad_norm)
