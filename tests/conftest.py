@@ -1,0 +1,82 @@
+"""Fixtures shared by the reliability tests: tiny trainer configs and single-threaded torch."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from dorp_rl.trainers import RepresentationConfig, WorldModelConfig
+
+
+class TinyConfigs:
+    """Trainer configs of a few seconds each (1-object rearrangement)."""
+
+    @staticmethod
+    def representation(out_dir: str | Path, **overrides: Any) -> RepresentationConfig:
+        base = RepresentationConfig.rearrangement(
+            1,
+            code_size=8,
+            num_frames=256,
+            num_envs=16,
+            batch_size=32,
+            num_steps=10,
+            log_every=2,
+            checkpoint_every=5,
+            diagnostics_every=10**9,
+            progress=False,
+            out_dir=str(out_dir),
+            collapse_check_after=10**9,
+        )
+        return dataclasses.replace(base, **overrides)
+
+    @staticmethod
+    def world_model(out_dir: str | Path, **overrides: Any) -> WorldModelConfig:
+        base = WorldModelConfig.rearrangement(
+            1,
+            num_steps=6,
+            num_frames=256,
+            num_envs=16,
+            horizon=3,
+            trajectory_length=4,
+            eval_frames=128,
+            eval_sequences=8,
+            model_preset="small",
+            batch_size=8,
+            log_every=2,
+            checkpoint_every=2,
+            eval_every=10**6,
+            progress=False,
+            out_dir=str(out_dir),
+        )
+        return dataclasses.replace(base, **overrides)
+
+
+@pytest.fixture(scope="session")
+def tiny_configs() -> type[TinyConfigs]:
+    return TinyConfigs
+
+
+@pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """Tiny tensors: thread hand-offs cost more than they save; restores the count after."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture
+def representation_config(tmp_path) -> Callable[..., RepresentationConfig]:
+    """``make(name="run", **overrides)``: a tiny representation config under ``tmp_path``."""
+    return lambda name="run", **overrides: TinyConfigs.representation(tmp_path / name, **overrides)
+
+
+@pytest.fixture
+def world_model_config(tmp_path) -> Callable[..., WorldModelConfig]:
+    """``make(name="wm", **overrides)``: a tiny world-model config under ``tmp_path``."""
+    return lambda name="wm", **overrides: TinyConfigs.world_model(tmp_path / name, **overrides)

@@ -1,0 +1,234 @@
+"""Config validation: every field of every config has a rule, checked when the config is built.
+
+Bad values are derived from each field's rule (below its lower bound, above its upper
+bound, a non-integer, NaN, an unknown choice, a non-bool, an empty string), so a new
+field without a rule, or a rule that stops checking, fails here. Rules between fields
+and the buffers given to trainers are checked too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import pytest
+
+from dorp_rl.data import collect_play_data
+from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.modules import VideoModelConfig
+from dorp_rl.trainers import (
+    RepresentationConfig,
+    RepresentationTrainer,
+    WorldModelConfig,
+    WorldModelTrainer,
+)
+from dorp_rl.validation import Choice, Device, Flag, Float, Int, Ints, Seed, Text
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+CONFIGS = [RepresentationConfig, WorldModelConfig, VideoModelConfig]
+
+
+def bad_values(rule) -> list:
+    """Values that break ``rule``, each with the text the message must hold."""
+    if isinstance(rule, Int):
+        out = [(2.5, "integer"), ("3", "integer"), (True, "integer")]
+        if rule.low is not None:
+            out.append((rule.low - 1, f">= {rule.low}" if rule.high is None else f"[{rule.low}"))
+        if rule.high is not None:
+            out.append((rule.high + 1, f"{rule.high}]"))
+        return out
+    if isinstance(rule, Float):
+        out = [(math.nan, "number"), ("0.1", "number")]
+        if not rule.allow_inf:
+            out.append((math.inf, "finite"))
+        if rule.low is not None:
+            out.append((rule.low - 1.0, f"{rule.low:g}"))
+            if rule.low_open:
+                out.append((rule.low, f"> {rule.low:g}"))
+        if rule.high is not None:
+            out.append((rule.high + 1.0, f"{rule.high:g}"))
+        return out
+    if isinstance(rule, Choice):
+        return [("no-such-choice", str(rule.options[0]))]
+    if isinstance(rule, Flag):
+        return [("yes", "True or False"), (1, "True or False")]
+    if isinstance(rule, Text):
+        return [("", "non-empty string"), (3, "non-empty string")]
+    if isinstance(rule, Seed):
+        return [(-1, "[0, "), (1.5, "integer"), (2**63, "[0, ")]
+    if isinstance(rule, Device):
+        return [("gpu0", "torch device")]
+    if isinstance(rule, Ints):
+        return [((), "at least"), ((1, 0), ">= 1"), ((1, 2.5), "integer")]
+    raise AssertionError(f"no bad values for {rule!r}")
+
+
+def defaults(cls):
+    return cls.default() if cls is VideoModelConfig else cls()
+
+
+@pytest.mark.parametrize("cls", CONFIGS, ids=lambda c: c.__name__)
+def test_every_field_has_a_rule(cls):
+    fields = {f.name for f in dataclasses.fields(cls)}
+    assert set(cls.FIELD_RULES) == fields
+
+
+CASES = [
+    (cls, name, value, text)
+    for cls in CONFIGS
+    for name, rule in cls.FIELD_RULES.items()
+    for value, text in bad_values(rule)
+]
+
+
+@pytest.mark.parametrize(
+    ("cls", "name", "value", "text"),
+    CASES,
+    ids=[f"{c.__name__}.{n}={v!r}" for c, n, v, _ in CASES],
+)
+def test_a_bad_field_value_is_refused_naming_the_field_and_range(cls, name, value, text):
+    with pytest.raises(ValueError) as info:
+        dataclasses.replace(defaults(cls), **{name: value})
+    message = str(info.value)
+    assert message.startswith(f"{name}") or f"{name}[" in message, message
+    assert text in message, message
+
+
+@pytest.mark.parametrize("cls", CONFIGS, ids=lambda c: c.__name__)
+def test_defaults_presets_and_round_trips_are_valid(cls):
+    config = defaults(cls)
+    assert cls.from_dict(config.to_dict()) == config
+    if cls is RepresentationConfig:
+        for preset in (cls.rearrangement(3), cls.key_wall(), cls.key_corridor()):
+            assert cls.from_dict(preset.to_dict()) == preset
+    if cls is WorldModelConfig:
+        for preset in (cls.rearrangement(2), cls.key_wall(), cls.key_corridor()):
+            assert cls.from_dict(preset.to_dict()) == preset
+
+
+# ---------------------------------------------------------------- the issue's faults
+@pytest.mark.parametrize(
+    ("cls", "changes", "message"),
+    [
+        (WorldModelConfig, {"grad_clip": 0}, "grad_clip must be > 0"),
+        (RepresentationConfig, {"num_steps": 2.5}, "num_steps must be an integer >= 1"),
+        (WorldModelConfig, {"num_steps": 2.5}, "num_steps must be an integer >= 1"),
+        (RepresentationConfig, {"num_envs": 0}, "num_envs must be >= 1"),
+        (RepresentationConfig, {"seed": -1}, "seed must be in [0, "),
+        (WorldModelConfig, {"seed": -1}, "seed must be in [0, "),
+        (RepresentationConfig, {"lr": math.nan}, "lr must be a finite number >= 0"),
+        (RepresentationConfig, {"lr": -1.0}, "lr must be >= 0"),
+        (WorldModelConfig, {"lr": math.nan}, "lr must be a finite number >= 0"),
+        (RepresentationConfig, {"max_offset": 4}, "max_offset <= the play trajectory length"),
+    ],
+)
+def test_the_faults_named_in_the_issue(cls, changes, message):
+    with pytest.raises(ValueError) as info:
+        dataclasses.replace(cls(), **changes)
+    assert message in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("cls", "changes", "fields"),
+    [
+        (RepresentationConfig, {"env": "key-wall", "num_objects": 3}, ["num_objects"]),
+        (WorldModelConfig, {"env": "key-corridor", "num_objects": 2}, ["num_objects"]),
+        (
+            WorldModelConfig,
+            {"trajectory_length": 5, "horizon": 6},
+            ["trajectory_length", "horizon"],
+        ),
+        (RepresentationConfig, {"num_candidates": 2, "candidate_steps": 3000}, ["candidate_steps"]),
+        (RepresentationConfig, {"extractor_kernel_size": 4}, ["extractor_kernel_size"]),
+        (RepresentationConfig, {"gumbel_temperature_start": 1.0}, ["gumbel_anneal_steps"]),
+        (RepresentationConfig, {"similarity": "full", "alpha": 2.0}, ["alpha", "similarity"]),
+        (RepresentationConfig, {"min_offset": 3, "max_offset": 2}, ["min_offset", "max_offset"]),
+        (
+            RepresentationConfig,
+            {"env": "key-wall", "num_objects": 1, "trajectory_length": 3, "max_offset": 4},
+            ["max_offset", "trajectory_length=3"],
+        ),
+    ],
+)
+def test_rules_between_fields_name_every_field_involved(cls, changes, fields):
+    with pytest.raises(ValueError) as info:
+        dataclasses.replace(cls(), **changes)
+    for field in fields:
+        assert field in str(info.value)
+
+
+@pytest.mark.parametrize("cls", [RepresentationConfig, WorldModelConfig])
+def test_num_objects_follows_the_env_unless_given(cls):
+    assert cls(env="key-wall").num_objects == 1
+    assert cls(env="rearrangement").num_objects == cls.default_num_objects
+    assert cls(env="rearrangement", num_objects=4).num_objects == 4
+    stored = cls(env="key-corridor").to_dict() | {"num_objects": 3}  # older presets kept 3
+    assert cls.from_dict(stored).num_objects == 1
+
+
+def test_values_are_normalised():
+    cfg = dataclasses.replace(
+        RepresentationConfig(), num_steps=3.0, data_dir=Path("data"), device="cpu"
+    )
+    assert cfg.num_steps == 3 and isinstance(cfg.num_steps, int)
+    assert cfg.data_dir == "data"
+    assert cfg.trajectory_length is None  # optional fields keep None
+
+
+def test_from_dict_validates():
+    values = RepresentationConfig().to_dict() | {"lr": -1.0}
+    with pytest.raises(ValueError, match="lr must be >= 0"):
+        RepresentationConfig.from_dict(values)
+
+
+@pytest.mark.parametrize("trainer", [RepresentationTrainer, WorldModelTrainer])
+def test_a_config_changed_after_construction_is_caught_by_the_trainer(
+    trainer, representation_config, world_model_config
+):
+    cfg = representation_config() if trainer is RepresentationTrainer else world_model_config()
+    cfg.lr = -1.0  # dataclasses are mutable: the trainer checks again
+    with pytest.raises(ValueError, match="lr must be >= 0"):
+        trainer(cfg)
+
+
+# ---------------------------------------------------------------- buffers given to trainers
+def test_representation_trainer_refuses_play_data_of_another_env(representation_config):
+    keywall = collect_play_data(KeyWallEnv(batch_size=(2,)), 256, seed=0)
+    with pytest.raises(ValueError, match="another environment") as info:
+        RepresentationTrainer(representation_config(), buffer=keywall)
+    assert "env: buffer 'KeyWallEnv', config 'ObjectRearrangementEnv'" in str(info.value)
+    two = collect_play_data(ObjectRearrangementEnv(2, batch_size=(4,)), 256, seed=0)
+    with pytest.raises(ValueError, match="num_objects: buffer 2, config 1"):
+        RepresentationTrainer(representation_config(), buffer=two)
+
+
+def test_representation_trainer_refuses_trajectories_shorter_than_max_offset(
+    representation_config,
+):
+    short = collect_play_data(KeyWallEnv(batch_size=(2,)), 256, seed=0, trajectory_length=2)
+    cfg = representation_config(env="key-wall", code_size=8, max_offset=4)
+    with pytest.raises(ValueError, match="trajectories of 2 step"):
+        RepresentationTrainer(cfg, buffer=short)
+
+
+def test_world_model_trainer_refuses_trajectories_shorter_than_horizon(world_model_config):
+    one = ObjectRearrangementEnv(1, batch_size=(4,))
+    short = collect_play_data(one, 256, seed=0, trajectory_length=2)
+    with pytest.raises(ValueError, match="at least 3"):
+        WorldModelTrainer(world_model_config(horizon=3), buffer=short)
+
+
+def test_a_buffer_without_metadata_is_checked_by_its_state_shape(representation_config):
+    buffer = collect_play_data(ObjectRearrangementEnv(2, batch_size=(4,)), 256, seed=0)
+    buffer.metadata = None  # a buffer built by hand
+    with pytest.raises(ValueError, match=r"states of shape \[2, 2\]"):
+        RepresentationTrainer(representation_config(), buffer=buffer)
+
+
+def test_a_matching_buffer_is_taken_with_the_configs_sampler(representation_config):
+    cfg = representation_config(num_steps=2)
+    buffer = collect_play_data(cfg.make_env(batch_size=(16,)), 256, seed=0)
+    trainer = RepresentationTrainer(cfg, buffer=buffer)
+    assert trainer.buffer is buffer and trainer.train()["step"] == 2
