@@ -370,20 +370,19 @@ def check_frames(
         floats: also take floating-point frames; their values must lie in ``[0, 1]``
             (one device synchronisation): a float frame in ``0..255`` is a forgotten
             ``/ 255`` and is refused rather than silently misread.
-        lead: the leading dimensions, ``"*B"`` or ``"..."`` (any), ``"N"`` (exactly one)
-            or a shape.
+        lead: the leading dimensions: ``"*B"`` or ``"..."`` (any), named ones
+            (``"N"``, ``"B, H"``: exactly that many) or a shape.
         size: height and width (``None``: any).
     """
     pixels = as_tensor(pixels, name)
     hw = "H, W" if size is None else f"{size}, {size}"
     layout = f"[{_lead_text(lead)}, 3, {hw}]"
-    lead_ok = (
-        pixels.dim() >= 3
-        if lead in ("*B", "...")
-        else pixels.dim() == 4
-        if lead == "N"
-        else tuple(pixels.shape[:-3]) == tuple(lead) and pixels.dim() >= 3
-    )
+    if lead in ("*B", "..."):
+        lead_ok = pixels.dim() >= 3
+    elif isinstance(lead, str):  # named dimensions: "N", "B, H"
+        lead_ok = pixels.dim() == 3 + len(lead.split(","))
+    else:
+        lead_ok = pixels.dim() >= 3 and tuple(pixels.shape[:-3]) == tuple(lead)
     frame_ok = pixels.dim() >= 3 and pixels.shape[-3] == 3
     if size is not None:
         frame_ok = frame_ok and tuple(pixels.shape[-2:]) == (size, size)
@@ -427,7 +426,10 @@ def check_action(
     if action.dtype.is_floating_point or action.dtype.is_complex or action.dtype == torch.bool:
         raise ValueError(f"{name} must be an integer tensor, got dtype {action.dtype}.")
     if shape is not None and tuple(action.shape) != tuple(shape):
-        raise ValueError(f"{name} must have shape {list(shape)}, got {list(action.shape)}.")
+        raise ValueError(
+            f"{name} must have shape {list(shape)} ([*B, 1] with B = {list(shape[:-1])}), got "
+            f"{list(action.shape)}."
+        )
     if action.shape[-1:] != (1,):
         raise ValueError(f"{name} must have shape [*B, 1], got {list(action.shape)}.")
     if action.numel():

@@ -231,9 +231,12 @@ class GridWorldEnv(EnvBase):
     def _describe_invalid(self, state: torch.Tensor, bad: torch.Tensor) -> str:
         return "breaks the environment's rules"
 
-    def check_action(self, action: torch.Tensor) -> torch.Tensor:
-        """Validates an action tensor ``[*B, 1]`` and returns it as int64 ``[*B]``."""
-        return check_action(action, self.num_actions).squeeze(-1)
+    def check_action(
+        self, action: torch.Tensor, batch_shape: Sequence[int] | None = None
+    ) -> torch.Tensor:
+        """Validates an action tensor ``[*B, 1]`` (``B = batch_shape`` if given); returns int64 ``[*B]``."""
+        shape = None if batch_shape is None else (*batch_shape, 1)
+        return check_action(action, self.num_actions, shape=shape).squeeze(-1)
 
     # ------------------------------------------------------------------ #
     # EnvBase
@@ -329,12 +332,7 @@ class GridWorldEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = tensordict.batch_size
-        action = tensordict.get("action")
-        if isinstance(action, torch.Tensor) and tuple(action.shape[:-1]) != tuple(shape):
-            raise ValueError(
-                f"action must have shape [*B, 1] with B = {list(shape)}, got {list(action.shape)}."
-            )
-        action = self.check_action(action)
+        action = self.check_action(tensordict.get("action"), shape)
         state = self._trusted_state(tensordict, "state")
         goal_state = self._trusted_state(tensordict, "goal_state")
         step_count = tensordict.get("step_count", None)

@@ -41,7 +41,7 @@ from dorp_rl.envs.key_rooms import KeyRoomEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
 
 # Submodules, not the package: dorp_rl.envs imports dorp_rl.viz, which imports this module.
-from dorp_rl.validation import check_int, check_seed
+from dorp_rl.validation import check_frames, check_int, check_seed
 
 #: ``encode(pixels uint8 [N, 3, 16, 16]) -> int64 [N, C]``: one code index per one-hot.
 Encoder = Callable[[torch.Tensor], torch.Tensor]
@@ -92,14 +92,8 @@ def encode_pixels(
             anything but an int64 ``[n, C]`` tensor of non-negative code indices with the
             same ``C`` for every chunk.
     """
-    if not isinstance(pixels, torch.Tensor) or pixels.dtype != torch.uint8:
-        raise ValueError(f"pixels must be a uint8 tensor, got {_describe(pixels)}.")
-    if pixels.dim() != 4 or tuple(pixels.shape[1:]) != (3, GRID_SIZE, GRID_SIZE):
-        raise ValueError(
-            f"pixels must have shape [N, 3, {GRID_SIZE}, {GRID_SIZE}], got {list(pixels.shape)}."
-        )
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
+    pixels = check_frames(pixels, "pixels", lead="N", size=GRID_SIZE)
+    chunk_size = check_int("chunk_size", chunk_size, low=1)
     if len(pixels) == 0:
         raise ValueError("pixels is empty: nothing to encode.")
     outputs: list[torch.Tensor] = []

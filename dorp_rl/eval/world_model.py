@@ -7,7 +7,8 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from dorp_rl.modules.video import FRAME_SHAPE, VideoPredictionModel
+from dorp_rl.modules.video import VideoPredictionModel
+from dorp_rl.validation import check_frames
 
 
 @torch.no_grad()
@@ -56,12 +57,7 @@ def open_loop_accuracy(
             f"{list(sequences.shape)}."
         )
     n, horizon = sequences.shape
-    target = sequences.get(("next", "pixels"))
-    if target.dtype != torch.uint8 or tuple(target.shape[2:]) != FRAME_SHAPE:
-        raise ValueError(
-            f"('next', 'pixels') must be uint8 [N, H, 3, 16, 16], got {target.dtype} "
-            f"{list(target.shape)}."
-        )
+    check_frames(sequences.get(("next", "pixels")), "('next', 'pixels')", lead="N, H")
     device = model.palette.device
     was_training = model.training
     model.eval()

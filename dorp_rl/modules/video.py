@@ -76,11 +76,7 @@ def palette_from_frames(frames: torch.Tensor, max_colours: int = 64) -> torch.Te
         >>> palette_from_frames(frames).tolist()
         [[0, 0, 0], [255, 0, 0]]
     """
-    if not isinstance(frames, torch.Tensor) or frames.dtype != torch.uint8:
-        got = frames.dtype if isinstance(frames, torch.Tensor) else type(frames).__name__
-        raise ValueError(f"frames must be a uint8 tensor [*B, 3, H, W], got {got}.")
-    if frames.dim() < 3 or frames.shape[-3] != 3:
-        raise ValueError(f"frames must have shape [*B, 3, H, W], got {list(frames.shape)}.")
+    frames = check_frames(frames, "frames", size=None)
     codes = _pack_rgb(frames.movedim(-3, -1).reshape(-1, 3)).unique()
     if codes.numel() > max_colours:
         raise ValueError(

@@ -10,8 +10,14 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-from dorp_rl.modules.video import FRAME_SHAPE, VideoPredictionModel
-from dorp_rl.validation import MissingKeyError, check_choice, check_float, check_int
+from dorp_rl.modules.video import VideoPredictionModel
+from dorp_rl.validation import (
+    MissingKeyError,
+    check_choice,
+    check_float,
+    check_frames,
+    check_int,
+)
 
 FEEDBACK_MODES = ("straight_through", "soft", "hard")
 
@@ -140,15 +146,7 @@ class VideoPredictionLoss(LossModule):
             values.append(value)
         pixels, action, next_pixels = values
         for name, value in (("pixels", pixels), ("next_pixels", next_pixels)):
-            if (
-                value.dtype != torch.uint8
-                or value.dim() != 5
-                or tuple(value.shape[2:]) != FRAME_SHAPE
-            ):
-                raise ValueError(
-                    f"{name} must be uint8 [B, H, 3, 16, 16] (a window sample), got "
-                    f"{value.dtype} {list(value.shape)}."
-                )
+            check_frames(value, f"{name} (a window sample)", lead="B, H")
         if pixels.shape != next_pixels.shape:
             raise ValueError(
                 f"pixels and next_pixels must have the same shape, got {list(pixels.shape)} "
