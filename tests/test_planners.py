@@ -645,3 +645,34 @@ def test_finished_rows_are_not_planned_for():
     assert done.any(-1).all()
     steps_until_done = done.float().argmax(-1) + 1
     assert sum(planned) <= int(steps_until_done.sum())
+
+
+def test_blurred_pixel_distance_sees_blocks_that_do_not_overlap_their_goal():
+    env = ObjectRearrangementEnv(num_objects=1, seed=0)
+    goal = env.render_state(torch.tensor([[2, 2]]))
+    frames = env.render_state(torch.tensor([[[8, 2]], [[6, 2]], [[4, 2]]]))  # 6, 4, 2 rows away
+    rollout = TensorDict(
+        {
+            "goal_pixels": goal.view(1, 1, 1, 3, 16, 16).expand(1, 1, 3, 3, 16, 16),
+            ("next", "pixels"): frames.view(1, 1, 3, 3, 16, 16),
+        },
+        batch_size=(1, 1, 3),
+    )
+    plain = PixelDistanceCost()(rollout.clone())["cost"].flatten()
+    blurred = PixelDistanceCost(blur_sigmas=(1.0, 2.0, 4.0))(rollout)["cost"].flatten()
+    assert torch.allclose(plain, plain[0].expand(3))  # flat: no overlap, same distance
+    assert blurred[0] > blurred[1] > blurred[2]  # closer is cheaper
+    # Distinct frames are scored once: the same values as scoring every frame.
+    many = TensorDict(
+        {
+            "goal_pixels": goal.view(1, 1, 1, 3, 16, 16).expand(2, 40, 3, 3, 16, 16),
+            ("next", "pixels"): frames.view(1, 1, 3, 3, 16, 16).expand(2, 40, 3, 3, 16, 16),
+        },
+        batch_size=(2, 40, 3),
+    )
+    cost = PixelDistanceCost(blur_sigmas=(2.0,))
+    as_float = many.clone()
+    as_float["next", "pixels"] = as_float["next", "pixels"].float()
+    assert torch.equal(cost(many)["cost"], cost(as_float)["cost"])
+    with pytest.raises(ValueError, match="blur_sigmas"):
+        PixelDistanceCost(blur_sigmas=(0.0,))
