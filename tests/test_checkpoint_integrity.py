@@ -8,9 +8,16 @@ saved, never something else. Refusals leave the previous good checkpoint loadabl
 from __future__ import annotations
 
 import hashlib
+import json
 import math
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -241,3 +248,32 @@ def test_load_applies_the_trainers_own_learning_rate(trained, representation_con
     trainer.load(trained["rep"])
     assert [g["lr"] for g in trainer.optimizer.param_groups][0] == pytest.approx(3e-4)
     assert same(state_of(trainer.encoder.eval()), trained["rep_weights"])
+
+
+# ---------------------------------------------------------------- a killed run
+def test_a_run_killed_mid_training_resumes_to_the_uninterrupted_weights(representation_config):
+    """SIGKILL right after the first checkpoint; the resume must end where an unkilled run does."""
+    cfg = representation_config("killed", num_steps=60, checkpoint_every=3, log_every=3)
+    code = (
+        "import json, sys, torch; torch.set_num_threads(1)\n"
+        "from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer\n"
+        "RepresentationTrainer(RepresentationConfig.from_dict(json.loads(sys.argv[1]))).train()\n"
+    )
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    child = subprocess.Popen([sys.executable, "-c", code, json.dumps(cfg.to_dict())], env=env)
+    checkpoint = Path(cfg.out_dir) / "checkpoints" / "last.pt"
+    deadline = time.monotonic() + 120
+    while not checkpoint.exists() and child.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    killed_at = load_checkpoint(checkpoint)["step"]
+    assert 3 <= killed_at < 60  # killed mid-run, with a complete checkpoint on disk
+    resumed = RepresentationTrainer(cfg)
+    resumed.train(resume=True)
+    full = RepresentationTrainer(
+        representation_config("full", num_steps=60, checkpoint_every=3, log_every=3)
+    )
+    full.train()
+    assert resumed.step == 60
+    assert same(state_of(resumed.encoder), state_of(full.encoder))
