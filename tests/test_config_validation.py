@@ -108,7 +108,7 @@ def test_defaults_presets_and_round_trips_are_valid(cls):
             assert cls.from_dict(preset.to_dict()) == preset
 
 
-# ---------------------------------------------------------------- the issue's faults
+# ---------------------------------------------------------------- common mistakes
 @pytest.mark.parametrize(
     ("cls", "changes", "message"),
     [
@@ -124,7 +124,7 @@ def test_defaults_presets_and_round_trips_are_valid(cls):
         (RepresentationConfig, {"max_offset": 4}, "max_offset <= the play trajectory length"),
     ],
 )
-def test_the_faults_named_in_the_issue(cls, changes, message):
+def test_common_mistakes_name_the_field(cls, changes, message):
     with pytest.raises(ValueError) as info:
         dataclasses.replace(cls(), **changes)
     assert message in str(info.value)
