@@ -22,7 +22,7 @@ Examples:
     >>> check_seed(-1)
     Traceback (most recent call last):
     ...
-    ValueError: seed must be an integer in [0, 9223372036854775807], got -1.
+    ValueError: seed must be in [0, 9223372036854775807], got -1.
 """
 
 from __future__ import annotations
