@@ -128,6 +128,19 @@ def count_planned_rows(policy) -> list[int]:
     return planned
 
 
+def test_a_stuck_goal_phase_is_given_up_after_its_budget():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=16)  # one code: the goal phase starts at once
+    graph = CodeGraph.from_transitions(torch.tensor([[0]]), torch.tensor([[0]]), (1,))
+    policy = make_dorp_policy(env, oracle, graph, seed=0, goal_budget=3, **SMALL)
+    start, goal = torch.tensor([[[0, 0]]]), torch.tensor([[[14, 12]]])  # 26 moves away
+    td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
+    rollout = env.rollout(10, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
+    modes = rollout["dorp_mode"].squeeze(-1)[0].tolist()
+    assert modes[:3] == [MODES["goal"]] * 3 and set(modes[3:]) == {MODES["failed"]}
+    assert int(rollout["dorp_goal_steps"][0, -1]) == 3
+
+
 def test_rows_with_different_goals_solve_independently(two_objects):
     env, oracle, graph = two_objects
     policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)

@@ -12,7 +12,8 @@
    budget; if not, remove that edge for this task and replan; when no group has a path
    left the task ends as failed (``dorp_failed``), never in an endless loop;
 6. once every one-hot holds the goal's code, drive to the goal image with
-   :class:`~dorp_rl.planners.PixelDistanceCost`.
+   :class:`~dorp_rl.planners.PixelDistanceCost`; a task that spends more than
+   ``goal_budget`` steps in this phase is given up too.
 
 All plan state lives in the tensordict (keys below, ``[*B, ...]`` per env), declared by
 :meth:`AbstractGoalPolicy.make_tensordict_primer` and restarted on ``is_init``, so one
@@ -34,6 +35,7 @@ key                        dtype / shape       meaning
 ``dorp_removed``           int64 ``[R]``       edges removed for this task (-1: free slot)
 ``dorp_replans``           int64 ``[1]``       edges removed so far
 ``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
+``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
 ``dorp_failed``            bool ``[1]``        no path left: the task is given up
 =========================  ==================  ===========================================
 """
@@ -87,6 +89,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         waypoint_budget: env steps allowed to reach one waypoint before its edge is
             removed for the task.
         max_removed_edges: edges a task may remove; one more failure ends the task.
+        goal_budget: steps the goal-image phase may take in all before the task is
+            given up (``None``: no limit but the env's). Pixel distance can get stuck
+            where a goal code spans a region the planner cannot cross within its horizon
+            (key rooms: a code on both sides of a wall); giving up frees the planning.
 
     Examples:
         >>> import torch
@@ -114,6 +120,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         order: str | Sequence[int] = "index",
         waypoint_budget: int = 28,
         max_removed_edges: int = 32,
+        goal_budget: int | None = 56,
         pixels_key: str = "pixels",
         goal_pixels_key: str = "goal_pixels",
     ) -> None:
@@ -168,7 +175,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.graph = graph
         self.waypoint_planner = waypoint_planner
         self.goal_planner = goal_planner
+        if goal_budget is not None and (int(goal_budget) != goal_budget or goal_budget < 1):
+            raise ValueError(f"goal_budget must be an integer >= 1 or None, got {goal_budget}.")
         self.waypoint_budget = int(waypoint_budget)
+        self.goal_budget = None if goal_budget is None else int(goal_budget)
         self.max_removed_edges = int(max_removed_edges)
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
@@ -186,6 +196,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_removed",
             "dorp_replans",
             "dorp_waypoints",
+            "dorp_goal_steps",
             "dorp_failed",
         ]
         planner_keys = [*waypoint_planner.in_keys, *goal_planner.in_keys]
@@ -229,6 +240,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_removed=integer(r),
             dorp_replans=integer(1),
             dorp_waypoints=integer(1),
+            dorp_goal_steps=integer(1),
             dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
         )
         defaults = {key: 0 for key in specs.keys()}
@@ -306,6 +318,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         new_waypoint = torch.zeros(rows, dtype=torch.bool)
         for row in need.nonzero().squeeze(-1).tolist():
             new_waypoint[row] = self._next_waypoint(state, row)
+        if self.goal_budget is not None:
+            spent = state["dorp_goal_steps"].squeeze(-1) >= self.goal_budget
+            state["dorp_failed"][active & at_goal & spent] = True
+            at_goal &= ~spent
         failed = state["dorp_failed"].squeeze(-1)
         mode[failed] = _FAILED
 
@@ -338,6 +354,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                     planner_state[key][index] = sub.get(key).cpu().to(planner_state[key].dtype)
             outputs.update(planner_state)
         state["dorp_budget"][mode == _WAYPOINT] -= 1
+        state["dorp_goal_steps"][(mode == _GOAL) & active] += 1
 
         out = {"action": action, **state, **outputs}
         for key, value in out.items():
@@ -487,7 +504,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
     def extra_repr(self) -> str:
         return (
             f"order={self.order!r}, waypoint_budget={self.waypoint_budget}, "
-            f"max_removed_edges={self.max_removed_edges}"
+            f"max_removed_edges={self.max_removed_edges}, goal_budget={self.goal_budget}"
         )
 
 
@@ -505,6 +522,7 @@ def make_dorp_policy(
     order: str | Sequence[int] = "index",
     waypoint_budget: int = 28,
     max_removed_edges: int = 32,
+    goal_budget: int | None = 56,
     goal_code_weight: float = 100.0,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     seed: int | None = None,
@@ -522,7 +540,8 @@ def make_dorp_policy(
         planner: ``"rs"`` (random shooting) or ``"cem"`` for the waypoint steps.
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
-        order, waypoint_budget, max_removed_edges: see :class:`AbstractGoalPolicy`.
+        order, waypoint_budget, max_removed_edges, goal_budget: see
+            :class:`AbstractGoalPolicy`.
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
             paper). Without it the pixel cost can pull objects out of their goal codes,
@@ -614,4 +633,5 @@ def make_dorp_policy(
         order=order,
         waypoint_budget=waypoint_budget,
         max_removed_edges=max_removed_edges,
+        goal_budget=goal_budget,
     )
