@@ -69,7 +69,14 @@ from dorp_rl.trainers import (
     load_video_model,
 )
 
-ROOT = Path(tempfile.mkdtemp(prefix="dorp_faults_"))
+_ROOT: list[Path] = []
+
+
+def root() -> Path:
+    """The scratch folder of this run (made on first use: a spawned child imports this file)."""
+    if not _ROOT:
+        _ROOT.append(Path(tempfile.mkdtemp(prefix="dorp_faults_")))
+    return _ROOT[0]
 
 
 class Silent(Exception):
@@ -108,7 +115,7 @@ def fault(
 
 
 def fresh(name: str) -> Path:
-    path = ROOT / f"{name}-{time.perf_counter_ns()}"
+    path = root() / f"{name}-{time.perf_counter_ns()}"
     return path
 
 
@@ -116,7 +123,7 @@ def fresh(name: str) -> Path:
 def play_dir(**kwargs: Any) -> Path:
     """A small complete key-wall collection in a fresh copy of a directory."""
     key = json.dumps(kwargs, sort_keys=True)
-    source = ROOT / f"play-{abs(hash(key))}"
+    source = root() / f"play-{abs(hash(key))}"
     if not source.exists():
         env = KeyWallEnv(batch_size=(kwargs.get("num_envs", 2),))
         collect_play_data(
@@ -950,7 +957,7 @@ def main() -> None:
         )
         if outcome in args.show:
             print(f"[{outcome}] {item.category}: {item.name}: {detail[:240]}")
-    shutil.rmtree(ROOT, ignore_errors=True)
+    shutil.rmtree(root(), ignore_errors=True)
     counts = Counter((r["category"], r["outcome"]) for r in rows)
     outcomes = ("clear", "handled", "unclear", "silent")
     print(f"\n{'category':<12}" + "".join(f"{o:>9}" for o in outcomes) + f"{'total':>8}")
