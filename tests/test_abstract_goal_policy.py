@@ -245,3 +245,22 @@ def test_bad_input_gets_a_clear_error(two_objects, tmp_path):
         make_dorp_policy(env, oracle, graph, planner="mppi", **SMALL)
     with pytest.raises(ValueError, match="different key_prefix"):
         AbstractGoalPolicy(oracle, graph, policy.waypoint_planner, policy.waypoint_planner)
+
+
+def test_a_waypoint_no_plan_reaches_is_removed_before_its_budget():
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    graph = unreachable_goal_graph(env, oracle, goal_region=15, start_region=0)
+    start, goal = torch.tensor([[[0, 0]]]), torch.tensor([[[14, 12]]])
+    first_failure = {}
+    for misses in (None, 1):
+        policy = make_dorp_policy(
+            env, oracle, graph, seed=0, waypoint_budget=8, max_misses=misses, **SMALL
+        )
+        td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
+        rollout = env.rollout(12, policy, tensordict=td, auto_reset=False)
+        failed = rollout["dorp_failed"].squeeze(-1)[0]
+        assert failed.any()
+        first_failure[misses] = int(failed.float().argmax())
+    # One plan without a candidate at the waypoint removes the edge the next step.
+    assert first_failure[1] == 1 and first_failure[None] == 8

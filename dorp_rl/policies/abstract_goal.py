@@ -36,6 +36,7 @@ key                        dtype / shape       meaning
 ``dorp_replans``           int64 ``[1]``       edges removed so far
 ``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
 ``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
+``dorp_misses``            int64 ``[1]``       plans for this waypoint that reached it nowhere
 ``dorp_failed``            bool ``[1]``        no path left: the task is given up
 =========================  ==================  ===========================================
 """
@@ -93,6 +94,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             given up (``None``: no limit but the env's). Pixel distance can get stuck
             where a goal code spans a region the planner cannot cross within its horizon
             (key rooms: a code on both sides of a wall); giving up frees the planning.
+        max_misses: waypoint plans in a row whose best candidate costs at least
+            ``miss_threshold`` (none reaches the waypoint, for a
+            :class:`~dorp_rl.planners.CodeMatchCost`) after which the edge is removed
+            without waiting for the budget (``None``: only the budget counts).
+        miss_threshold: the plan cost from which a waypoint plan is a miss.
 
     Examples:
         >>> import torch
@@ -121,6 +127,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         waypoint_budget: int = 28,
         max_removed_edges: int = 32,
         goal_budget: int | None = 56,
+        max_misses: int | None = 2,
+        miss_threshold: float = 0.5,
         pixels_key: str = "pixels",
         goal_pixels_key: str = "goal_pixels",
     ) -> None:
@@ -179,6 +187,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             raise ValueError(f"goal_budget must be an integer >= 1 or None, got {goal_budget}.")
         self.waypoint_budget = int(waypoint_budget)
         self.goal_budget = None if goal_budget is None else int(goal_budget)
+        if max_misses is not None and (int(max_misses) != max_misses or max_misses < 1):
+            raise ValueError(f"max_misses must be an integer >= 1 or None, got {max_misses}.")
+        self.max_misses = None if max_misses is None else int(max_misses)
+        self.miss_threshold = float(miss_threshold)
         self.max_removed_edges = int(max_removed_edges)
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
@@ -197,6 +209,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_replans",
             "dorp_waypoints",
             "dorp_goal_steps",
+            "dorp_misses",
             "dorp_failed",
         ]
         planner_keys = [*waypoint_planner.in_keys, *goal_planner.in_keys]
@@ -241,6 +254,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_replans=integer(1),
             dorp_waypoints=integer(1),
             dorp_goal_steps=integer(1),
+            dorp_misses=integer(1),
             dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
         )
         defaults = {key: 0 for key in specs.keys()}
@@ -353,6 +367,16 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 for key in planner.state_keys:
                     planner_state[key][index] = sub.get(key).cpu().to(planner_state[key].dtype)
             outputs.update(planner_state)
+        # A fresh waypoint plan in which no candidate reaches the waypoint is a miss; after
+        # ``max_misses`` of them the edge is removed at once instead of when the budget
+        # runs out (with the true dynamics a miss means the waypoint is out of reach).
+        wp = self.waypoint_planner
+        planned_now = (mode == _WAYPOINT) & (outputs[wp.cursor_key].squeeze(-1) == 1)
+        missed = planned_now & (outputs[wp.plan_cost_key].squeeze(-1) >= self.miss_threshold)
+        state["dorp_misses"][missed] += 1
+        if self.max_misses is not None:
+            gone = missed & (state["dorp_misses"].squeeze(-1) >= self.max_misses)
+            state["dorp_budget"][gone] = 1  # 0 after the decrement below: removed next step
         state["dorp_budget"][mode == _WAYPOINT] -= 1
         state["dorp_goal_steps"][(mode == _GOAL) & active] += 1
 
@@ -434,6 +458,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_edge"][row] = edge
         state["dorp_distance"][row] = distance
         state["dorp_budget"][row] = self.waypoint_budget
+        state["dorp_misses"][row] = 0
         return True
 
     def _encode(self, frames: torch.Tensor) -> torch.Tensor:
@@ -523,6 +548,7 @@ def make_dorp_policy(
     waypoint_budget: int = 28,
     max_removed_edges: int = 32,
     goal_budget: int | None = 56,
+    max_misses: int | None = 2,
     goal_code_weight: float = 100.0,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     seed: int | None = None,
@@ -540,7 +566,7 @@ def make_dorp_policy(
         planner: ``"rs"`` (random shooting) or ``"cem"`` for the waypoint steps.
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
-        order, waypoint_budget, max_removed_edges, goal_budget: see
+        order, waypoint_budget, max_removed_edges, goal_budget, max_misses: see
             :class:`AbstractGoalPolicy`.
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
@@ -634,4 +660,5 @@ def make_dorp_policy(
         waypoint_budget=waypoint_budget,
         max_removed_edges=max_removed_edges,
         goal_budget=goal_budget,
+        max_misses=max_misses,
     )
