@@ -57,6 +57,11 @@ class Setting:
             return f"rearrangement{self.num_objects}"
         return self.env.replace("-", "")
 
+    @property
+    def video_name(self) -> str:
+        """The run name ``benchmarks/video_model_accuracy.py`` gives this env's video model."""
+        return self.codes_name if self.env == "rearrangement" else self.env
+
     def preset(self, **overrides: Any) -> RepresentationConfig:
         if self.env == "key-wall":
             return RepresentationConfig.key_wall(**overrides)
@@ -132,7 +137,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
     if low_level == "gt":
         level: Any = "ground_truth"
     else:
-        path = args.video_checkpoint.format(name=setting.codes_name)
+        path = args.video_checkpoint.format(name=setting.video_name)
         level = load_video_model(path, env)
     policy = make_dorp_policy(
         env,
@@ -200,7 +205,7 @@ def main() -> None:
     parser.add_argument(
         "--video-checkpoint",
         default="outputs/world_model/{name}-seed0/checkpoints/last.pt",
-        help="video model per setting; {name} is rearrangement<k>, keywall or keycorridor",
+        help="video model per setting; {name} is rearrangement<k>, key-wall or key-corridor",
     )
     parser.add_argument("--json", type=Path, default=None, help="append the rows here")
     args = parser.parse_args()
