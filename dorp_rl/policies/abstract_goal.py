@@ -56,12 +56,13 @@ from torchrl.envs import Compose, EnvBase, TensorDictPrimer
 
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
-from dorp_rl.modules.encoder import check_pixels, module_device
+from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.planners.costs import CodeMatchCost, PixelDistanceCost, WeightedCostSum
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
+from dorp_rl.validation import MissingKeyError, check_frames
 
 #: Values of ``dorp_mode``.
 MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
@@ -480,18 +481,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
     def _frames(self, td: TensorDictBase, key: str) -> torch.Tensor:
         value = td.get(key, None)
         if value is None:
-            raise KeyError(
+            raise MissingKeyError(
                 f"AbstractGoalPolicy needs {key!r} in the tensordict (uint8 [*B, 3, 16, 16])."
             )
-        if not isinstance(value, torch.Tensor) or value.dtype != torch.uint8:
-            raise ValueError(f"{key!r} must be uint8 [*B, 3, 16, 16], got {value.dtype}.")
-        check_pixels(value, key)
-        if value.shape[:-3] != td.batch_size:
-            raise ValueError(
-                f"{key!r} must have shape [{', '.join(map(str, td.batch_size))}, 3, 16, 16] "
-                f"(one frame per env), got {list(value.shape)}."
-            )
-        return value.cpu()
+        return check_frames(value, key, lead=tuple(td.batch_size)).cpu()
 
     def _read(self, td: TensorDictBase, key: str) -> torch.Tensor:
         rows = td.batch_size[0]
