@@ -1,0 +1,616 @@
+"""The ``dorp`` command: play data, codes, code graph, world model and evaluation as stages.
+
+Every command works in a run folder ``<root>/<name>/`` (default ``runs/demo/``):
+
+- ``config.json``: the resolved config of the last command (every field, after presets);
+- ``stages.json``: per finished stage, the config it was made with (and a summary);
+- ``play/``, ``codes/``, ``graph.pt``, ``world_model/``: play data, the representation
+  run (checkpoints, CSV logs), the code graph, the world-model run;
+- ``log.txt``: what each command did; ``results.csv`` and ``results.md``: one row per
+  evaluated method (:data:`~dorp_rl.eval.RESULT_COLUMNS`).
+
+A stage whose stored config equals the current one and whose files exist is skipped (and
+the command says so); a changed field re-runs that stage and every stage depending on it,
+naming the fields that changed. Configs are the library's dataclasses
+(:class:`~dorp_rl.trainers.RepresentationConfig`, :class:`~dorp_rl.trainers.WorldModelConfig`),
+filled from the preset of ``--setting`` and overridden on the command line::
+
+    dorp demo
+    dorp train-encoder --name 1obj --setting 1obj --codes.num-steps 500
+    dorp evaluate --name 1obj --setting 1obj --methods dorp vf-cem random --tasks 20
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import operator
+import shutil
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import torch
+
+import dorp_rl.envs  # noqa: F401  (first: dorp_rl.eval imports in a cycle otherwise)
+from dorp_rl.data import collect_play_data
+from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.eval import (
+    SETTINGS,
+    evaluate_policy,
+    format_table,
+    make_task_set,
+    result_row,
+    write_results,
+)
+from dorp_rl.planners import CodeGraph
+from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy
+from dorp_rl.trainers import (
+    RepresentationConfig,
+    RepresentationTrainer,
+    Trainer,
+    WorldModelConfig,
+    WorldModelTrainer,
+    load_encoder,
+    load_video_model,
+)
+
+SettingName = Literal[
+    "1obj", "2obj", "3obj", "5obj", "3obj-full", "5obj-full", "keywall", "keycorridor"
+]
+Method = Literal["dorp", "vf-rs", "vf-cem", "random"]
+
+#: fields of a representation config that decide its play data
+PLAY_FIELDS = (
+    "env",
+    "num_objects",
+    "num_frames",
+    "num_envs",
+    "trajectory_length",
+    "seed",
+    "device",
+)
+#: training steps of the demo's codes (the preset's 1500 do not fit its 5-minute budget)
+DEMO_CODE_STEPS = 1000
+
+
+# --------------------------------------------------------------------------- configs
+@dataclass
+class RunOptions:
+    """Where a run lives and how it runs."""
+
+    name: str = "demo"
+    """run name: every file of the run goes to <root>/<name>/"""
+    root: str = "runs"
+    """folder holding the runs"""
+    threads: int = 1
+    """torch threads (torch.set_num_threads). Keep 1 on a shared 2-core machine: there,
+    oversubscribed threads made a training step about 100x slower."""
+    progress: bool = True
+    """show progress bars on long stages"""
+    setting: SettingName = "2obj"
+    """environment, code preset and graph groups (dorp_rl.eval.SETTINGS); the codes and
+    world-model fields below default to this setting's presets"""
+
+
+def _codes_default() -> RepresentationConfig:
+    return SETTINGS["2obj"].representation_config()
+
+
+def _world_model_default() -> WorldModelConfig:
+    return SETTINGS["2obj"].world_model_config()
+
+
+@dataclass
+class Collect(RunOptions):
+    """Collect the setting's random play data (the data the codes train on) into play/."""
+
+    codes: RepresentationConfig = field(default_factory=_codes_default)
+    """representation config; its env, num_objects, num_frames, num_envs,
+    trajectory_length, seed and device decide the play data"""
+
+
+@dataclass
+class TrainEncoder(Collect):
+    """Train the discrete codes (play data first) into codes/."""
+
+
+@dataclass
+class BuildGraph(TrainEncoder):
+    """Build the code graph over the play data (codes first) into graph.pt."""
+
+
+@dataclass
+class TrainWorldModel(RunOptions):
+    """Train the video prediction model (with its own play data) into world_model/."""
+
+    world_model: WorldModelConfig = field(default_factory=_world_model_default)
+    """world-model config (default: the setting's preset)"""
+
+
+@dataclass
+class Evaluate(BuildGraph):
+    """Evaluate methods on a seeded task set; results go to results.csv and results.md."""
+
+    world_model: WorldModelConfig = field(default_factory=_world_model_default)
+    """world-model config, used when --low-level world-model"""
+    methods: tuple[Method, ...] = ("dorp",)
+    """methods: dorp (code graph + MPC), vf-rs / vf-cem (visual foresight), random"""
+    low_level: str = "gt"
+    """planning model: 'gt' (the true dynamics), 'world-model' (this run's world model,
+    trained first if needed) or the path of a world-model checkpoint"""
+    tasks: int = 10
+    """tasks of the seeded task set (dorp_rl.eval.make_task_set)"""
+    task_seed: int = 0
+    """seed of the task set: the same tasks for every method"""
+    seed: int = 0
+    """seed of the planners (and of the random policy)"""
+    tasks_per_rollout: int = 10
+    """tasks run side by side in one batched rollout"""
+    candidates: int = 1000
+    """action sequences per plan"""
+    planning_horizon: int = 14
+    """steps per candidate sequence"""
+    dorp_planner: Literal["rs", "cem"] = "rs"
+    """DORP's low-level planner: random shooting or categorical CEM"""
+    waypoint_budget: int = 28
+    """DORP: steps to reach a waypoint code before its graph edge is removed"""
+    max_steps: int | None = None
+    """step limit per task (default: the env's, 400 for 2 objects)"""
+
+
+@dataclass
+class Reproduce(Evaluate):
+    """The whole pipeline for one setting: play data, codes, graph, then DORP and VF-CEM."""
+
+    methods: tuple[Method, ...] = ("dorp", "vf-cem")
+    """methods: dorp (code graph + MPC), vf-rs / vf-cem (visual foresight), random"""
+
+
+@dataclass
+class Demo(Reproduce):
+    """A small reproduce: 2 objects, shorter code training, DORP and VF-CEM on 10 tasks."""
+
+
+#: subcommand name -> its dataclass
+COMMANDS: dict[str, type] = {
+    "collect": Collect,
+    "train-encoder": TrainEncoder,
+    "train-world-model": TrainWorldModel,
+    "build-graph": BuildGraph,
+    "evaluate": Evaluate,
+    "reproduce": Reproduce,
+    "demo": Demo,
+}
+
+
+def default_command(name: str, setting: str = "2obj") -> Any:
+    """The defaults of subcommand ``name`` under ``setting`` (its presets filled in)."""
+    cls = COMMANDS[name]
+    values: dict[str, Any] = {"setting": setting}
+    fields = {f.name for f in dataclasses.fields(cls)}
+    if "codes" in fields:
+        steps = {"num_steps": DEMO_CODE_STEPS} if cls is Demo else {}
+        values["codes"] = SETTINGS[setting].representation_config(**steps)
+    if "world_model" in fields:
+        values["world_model"] = SETTINGS[setting].world_model_config()
+    return cls(**values)
+
+
+# --------------------------------------------------------------------------- runs and stages
+class UsageError(ValueError):
+    """Arguments that do not fit together (reported as a usage error, exit code 2)."""
+
+
+def _flatten(values: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(values, dict):
+        out: dict[str, Any] = {}
+        for key, value in values.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: values}
+
+
+@contextmanager
+def quiet_torchrl(active: bool) -> Iterator[None]:
+    """Raises the ``torchrl`` logger to WARNING while ``active``, so that its INFO lines
+    (e.g. "Initialized LazyMemmapStorage") do not land inside progress bars."""
+    logger = logging.getLogger("torchrl")
+    level = logger.level
+    if active:
+        logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+class Run:
+    """A run folder: resolved config, stage records, log and results."""
+
+    def __init__(self, command: Any, command_name: str) -> None:
+        self.command = command
+        self.dir = Path(command.root) / command.name
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.progress = command.progress
+        self.stages_path = self.dir / "stages.json"
+        self.stages: dict[str, Any] = (
+            json.loads(self.stages_path.read_text()) if self.stages_path.exists() else {}
+        )
+        resolved = {"command": command_name, **dataclasses.asdict(command)}
+        (self.dir / "config.json").write_text(json.dumps(resolved, indent=2) + "\n")
+
+    def say(self, message: str) -> None:
+        """Prints ``message`` (above any progress bar) and appends it to ``log.txt``."""
+        from tqdm.auto import tqdm
+
+        tqdm.write(message)
+        with (self.dir / "log.txt").open("a") as f:
+            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {message}\n")
+
+    def stage(
+        self,
+        name: str,
+        config: dict[str, Any],
+        outputs: Sequence[Path],
+        build: Callable[[], tuple[Any, dict[str, Any]]],
+        load: Callable[[], Any],
+    ) -> Any:
+        """Runs ``build`` unless the stage is recorded with ``config`` and its ``outputs`` exist.
+
+        ``build`` returns (value, summary); the summary is stored with the config. A
+        stage that runs again first removes its old ``outputs``.
+        """
+        config = json.loads(json.dumps(config))  # as stored: tuples become lists
+        record = self.stages.get(name)
+        if record is not None and record["config"] == config and all(p.exists() for p in outputs):
+            self.say(f"{name}: done for this config, skipped{self._where(outputs)}")
+            return load()
+        if record is None:
+            reason = "not run yet"
+        elif record["config"] != config:
+            old, new = _flatten(record["config"]), _flatten(config)
+            changed = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+            shown = ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in changed[:6])
+            more = f" and {len(changed) - 6} more" if len(changed) > 6 else ""
+            reason = f"changed: {shown}{more}"
+        else:
+            reason = "its files are missing"
+        self.say(f"{name}: running ({reason})")
+        self.stages.pop(name, None)
+        self._save()
+        for path in outputs:
+            _remove(path)
+        start = time.perf_counter()
+        with quiet_torchrl(self.progress):
+            value, summary = build()
+        seconds = time.perf_counter() - start
+        self.stages[name] = {"config": config, "summary": summary, "seconds": seconds}
+        self._save()
+        self.say(f"{name}: done in {seconds:.0f} s{self._where(outputs)}")
+        return value
+
+    def _where(self, outputs: Sequence[Path]) -> str:
+        return f" ({', '.join(str(p) for p in outputs)})" if outputs else ""
+
+    def _save(self) -> None:
+        tmp = self.stages_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.stages, indent=2) + "\n")
+        tmp.replace(self.stages_path)
+
+    def result_rows(self) -> list[dict[str, Any]]:
+        """The rows of every finished evaluation stage, in the order they were run."""
+        return [r["summary"] for k, r in self.stages.items() if k.startswith("evaluate:")]
+
+
+def _remove(path: Path) -> None:
+    """Removes a stage output before the stage runs again (the run folder is the CLI's)."""
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
+
+
+# --------------------------------------------------------------------------- stages
+def _stage_config(cfg: Any) -> dict[str, Any]:
+    """A trainer config without the fields that never change its result (paths, progress)."""
+    return {k: v for k, v in cfg.to_dict().items() if k not in Trainer.bookkeeping_fields}
+
+
+def _play_config(codes: RepresentationConfig) -> dict[str, Any]:
+    values = codes.to_dict()
+    return {k: values[k] for k in PLAY_FIELDS}
+
+
+def play_stage(run: Run, codes: RepresentationConfig):
+    """The play data the codes train on (collected into ``play/``, or loaded)."""
+    directory = run.dir / "play"
+
+    def collect(progress: bool):
+        env = codes.make_env(batch_size=(codes.num_envs,))
+        return collect_play_data(
+            env,
+            codes.num_frames,
+            directory=directory,
+            seed=codes.seed,
+            trajectory_length=codes.trajectory_length,
+            progress=progress,
+        )
+
+    def build():
+        buffer = collect(run.progress)
+        return buffer, {"frames": len(buffer)}
+
+    return run.stage(
+        "play", _play_config(codes), [directory], build, lambda: collect(progress=False)
+    )
+
+
+def codes_stage(run: Run, codes: RepresentationConfig):
+    """The trained encoder (trained into ``codes/``, or loaded); play data first."""
+    buffer = play_stage(run, codes)
+    cfg = replace(
+        codes,
+        out_dir=str(run.dir / "codes"),
+        data_dir=str(run.dir / "play"),
+        progress=run.progress,
+    )
+    checkpoint = run.dir / "codes" / "checkpoints" / "last.pt"
+
+    def build():
+        trainer = RepresentationTrainer(cfg, buffer=buffer)
+        trainer.train()
+        diagnostics = trainer.evaluate()
+        summary = {
+            k: diagnostics[k]
+            for k in ("selectivity", "purity", "codes_used")
+            if k in diagnostics and isinstance(diagnostics[k], (int, float, list))
+        }
+        if summary:
+            run.say(f"codes: {json.dumps(summary)}")
+        return trainer.encoder.eval(), summary
+
+    def load():
+        return load_encoder(checkpoint, codes.make_env())
+
+    encoder = run.stage("codes", _stage_config(cfg), [run.dir / "codes"], build, load)
+    return encoder, buffer
+
+
+def graph_stage(run: Run, codes: RepresentationConfig, setting: str):
+    """The code graph over the play data (built into ``graph.pt``, or loaded); codes first."""
+    encoder, buffer = codes_stage(run, codes)
+    path = run.dir / "graph.pt"
+    groups = SETTINGS[setting].groups
+    env_config = codes.make_env().config()
+
+    def build():
+        graph = CodeGraph.from_play_data(buffer, encoder, groups, progress=run.progress)
+        graph.save(path)
+        nodes = [graph.num_nodes(g) for g in range(graph.num_groups)]
+        return graph, {"nodes": nodes}
+
+    def load():
+        return CodeGraph.load(path, encoder=encoder, env_config=env_config)
+
+    config = {"groups": groups, "codes": _stage_config(codes)}
+    return encoder, run.stage("graph", config, [path], build, load)
+
+
+def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
+    """The world-model checkpoint (trained into ``world_model/``, or found)."""
+    cfg = replace(
+        world_model,
+        out_dir=str(run.dir / "world_model"),
+        data_dir=str(run.dir / "world_model_play"),
+        progress=run.progress,
+    )
+    checkpoint = run.dir / "world_model" / "checkpoints" / "last.pt"
+
+    def build():
+        result = WorldModelTrainer(cfg).train()
+        accuracy = result.get("evaluation", {}).get("exact_accuracy_last")
+        return checkpoint, {"exact_accuracy_last": accuracy}
+
+    outputs = [run.dir / "world_model", run.dir / "world_model_play"]
+    run.stage("world_model", _stage_config(cfg), outputs, build, lambda: checkpoint)
+    return checkpoint
+
+
+def _policy(cmd: Evaluate, method: str, env: GridWorldEnv, low_level: Any, dorp: Any):
+    if method == "random":
+        torch.manual_seed(cmd.seed)
+        return env.rand_action
+    if method == "dorp":
+        encoder, graph = dorp
+        return make_dorp_policy(
+            env,
+            encoder,
+            graph,
+            low_level="ground_truth" if low_level is None else str(low_level),
+            planner=cmd.dorp_planner,
+            planning_horizon=cmd.planning_horizon,
+            num_candidates=cmd.candidates,
+            waypoint_budget=cmd.waypoint_budget,
+            seed=cmd.seed,
+        )
+    if low_level is None:
+        planning_env = GroundTruthModelEnv(env)
+    else:
+        planning_env = WorldModelEnv(load_video_model(low_level, env), env.num_actions)
+    return VisualForesightPolicy(
+        planning_env,
+        method.removeprefix("vf-"),
+        planning_horizon=cmd.planning_horizon,
+        num_candidates=cmd.candidates,
+        seed=cmd.seed,
+    )
+
+
+def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
+    """Every method of ``cmd`` on the seeded task set; returns the run's result rows."""
+    setting = SETTINGS[cmd.setting]
+    low_level: Path | None = None  # None: the true dynamics
+    low_config: Any = "gt"
+    level_name = cmd.low_level
+    if cmd.low_level == "world-model":
+        low_level = world_model_stage(run, cmd.world_model)
+        low_config = _stage_config(cmd.world_model)
+    elif cmd.low_level != "gt":
+        low_level, level_name = Path(cmd.low_level), "checkpoint"
+        low_config = {"path": str(low_level.resolve()), "mtime": low_level.stat().st_mtime}
+    batch = min(cmd.tasks, cmd.tasks_per_rollout)
+    for method in cmd.methods:
+        dorp = graph_stage(run, cmd.codes, cmd.setting) if method == "dorp" else None
+        config: dict[str, Any] = {
+            k: getattr(cmd, k) for k in ("setting", "tasks", "task_seed", "seed", "max_steps")
+        }
+        config["tasks_per_rollout"] = batch
+        if method != "random":
+            config.update(
+                low_level=low_config,
+                candidates=cmd.candidates,
+                planning_horizon=cmd.planning_horizon,
+            )
+        if method == "dorp":
+            config.update(
+                planner=cmd.dorp_planner,
+                waypoint_budget=cmd.waypoint_budget,
+                graph=run.stages["graph"]["config"],
+            )
+
+        def build(method: str = method, dorp: Any = dorp) -> tuple[None, dict[str, Any]]:
+            env = setting.make_env(batch_size=(batch,), seed=cmd.seed)
+            tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed)
+            policy = _policy(cmd, method, env, low_level, dorp)
+            result = evaluate_policy(
+                env,
+                policy,
+                tasks,
+                max_steps=cmd.max_steps,
+                tasks_per_rollout=batch,
+                progress=run.progress,
+            )
+            level = "none" if method == "random" else level_name
+            row = result_row(result, tasks, setting=cmd.setting, method=method, low_level=level)
+            run.say(
+                f"{method}: success {row['success_rate']:.2f}, {row['mean_steps']:.1f} steps "
+                f"(lower bound {row['mean_lower_bound']:.1f}), "
+                f"{row['seconds_per_task']:.1f} s per task"
+            )
+            return None, row
+
+        key = f"evaluate:{method}" + ("" if method == "random" else f":{level_name}")
+        run.stage(key, config, [], build, lambda: None)
+    rows = run.result_rows()
+    write_results(rows, run.dir)
+    return rows
+
+
+# --------------------------------------------------------------------------- main
+def _check(cmd: Any) -> None:
+    """Rules between arguments that tyro cannot see; raises :class:`UsageError`."""
+    setting = SETTINGS[cmd.setting]
+    if cmd.threads < 1:
+        raise UsageError(f"--threads must be >= 1, got {cmd.threads}.")
+    for key in ("codes", "world_model"):
+        cfg = getattr(cmd, key, None)
+        if cfg is not None and (cfg.env, cfg.num_objects) != (setting.env, setting.num_objects):
+            raise UsageError(
+                f"--{key}.env {cfg.env} with --{key}.num-objects {cfg.num_objects} does not "
+                f"match --setting {cmd.setting} ({setting.env}, {setting.num_objects} "
+                "object(s)): choose the setting instead, it picks the presets."
+            )
+    if isinstance(cmd, Evaluate):
+        for name in ("tasks", "tasks_per_rollout", "candidates", "planning_horizon"):
+            if getattr(cmd, name) < 1:
+                raise UsageError(f"--{name.replace('_', '-')} must be >= 1.")
+        if not cmd.methods:
+            raise UsageError("--methods needs at least one method.")
+        if cmd.low_level not in ("gt", "world-model") and not Path(cmd.low_level).is_file():
+            raise UsageError(
+                f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file; "
+                f"{cmd.low_level!r} is none of these."
+            )
+
+
+def _scan(argv: Sequence[str]) -> tuple[str | None, str]:
+    """The subcommand and ``--setting`` in ``argv`` (to fill in the setting's presets)."""
+    command = next((a for a in argv if not a.startswith("-")), None)
+    setting = "2obj"
+    for i, arg in enumerate(argv):
+        value = None
+        if arg == "--setting" and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif arg.startswith("--setting="):
+            value = arg.split("=", 1)[1]
+        if value in SETTINGS:
+            setting = value
+    return command, setting
+
+
+def parse(argv: Sequence[str]) -> tuple[str, Any]:
+    """The subcommand name and its config from ``argv`` (tyro; exit code 2 on bad arguments)."""
+    import tyro
+
+    _, setting = _scan(argv)
+    choices = tuple(
+        Annotated[
+            cls,
+            tyro.conf.subcommand(name, default=default_command(name, setting)),
+        ]
+        for name, cls in COMMANDS.items()
+    )
+    cmd = tyro.cli(
+        functools.reduce(operator.or_, choices),
+        args=list(argv),
+        prog="dorp",
+        description="DORP on TorchRL: play data, codes, code graph and planning, as stages "
+        "of a run folder (<root>/<name>/). Finished stages are skipped when re-run.",
+    )
+    name = next(n for n, cls in COMMANDS.items() if type(cmd) is cls)
+    return name, cmd
+
+
+def run_command(name: str, cmd: Any) -> Path:
+    """Runs a parsed command; returns the run folder."""
+    torch.set_num_threads(cmd.threads)
+    run = Run(cmd, name)
+    start = time.perf_counter()
+    run.say(f"dorp {name}: run folder {run.dir} ({cmd.threads} thread(s))")
+    if name == "collect":
+        play_stage(run, cmd.codes)
+    elif name == "train-encoder":
+        codes_stage(run, cmd.codes)
+    elif name == "build-graph":
+        graph_stage(run, cmd.codes, cmd.setting)
+    elif name == "train-world-model":
+        world_model_stage(run, cmd.world_model)
+    else:
+        rows = evaluate_stage(run, cmd)
+        print(f"\n{format_table(rows)}\n")
+        run.say(f"results: {run.dir / 'results.csv'}, {run.dir / 'results.md'}")
+    run.say(f"dorp {name}: finished in {time.perf_counter() - start:.0f} s; files in {run.dir}")
+    return run.dir
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of the ``dorp`` console script (and ``python -m dorp_rl``)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    name, cmd = parse(argv)
+    try:
+        _check(cmd)
+    except UsageError as err:
+        print(f"usage: dorp {name} [-h] [OPTIONS]\ndorp {name}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    run_command(name, cmd)
+
+
+if __name__ == "__main__":
+    main()

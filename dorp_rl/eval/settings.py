@@ -1,0 +1,72 @@
+"""The paper's planning settings: environment, code preset, graph groups and paper figure.
+
+One table that the ``dorp`` command (and any script) uses to build the same codes, graph
+and task set per setting: :data:`SETTINGS` maps a name (``"2obj"``, ``"keywall"``, ...)
+to a :class:`Setting`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from dorp_rl.envs import GridWorldEnv, make_env
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One planning setting.
+
+    Attributes:
+        env: environment name (:func:`~dorp_rl.envs.make_env`).
+        num_objects: objects of a rearrangement setting (1 for the key rooms).
+        groups: graph groups (:meth:`~dorp_rl.planners.CodeGraph.from_play_data`):
+            ``"onehot"``, ``"full"`` or tuples of one-hot indices.
+        paper: the paper's figure for DORP, for comparison in result tables.
+    """
+
+    env: str
+    num_objects: int
+    groups: Any
+    paper: str
+
+    def representation_config(self, **overrides: Any):
+        """The representation preset of this setting, with the step and data budgets of
+        the representation benchmark's runs (docs/RESULTS.md), then ``overrides``."""
+        from dorp_rl.trainers import RepresentationConfig
+
+        if self.env == "key-wall":
+            return RepresentationConfig.key_wall(**overrides)
+        if self.env == "key-corridor":
+            return RepresentationConfig.key_corridor(**overrides)
+        budget = {
+            "num_steps": {1: 1500, 2: 1500, 3: 2000}.get(self.num_objects, 3000),
+            "num_frames": {1: 60_000, 2: 100_000, 3: 150_000}.get(self.num_objects, 200_000),
+        }
+        return RepresentationConfig.rearrangement(self.num_objects, **{**budget, **overrides})
+
+    def world_model_config(self, **overrides: Any):
+        """The world-model preset of this setting, then ``overrides``."""
+        from dorp_rl.trainers import WorldModelConfig
+
+        if self.env == "key-wall":
+            return WorldModelConfig.key_wall(**overrides)
+        if self.env == "key-corridor":
+            return WorldModelConfig.key_corridor(**overrides)
+        return WorldModelConfig.rearrangement(self.num_objects, **overrides)
+
+    def make_env(self, **kwargs: Any) -> GridWorldEnv:
+        """The acting environment of this setting."""
+        return make_env(self.env, num_objects=self.num_objects, **kwargs)
+
+
+SETTINGS: dict[str, Setting] = {
+    "1obj": Setting("rearrangement", 1, "onehot", "1.00 in 25 steps"),
+    "2obj": Setting("rearrangement", 2, "onehot", "1.00 in 49 steps"),
+    "3obj": Setting("rearrangement", 3, "onehot", "1.00 in 75 steps"),
+    "5obj": Setting("rearrangement", 5, ((0, 1), (2, 3, 4)), "0.87 in 1091 steps"),
+    "3obj-full": Setting("rearrangement", 3, "full", "1.00 (full graph)"),
+    "5obj-full": Setting("rearrangement", 5, "full", "0.00 (full graph)"),
+    "keywall": Setting("key-wall", 1, ((0, 1),), "37/40 (gt), 9/10 (SV2P)"),
+    "keycorridor": Setting("key-corridor", 1, ((0, 1),), "33/40 (gt)"),
+}
