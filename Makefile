@@ -15,7 +15,7 @@ $(STAMP): $(PY) pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) examples/collect_play_data.py --out-dir outputs/demo
+	$(VENV)/bin/dorp demo
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
@@ -27,4 +27,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format .
 
 clean:
-	rm -rf $(VENV) outputs .pytest_cache .ruff_cache
+	rm -rf $(VENV) outputs runs .pytest_cache .ruff_cache

@@ -1,0 +1,243 @@
+"""The ``dorp`` command: every subcommand on tiny configs, stage skipping, results, usage errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from dorp_rl.cli import main, quiet_torchrl
+from dorp_rl.eval import RESULT_COLUMNS
+
+# 1-object codes of a few steps on 256 play frames.
+TINY_CODES = [
+    "--setting", "1obj",
+    "--codes.num-frames", "256",
+    "--codes.num-envs", "16",
+    "--codes.code-size", "8",
+    "--codes.batch-size", "32",
+    "--codes.num-steps", "5",
+    "--codes.diagnostics-samples", "64",
+]  # fmt: skip
+TINY_WORLD_MODEL = [
+    "--world-model.num-steps", "3",
+    "--world-model.num-frames", "256",
+    "--world-model.num-envs", "16",
+    "--world-model.horizon", "3",
+    "--world-model.trajectory-length", "4",
+    "--world-model.eval-frames", "128",
+    "--world-model.eval-sequences", "8",
+    "--world-model.model-preset", "small",
+    "--world-model.batch-size", "8",
+]  # fmt: skip
+TINY_EVAL = [
+    "--tasks", "2",
+    "--tasks-per-rollout", "2",
+    "--candidates", "20",
+    "--planning-horizon", "3",
+    "--max-steps", "6",
+]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(one_torch_thread) -> None:
+    """Every test runs with one torch thread (and restores the count)."""
+
+
+def dorp(capsys, root: Path, *args: str, name: str = "run") -> str:
+    """Runs ``dorp <args>`` in ``root/name`` without progress bars; returns what it printed."""
+    command, rest = args[0], list(args[1:])
+    main([command, "--root", str(root), "--name", name, "--no-progress", *rest])
+    return capsys.readouterr().out
+
+
+def read_rows(run_dir: Path) -> list[dict[str, str]]:
+    with (run_dir / "results.csv").open() as f:
+        reader = csv.DictReader(f)
+        assert tuple(reader.fieldnames) == RESULT_COLUMNS
+        return list(reader)
+
+
+def test_collect_train_encoder_and_build_graph_write_their_stages(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    dorp(capsys, tmp_path, "collect", *TINY_CODES)
+    assert (run / "play" / "play_data.json").is_file()
+    assert not (run / "codes").exists()
+    config = json.loads((run / "config.json").read_text())
+    assert config["command"] == "collect" and config["codes"]["num_frames"] == 256
+    assert config["codes"]["num_objects"] == 1  # the 1obj preset, not the 2obj default
+
+    out = dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
+    assert "play: done for this config, skipped" in out
+    assert (run / "codes" / "checkpoints" / "last.pt").is_file()
+    assert (run / "codes" / "logs").is_dir()
+
+    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    assert (run / "graph.pt").is_file()
+    stages = json.loads((run / "stages.json").read_text())
+    assert set(stages) == {"play", "codes", "graph"}
+    assert stages["codes"]["config"]["num_steps"] == 5
+    assert "out_dir" not in stages["codes"]["config"]  # paths do not decide a rerun
+
+
+def test_rerunning_skips_finished_stages(tmp_path, capsys) -> None:
+    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    checkpoint = tmp_path / "run" / "codes" / "checkpoints" / "last.pt"
+    written = checkpoint.stat().st_mtime_ns, (tmp_path / "run" / "graph.pt").stat().st_mtime_ns
+    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    for stage in ("play", "codes", "graph"):
+        assert f"{stage}: done for this config, skipped" in out
+    assert ": running (" not in out
+    again = checkpoint.stat().st_mtime_ns, (tmp_path / "run" / "graph.pt").stat().st_mtime_ns
+    assert again == written
+
+
+def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, capsys) -> None:
+    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    graph = tmp_path / "run" / "graph.pt"
+    before = graph.stat().st_mtime_ns
+    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES, "--codes.num-steps", "6")
+    assert "play: done for this config, skipped" in out  # num_steps does not change the data
+    assert "codes: running (changed: num_steps 5 -> 6)" in out
+    assert "graph: running (changed: codes.num_steps 5 -> 6)" in out
+    assert graph.stat().st_mtime_ns != before
+    stages = json.loads((tmp_path / "run" / "stages.json").read_text())
+    assert stages["codes"]["config"]["num_steps"] == 6
+
+    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES, "--codes.num-steps", "6",
+               "--codes.num-frames", "320")  # fmt: skip
+    assert "play: running (changed: num_frames 256 -> 320)" in out
+    assert "codes: running (changed: num_frames 256 -> 320)" in out
+    assert "graph: running (changed: codes.num_frames 256 -> 320)" in out
+
+
+def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL,
+               "--methods", "random", "vf-rs", "vf-cem")  # fmt: skip
+    assert not (run / "codes").exists()  # no DORP, no codes
+    rows = read_rows(run)
+    assert [(r["method"], r["low_level"]) for r in rows] == [
+        ("random", "none"),
+        ("vf-rs", "gt"),
+        ("vf-cem", "gt"),
+    ]
+    for row in rows:
+        assert row["setting"] == "1obj" and row["tasks"] == "2"
+        assert 0.0 <= float(row["success_rate"]) <= 1.0
+        assert float(row["seconds_per_task"]) > 0
+    table = (run / "results.md").read_text()
+    assert "| " + " | ".join(RESULT_COLUMNS) + " |" in table
+    assert "| 1obj | vf-cem | gt | 2 |" in table
+    assert "| setting | method |" in out  # the table is printed too
+
+    # Another method adds a row; the finished ones are skipped, not re-run.
+    out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL, "--methods", "random",
+               "vf-rs", "--seed", "1")  # fmt: skip
+    assert "evaluate:random: running (changed: seed 0 -> 1)" in out
+    assert "evaluate:vf-rs:gt: running (changed: seed 0 -> 1)" in out
+    assert len(read_rows(run)) == 3
+
+
+def test_evaluate_through_a_world_model(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    dorp(capsys, tmp_path, "train-world-model", *TINY_WORLD_MODEL, "--setting", "1obj")
+    checkpoint = run / "world_model" / "checkpoints" / "last.pt"
+    assert checkpoint.is_file()
+    out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_WORLD_MODEL, *TINY_EVAL,
+               "--methods", "vf-rs", "--low-level", "world-model")  # fmt: skip
+    assert "world_model: done for this config, skipped" in out
+    assert [(r["method"], r["low_level"]) for r in read_rows(run)] == [("vf-rs", "world-model")]
+    # A checkpoint path works as well, in another run.
+    dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL, "--methods", "vf-rs",
+         "--low-level", str(checkpoint), name="other")  # fmt: skip
+    assert read_rows(tmp_path / "other")[0]["low_level"] == "checkpoint"
+
+
+def test_reproduce_and_demo_run_dorp_and_vf_cem(tmp_path, capsys) -> None:
+    for command in ("reproduce", "demo"):
+        out = dorp(capsys, tmp_path, command, *TINY_CODES, *TINY_EVAL, name=command)
+        rows = read_rows(tmp_path / command)
+        assert [(r["method"], r["low_level"]) for r in rows] == [("dorp", "gt"), ("vf-cem", "gt")]
+        assert f"files in {tmp_path / command}" in out
+        assert (tmp_path / command / "graph.pt").is_file()
+
+
+def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
+    from dorp_rl.cli import DEMO_CODE_STEPS, default_command
+    from dorp_rl.eval import SETTINGS
+
+    demo = default_command("demo")
+    preset = SETTINGS["2obj"].representation_config()
+    assert demo.setting == "2obj" and demo.tasks == 10
+    assert set(demo.methods) == {"dorp", "vf-cem"} and demo.low_level == "gt"
+    assert demo.codes.num_steps == DEMO_CODE_STEPS < preset.num_steps
+    assert demo.codes.to_dict() | {"num_steps": preset.num_steps} == preset.to_dict()
+
+
+def test_threads_sets_torch_threads(tmp_path, capsys) -> None:
+    torch.set_num_threads(2)  # restored by the fixture
+    dorp(capsys, tmp_path, "collect", *TINY_CODES, "--threads", "1")
+    assert torch.get_num_threads() == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["evaluate", "--tasks", "many"], "many"),
+        (["teleport"], "teleport"),
+        (["evaluate", "--methods", "magic"], "magic"),
+        (["evaluate", "--low-level", "no/such/checkpoint.pt"], "no/such/checkpoint.pt"),
+        (["train-encoder", "--codes.num-steps", "0"], "num_steps must be >= 1"),
+        (["collect", "--codes.env", "key-wall", "--codes.num-objects", "1"], "--setting"),
+        (["evaluate", "--tasks", "0"], "--tasks must be >= 1"),
+        (["collect", "--threads", "0"], "--threads must be >= 1"),
+    ],
+)
+def test_bad_arguments_give_a_usage_error(tmp_path, capsys, args, message) -> None:
+    with pytest.raises(SystemExit) as err:
+        main([*args, "--root", str(tmp_path)])
+    assert err.value.code == 2
+    captured = capsys.readouterr()
+    assert message in captured.err + captured.out
+    assert "Traceback" not in captured.err
+    assert not any(tmp_path.iterdir())  # nothing was run
+
+
+def test_python_m_dorp_rl_help_lists_every_field_with_its_default() -> None:
+    env = {"OMP_NUM_THREADS": "1", "COLUMNS": "200", "PATH": ""}
+    top = subprocess.run(
+        [sys.executable, "-m", "dorp_rl", "--help"], capture_output=True, text=True, env=env
+    )
+    assert top.returncode == 0, top.stderr
+    for command in ("collect", "train-encoder", "train-world-model", "build-graph", "evaluate",
+                    "reproduce", "demo"):  # fmt: skip
+        assert command in top.stdout
+    sub = subprocess.run(
+        [sys.executable, "-m", "dorp_rl", "evaluate", "--help"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert sub.returncode == 0, sub.stderr
+    for option in ("--threads", "--tasks", "--methods", "--low-level", "--codes.num-steps",
+                   "--world-model.num-steps", "--root", "--name"):  # fmt: skip
+        assert option in sub.stdout
+    assert "100x slower" in sub.stdout  # why threads defaults to 1
+    assert "(default: 10)" in sub.stdout and "(default: 1500)" in sub.stdout
+
+
+def test_torchrl_info_lines_are_held_back_while_bars_are_shown() -> None:
+    logger = logging.getLogger("torchrl")
+    before = logger.level
+    with quiet_torchrl(True):
+        assert logger.getEffectiveLevel() == logging.WARNING
+    assert logger.level == before
+    with quiet_torchrl(False):
+        assert logger.level == before
