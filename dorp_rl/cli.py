@@ -274,6 +274,8 @@ class Run:
             return load()
         if record is None:
             reason = "not run yet"
+        elif record["config"] is None:
+            reason = "it did not finish last time"
         elif record["config"] != config:
             old, new = _flatten(record["config"]), _flatten(config)
             changed = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
@@ -283,7 +285,8 @@ class Run:
         else:
             reason = "its files are missing"
         self.say(f"{name}: running ({reason})")
-        self.stages.pop(name, None)
+        # Unfinished until build returns; the record keeps its place (and its row's).
+        self.stages[name] = {"config": None}
         self._save()
         for path in outputs:
             _remove(path)
@@ -306,7 +309,11 @@ class Run:
 
     def result_rows(self) -> list[dict[str, Any]]:
         """The rows of every finished evaluation stage, in the order they were run."""
-        return [r["summary"] for k, r in self.stages.items() if k.startswith("evaluate:")]
+        return [
+            r["summary"]
+            for k, r in self.stages.items()
+            if k.startswith("evaluate:") and r["config"] is not None
+        ]
 
 
 def _remove(path: Path) -> None:
@@ -514,7 +521,7 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
 
 
 # --------------------------------------------------------------------------- main
-def _check(cmd: Any) -> None:
+def _check(command: str, cmd: Any) -> None:
     """Rules between arguments that tyro cannot see; raises :class:`UsageError`."""
     setting = SETTINGS[cmd.setting]
     if cmd.threads < 1:
@@ -527,6 +534,20 @@ def _check(cmd: Any) -> None:
                 f"match --setting {cmd.setting} ({setting.env}, {setting.num_objects} "
                 "object(s)): choose the setting instead, it picks the presets."
             )
+    defaults = default_command(command, cmd.setting)
+    for key in ("codes", "world_model"):
+        for name in Trainer.bookkeeping_fields:
+            if key in vars(cmd) and name != "checkpoint_every":
+                given, default = (
+                    getattr(getattr(cmd, key), name),
+                    getattr(getattr(defaults, key), name),
+                )
+                if given != default:
+                    option = f"--{key.replace('_', '-')}.{name.replace('_', '-')}"
+                    raise UsageError(
+                        f"{option} is set by the run: files go to <root>/<name>/ (use --root "
+                        "and --name) and bars follow --progress / --no-progress."
+                    )
     if isinstance(cmd, Evaluate):
         for name in ("tasks", "tasks_per_rollout", "candidates", "planning_horizon"):
             if getattr(cmd, name) < 1:
@@ -605,7 +626,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     name, cmd = parse(argv)
     try:
-        _check(cmd)
+        _check(name, cmd)
     except UsageError as err:
         print(f"usage: dorp {name} [-h] [OPTIONS]\ndorp {name}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -117,6 +117,18 @@ def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, capsys) -
     assert "graph: running (changed: codes.num_frames 256 -> 320)" in out
 
 
+def test_a_stage_that_did_not_finish_runs_again(tmp_path, capsys) -> None:
+    dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
+    stages_path = tmp_path / "run" / "stages.json"
+    stages = json.loads(stages_path.read_text())
+    stages["codes"]["config"] = None  # what a crash during training leaves
+    stages_path.write_text(json.dumps(stages))
+    out = dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
+    assert "play: done for this config, skipped" in out
+    assert "codes: running (it did not finish last time)" in out
+    assert json.loads(stages_path.read_text())["codes"]["config"]["num_steps"] == 5
+
+
 def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys) -> None:
     run = tmp_path / "run"
     out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL,
@@ -142,7 +154,8 @@ def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys
                "vf-rs", "--seed", "1")  # fmt: skip
     assert "evaluate:random: running (changed: seed 0 -> 1)" in out
     assert "evaluate:vf-rs:gt: running (changed: seed 0 -> 1)" in out
-    assert len(read_rows(run)) == 3
+    rows = read_rows(run)
+    assert [r["method"] for r in rows] == ["random", "vf-rs", "vf-cem"]  # rows keep their place
 
 
 def test_evaluate_through_a_world_model(tmp_path, capsys) -> None:
@@ -198,6 +211,8 @@ def test_threads_sets_torch_threads(tmp_path, capsys) -> None:
         (["collect", "--codes.env", "key-wall", "--codes.num-objects", "1"], "--setting"),
         (["evaluate", "--tasks", "0"], "--tasks must be >= 1"),
         (["collect", "--threads", "0"], "--threads must be >= 1"),
+        (["train-encoder", "--codes.out-dir", "elsewhere"], "--codes.out-dir is set by the run"),
+        (["evaluate", "--world-model.no-progress"], "--world-model.progress is set by the run"),
     ],
 )
 def test_bad_arguments_give_a_usage_error(tmp_path, capsys, args, message) -> None:

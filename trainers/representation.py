@@ -98,56 +98,101 @@ class RepresentationConfig(EnvConfigMixin):
 
     # environment and play data
     env: str = "rearrangement"
+    """environment: rearrangement, key-wall or key-corridor"""
     num_objects: int | None = None
+    """objects of a rearrangement env (None: 2; 1 for the key rooms)"""
     num_frames: int = 100_000
+    """play transitions to collect"""
     num_envs: int = 64
+    """envs collecting play data side by side"""
     trajectory_length: int | None = None
+    """steps per play trajectory (None: the env's, 1 for rearrangement)"""
     min_offset: int = 1
+    """smallest offset k of the (o_t, o_t+k) training pairs"""
     max_offset: int = 1
+    """largest offset k of the training pairs"""
     data_dir: str | None = None
+    """folder of the play data (None: kept in memory)"""
     # encoder
     code_size: int = 32
+    """codes per one-hot"""
     encoder_preset: str = "small"
+    """encoder size: small or authors"""
     map_competition: str = "sigmoid"
+    """how object maps share a pixel: sigmoid (independent) or softmax"""
     extractor_kernel_size: int = 3
+    """kernel size of the object-map extractor (odd)"""
     # loss
     similarity: str = "dddp"
+    """code similarity of the CPC loss: dddp, full or identity"""
     dddp_sign: str = "paper"
+    """sign convention of DDDP: paper or authors"""
     alpha: float = 1.0
+    """DDDP's alpha (dddp only)"""
     gumbel_side: str = "positive"
+    """which side of a pair gets hard Gumbel codes: positive or anchor"""
     gumbel_temperature: float = 0.1
+    """Gumbel-softmax temperature"""
     gumbel_temperature_start: float | None = None
+    """start of a Gumbel temperature annealing (None: no annealing)"""
     gumbel_anneal_steps: int = 0
+    """steps of the Gumbel temperature annealing"""
     ce_temperature: float = 0.1
+    """temperature of the contrastive cross-entropy"""
     usage_weight: float = 0.0
+    """weight of the code-usage term"""
     exclusivity_weight: float = 0.0
+    """weight of the map-exclusivity term (objects on separate maps)"""
     sparsity_weight: float = 0.0
+    """weight of the map-sparsity term"""
     motion_weight: float = 0.0
+    """weight of the motion-coverage term (key rooms: the agent map on the agent)"""
     # optimisation
     batch_size: int = 128
+    """pairs per step"""
     lr: float = 1e-3
+    """Adam learning rate"""
     similarity_lr_scale: float = 1.0
+    """learning rate of the similarity, as a multiple of lr"""
     num_steps: int = 2000
+    """training steps (of the last attempt)"""
     # bookkeeping
     seed: int = 0
+    """seed of play data, initialisation and sampling"""
     device: str = "cpu"
+    """torch device"""
     out_dir: str = "outputs/representation"
+    """folder of checkpoints and logs"""
     log_every: int = 50
+    """steps between logged metrics"""
     diagnostics_every: int = 500
+    """steps between ground-truth diagnostics"""
     diagnostics_samples: int = 2048
+    """states drawn for the diagnostics"""
     checkpoint_every: int = 500
+    """steps between checkpoints"""
     progress: bool = True
+    """show a progress bar"""
     # collapse detection
     collapse_check_after: int = 300
+    """steps of an attempt before the collapse check"""
     collapse_min_codes: int = 2
+    """a one-hot using at most this many codes counts as collapsed"""
     collapse_loss_margin: float = 0.05
+    """a loss within this margin of log(batch) counts as collapsed"""
     entanglement_check_after: int = 600
+    """steps of an attempt before the entanglement check"""
     entanglement_threshold: float = 0.07
+    """map entanglement above this restarts the attempt"""
     max_restarts: int = 3
+    """restarts after a collapse or entanglement"""
     # initialisation screening
     num_candidates: int = 1
+    """initialisations screened before training (1: no screening)"""
     candidate_steps: int = 1000
+    """steps per screened initialisation"""
     screening_frames: int = 8192
+    """play frames scoring each screened initialisation"""
 
     @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:

@@ -81,38 +81,67 @@ class WorldModelConfig(EnvConfigMixin):
 
     # environment and play data
     env: str = "rearrangement"
+    """environment: rearrangement, key-wall or key-corridor"""
     num_objects: int | None = None
+    """objects of a rearrangement env (None: 3; 1 for the key rooms)"""
     num_frames: int = 100_000
+    """play transitions to collect"""
     num_envs: int = 64
+    """envs collecting play data side by side"""
     trajectory_length: int = 16
+    """steps per play trajectory"""
     horizon: int = 14
+    """steps per training window"""
     data_dir: str | None = None
+    """folder of the play data (None: kept in memory)"""
     eval_frames: int = 8_000
+    """held-out play transitions for evaluation"""
     eval_sequences: int = 512
+    """held-out windows the open-loop accuracy is measured on"""
     # model
     model_preset: str = "default"
+    """model size: small or default"""
     latent_dim: int = 4
+    """dimensions of the latent z (0: deterministic)"""
     prior: str = "fixed"
+    """prior of z: fixed or learned"""
     # loss
     feedback: str = "straight_through"
+    """how predictions are fed back: straight_through, soft or hard"""
     kl_weight: float = 1.0
+    """weight of the KL term"""
     free_bits: float = 0.0
+    """KL free bits"""
     deterministic_fraction: float = 0.5
+    """share of steps trained with z at its mean"""
     open_loop_ramp: float = 0.5
+    """share of the steps over which the open-loop length grows to horizon"""
     # optimisation
     batch_size: int = 32
+    """windows per step"""
     lr: float = 2e-3
+    """Adam learning rate at the start"""
     lr_final: float = 1e-4
+    """learning rate at the end of the cosine decay"""
     grad_clip: float = 1.0
+    """gradient-norm clip (inf: off)"""
     num_steps: int = 6000
+    """training steps"""
     # bookkeeping
     seed: int = 0
+    """seed of play data, initialisation and sampling"""
     device: str = "cpu"
+    """torch device"""
     out_dir: str = "outputs/world_model"
+    """folder of checkpoints and logs"""
     log_every: int = 50
+    """steps between logged metrics"""
     eval_every: int = 1000
+    """steps between evaluations"""
     checkpoint_every: int = 500
+    """steps between checkpoints"""
     progress: bool = True
+    """show a progress bar"""
 
     @classmethod
     def rearrangement(cls, num_objects: int = 3, **overrides: Any) -> WorldModelConfig:
