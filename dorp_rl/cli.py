@@ -42,6 +42,7 @@ import dorp_rl.envs  # noqa: F401  (first: dorp_rl.eval imports in a cycle other
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.eval import (
+    PAPER_SUCCESS,
     SETTINGS,
     evaluate_policy,
     format_table,
@@ -60,6 +61,7 @@ from dorp_rl.trainers import (
     load_encoder,
     load_video_model,
 )
+from dorp_rl.viz import plot_results
 
 SettingName = Literal[
     "1obj", "2obj", "3obj", "5obj", "3obj-full", "5obj-full", "keywall", "keycorridor"
@@ -506,6 +508,11 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
             )
             level = "none" if method == "random" else level_name
             row = result_row(result, tasks, setting=cmd.setting, method=method, low_level=level)
+            row["per_task"] = {  # for the steps plot; not a results.csv column
+                "success": result["success"],
+                "steps": result["steps"],
+                "lower_bound": tasks["lower_bound"].tolist(),
+            }
             run.say(
                 f"{method}: success {row['success_rate']:.2f}, {row['mean_steps']:.1f} steps "
                 f"(lower bound {row['mean_lower_bound']:.1f}), "
@@ -516,7 +523,8 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
         key = f"evaluate:{method}" + ("" if method == "random" else f":{level_name}")
         run.stage(key, config, [], build, lambda: None)
     rows = run.result_rows()
-    write_results(rows, run.dir)
+    figures = plot_results(rows, run.dir, PAPER_SUCCESS)
+    write_results(rows, run.dir, figures)
     return rows
 
 

@@ -148,6 +148,9 @@ def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys
     assert "| " + " | ".join(RESULT_COLUMNS) + " |" in table
     assert "| 1obj | vf-cem | gt | 2 |" in table
     assert "| setting | method |" in out  # the table is printed too
+    for figure in ("success.png", "steps.png"):
+        assert (run / figure).stat().st_size > 1000
+        assert f"]({figure})" in table
 
     # Another method adds a row; the finished ones are skipped, not re-run.
     out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL, "--methods", "random",
@@ -256,3 +259,37 @@ def test_torchrl_info_lines_are_held_back_while_bars_are_shown() -> None:
     assert logger.level == before
     with quiet_torchrl(False):
         assert logger.level == before
+
+
+def test_result_plots_show_the_paper_and_solved_tasks_only(tmp_path) -> None:
+    from matplotlib.figure import Figure
+
+    from dorp_rl.viz import plot_results
+
+    drawn: list[dict] = []
+    original = Figure.savefig
+
+    def record(fig, path, **kwargs):
+        ax = fig.axes[0]
+        drawn.append(
+            {
+                "bars": [p.get_height() for p in ax.patches],
+                "points": [c.get_offsets().tolist() for c in ax.collections],
+            }
+        )
+        return original(fig, path, **kwargs)
+
+    row = {"setting": "2obj", "low_level": "gt", "success_rate": 0.5}
+    rows = [
+        {**row, "method": "dorp", "per_task": {"success": [True, False], "steps": [30, 400],
+                                                "lower_bound": [20, 9]}},
+        {**row, "method": "random", "low_level": "none"},
+    ]  # fmt: skip
+    Figure.savefig = record
+    try:
+        paths = plot_results(rows, tmp_path, {"2obj": {"dorp": 1.0}})
+    finally:
+        Figure.savefig = original
+    assert [p.name for p in paths] == ["success.png", "steps.png"]
+    assert sorted(drawn[0]["bars"]) == [0.5, 0.5, 1.0]  # two rows, one paper figure
+    assert drawn[1]["points"] == [[[20.0, 30.0]]]  # the failed task is not drawn

@@ -12,11 +12,12 @@ from dorp_rl.eval.diagnostics import (
     sample_rearrangement_states,
 )
 from dorp_rl.eval.results import RESULT_COLUMNS, format_table, result_row, write_results
-from dorp_rl.eval.settings import SETTINGS, Setting
+from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting
 from dorp_rl.eval.tasks import evaluate_policy, make_task_set
 from dorp_rl.eval.world_model import open_loop_accuracy
 
 __all__ = [
+    "PAPER_SUCCESS",
     "RESULT_COLUMNS",
     "SETTINGS",
     "Setting",

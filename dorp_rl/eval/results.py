@@ -73,8 +73,13 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def write_results(rows: Sequence[dict[str, Any]], directory: str | Path) -> tuple[Path, Path]:
-    """Writes ``results.csv`` and ``results.md`` (see :data:`RESULT_COLUMNS`) into ``directory``."""
+def write_results(
+    rows: Sequence[dict[str, Any]], directory: str | Path, figures: Sequence[str | Path] = ()
+) -> tuple[Path, Path]:
+    """Writes ``results.csv`` and ``results.md`` (see :data:`RESULT_COLUMNS`) into ``directory``.
+
+    ``figures`` (pictures in ``directory``) are shown in ``results.md`` below the table.
+    """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     csv_path, md_path = directory / "results.csv", directory / "results.md"
@@ -87,5 +92,6 @@ def write_results(rows: Sequence[dict[str, Any]], directory: str | Path) -> tupl
         "bound (sum of Manhattan distances), and mean of steps / bound over them.\n\n"
         + format_table(rows)
         + "\n"
+        + "".join(f"\n![{Path(f).stem}]({Path(f).name})\n" for f in figures)
     )
     return csv_path, md_path

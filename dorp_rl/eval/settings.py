@@ -1,8 +1,9 @@
-"""The paper's planning settings: environment, code preset, graph groups and paper figure.
+"""The paper's planning settings: environment, code preset, graph groups and paper figures.
 
 One table that the ``dorp`` command (and any script) uses to build the same codes, graph
 and task set per setting: :data:`SETTINGS` maps a name (``"2obj"``, ``"keywall"``, ...)
-to a :class:`Setting`.
+to a :class:`Setting`; :data:`PAPER_SUCCESS` holds the paper's success rates per setting
+and method, to draw next to ours.
 """
 
 from __future__ import annotations
@@ -69,4 +70,18 @@ SETTINGS: dict[str, Setting] = {
     "5obj-full": Setting("rearrangement", 5, "full", "0.00 (full graph)"),
     "keywall": Setting("key-wall", 1, ((0, 1),), "37/40 (gt), 9/10 (SV2P)"),
     "keycorridor": Setting("key-corridor", 1, ((0, 1),), "33/40 (gt)"),
+}
+
+#: The paper's success rates per setting and method: DORP with the true dynamics, VF-RS
+#: and VF-CEM through the paper's SV2P video model (the figures docs/RESULTS.md compares
+#: with). Settings or methods the paper did not report are absent.
+PAPER_SUCCESS: dict[str, dict[str, float]] = {
+    "1obj": {"dorp": 1.00, "vf-rs": 0.83, "vf-cem": 1.00},
+    "2obj": {"dorp": 1.00, "vf-rs": 0.58, "vf-cem": 0.60},
+    "3obj": {"dorp": 1.00, "vf-rs": 0.25, "vf-cem": 0.30},
+    "5obj": {"dorp": 0.87, "vf-rs": 0.00, "vf-cem": 0.10},
+    "3obj-full": {"dorp": 1.00},
+    "5obj-full": {"dorp": 0.00},
+    "keywall": {"dorp": 37 / 40},
+    "keycorridor": {"dorp": 33 / 40},
 }
