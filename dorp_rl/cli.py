@@ -173,11 +173,16 @@ class Reproduce(Evaluate):
 
     methods: tuple[Method, ...] = ("dorp", "vf-cem")
     """methods: dorp (code graph + MPC), vf-rs / vf-cem (visual foresight), random"""
+    tasks: int = 50
+    """tasks of the seeded task set (dorp_rl.eval.make_task_set); the paper used 50"""
 
 
 @dataclass
 class Demo(Reproduce):
     """A small reproduce: 2 objects, shorter code training, DORP and VF-CEM on 10 tasks."""
+
+    tasks: int = 10
+    """tasks of the seeded task set (dorp_rl.eval.make_task_set)"""
 
 
 #: subcommand name -> its dataclass

@@ -192,6 +192,7 @@ def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
     demo = default_command("demo")
     preset = SETTINGS["2obj"].representation_config()
     assert demo.setting == "2obj" and demo.tasks == 10
+    assert default_command("reproduce").tasks == 50 and default_command("evaluate").tasks == 10
     assert set(demo.methods) == {"dorp", "vf-cem"} and demo.low_level == "gt"
     assert demo.codes.num_steps == DEMO_CODE_STEPS < preset.num_steps
     assert demo.codes.to_dict() | {"num_steps": preset.num_steps} == preset.to_dict()
