@@ -167,9 +167,14 @@ def test_evaluate_through_a_world_model(tmp_path, capsys) -> None:
     checkpoint = run / "world_model" / "checkpoints" / "last.pt"
     assert checkpoint.is_file()
     out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_WORLD_MODEL, *TINY_EVAL,
-               "--methods", "vf-rs", "--low-level", "world-model")  # fmt: skip
+               "--methods", "vf-rs", "dorp", "--low-level", "world-model")  # fmt: skip
     assert "world_model: done for this config, skipped" in out
-    assert [(r["method"], r["low_level"]) for r in read_rows(run)] == [("vf-rs", "world-model")]
+    assert [(r["method"], r["low_level"]) for r in read_rows(run)] == [
+        ("vf-rs", "world-model"),
+        ("dorp", "world-model"),
+    ]
+    stages = json.loads((run / "stages.json").read_text())
+    assert stages["evaluate:dorp:world-model"]["config"]["low_level"]["num_steps"] == 3
     # A checkpoint path works as well, in another run.
     dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL, "--methods", "vf-rs",
          "--low-level", str(checkpoint), name="other")  # fmt: skip
