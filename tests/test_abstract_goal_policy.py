@@ -243,6 +243,11 @@ def test_bad_input_gets_a_clear_error(two_objects, tmp_path):
         make_dorp_policy(env, oracle, graph, order=[0, 0], **SMALL)
     with pytest.raises(ValueError, match="planner must be one of"):
         make_dorp_policy(env, oracle, graph, planner="mppi", **SMALL)
+    with pytest.raises(ValueError, match="neither planner is CEM"):
+        make_dorp_policy(env, oracle, graph, top_k=5, **SMALL)
+    cem = make_dorp_policy(env, oracle, graph, planner="cem", top_k=5, optim_steps=2, **SMALL)
+    assert (cem.waypoint_planner.top_k, cem.waypoint_planner.optim_steps) == (5, 2)
+    assert type(cem.goal_planner).__name__ == "CategoricalCEMPlanner"
     with pytest.raises(ValueError, match="different key_prefix"):
         AbstractGoalPolicy(oracle, graph, policy.waypoint_planner, policy.waypoint_planner)
 

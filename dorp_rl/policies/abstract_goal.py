@@ -67,6 +67,9 @@ from dorp_rl.validation import MissingKeyError, check_frames
 #: Values of ``dorp_mode``.
 MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
 _NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = range(5)
+_CEM_ONLY = frozenset(
+    ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
+)
 #: Orders in which groups are moved (besides an explicit sequence of group indices).
 ORDERS = ("index", "nearest")
 
@@ -613,14 +616,22 @@ def make_dorp_policy(
         "action_repeat": action_repeat,
         "execution": "open_loop",
     }
-    extra = {k: v for k, v in planner_kwargs.items()}
+    # Arguments only CEM has go to the CEM planners; anything else both planners take.
+    cem_only = {k: v for k, v in planner_kwargs.items() if k in _CEM_ONLY}
+    shared = {k: v for k, v in planner_kwargs.items() if k not in _CEM_ONLY}
+    if cem_only and "cem" not in (planner, goal_planner or planner):
+        raise ValueError(
+            f"{sorted(cem_only)} are CategoricalCEMPlanner arguments, but neither planner is "
+            "CEM: pass planner='cem' (or goal_planner='cem') or drop them."
+        )
     waypoint = classes[planner](
         planning_env,
         CodeMatchCost(encoder, "subgoal_code", onehots="subgoal_mask"),
         **shape,
         seed=seed,
         key_prefix="waypoint_planner_",
-        **(extra if planner == "cem" else {}),
+        **shared,
+        **(cem_only if planner == "cem" else {}),
     )
     goal_kind = goal_planner or planner
     pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
@@ -642,7 +653,8 @@ def make_dorp_policy(
         **shape,
         seed=None if seed is None else seed + 1,
         key_prefix="goal_planner_",
-        **(extra if goal_kind == "cem" else {}),
+        **shared,
+        **(cem_only if goal_kind == "cem" else {}),
     )
     return AbstractGoalPolicy(
         encoder,
