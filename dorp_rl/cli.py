@@ -38,7 +38,6 @@ from typing import Annotated, Any, Literal
 
 import torch
 
-import dorp_rl.envs  # noqa: F401  (first: dorp_rl.eval imports in a cycle otherwise)
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.eval import (

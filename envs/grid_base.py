@@ -13,6 +13,7 @@ from __future__ import annotations
 import weakref
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
@@ -24,6 +25,7 @@ from dorp_rl.validation import (
     check_action,
     check_batch_size,
     check_bool,
+    check_frames,
     check_int,
     check_seed,
     check_state_layout,
@@ -90,6 +92,18 @@ class _EmittedTensors:
 
     def __reduce__(self):
         return (_EmittedTensors, (self.size,))
+
+
+def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
+    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``."""
+    frames = check_frames(frames, "frames", lead="...", size=None)
+    scale = check_int("scale", scale, low=1)
+    return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
+
+
+def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
+    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's rgb_array)."""
+    return upscale_frames(frames, scale).movedim(-3, -1).cpu().numpy().copy()
 
 
 class GridWorldEnv(EnvBase):

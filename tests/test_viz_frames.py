@@ -125,3 +125,15 @@ def test_bad_scale_and_grid_shape_raise_value_error(tmp_path):
         frame_grid(random_frames(3, 16, 16))
     with pytest.raises(ValueError, match=r"\[N, 3, H, W\] or \[R, N, 3, H, W\]"):
         save_frame_strip(random_frames(2, 2, 2, 3, 4, 4), tmp_path / "bad.png")
+
+
+@pytest.mark.parametrize("module", ["dorp_rl.eval", "dorp_rl.viz", "dorp_rl.envs", "dorp_rl.cli"])
+def test_each_package_imports_first_in_a_fresh_interpreter(module):
+    # envs must not import viz (viz -> eval -> envs): any of them can be imported first.
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-c", f"import {module}"], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -8,23 +8,14 @@ import numpy as np
 import torch
 from PIL import Image
 
-from dorp_rl.validation import check_frames, check_int
+from dorp_rl.envs.grid_base import frames_to_rgb_array, upscale_frames
+from dorp_rl.validation import check_frames
+
+__all__ = ["frame_grid", "frames_to_rgb_array", "save_frame_strip", "upscale_frames"]
 
 
 def _check_frames(frames: torch.Tensor) -> torch.Tensor:
     return check_frames(frames, "frames", lead="...", size=None)
-
-
-def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
-    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``."""
-    frames = _check_frames(frames)
-    scale = check_int("scale", scale, low=1)
-    return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
-
-
-def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
-    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's rgb_array)."""
-    return upscale_frames(frames, scale).movedim(-3, -1).cpu().numpy().copy()
 
 
 def frame_grid(frames: torch.Tensor, scale: int = 8, gap: int = 1) -> np.ndarray:
