@@ -1,12 +1,13 @@
 """Reach goal images with visual foresight (VF-CEM / VF-RS) and save the episode as a PNG.
 
     python examples/visual_foresight.py                          # true dynamics, 1 object
+    dorp train-world-model --setting 2obj --name wm2                # a video model first
     python examples/visual_foresight.py --num-objects 2 \\
-        --checkpoint outputs/world_model/rearrangement2-seed0/checkpoints/last.pt
+        --checkpoint runs/wm2/world_model/checkpoints/last.pt
 
 Plans with pixel L2 to the goal through the ground-truth model (default) or a trained
-video model (``--checkpoint``, from ``benchmarks/video_model_accuracy.py`` or
-``WorldModelTrainer``), runs ``--tasks`` tasks with ``env.rollout`` and writes the first
+video model (``--checkpoint``: a ``WorldModelTrainer`` checkpoint, which ``dorp
+train-world-model`` writes), runs ``--tasks`` tasks with ``env.rollout`` and writes the first
 episode's frames, goal last, to ``<out-dir>/episode.png``.
 """
 
