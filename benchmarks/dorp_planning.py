@@ -24,74 +24,37 @@ import argparse
 import json
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import make_env
 from dorp_rl.eval import evaluate_policy, make_task_set
+from dorp_rl.eval.settings import SETTINGS, Setting
 from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import make_dorp_policy
-from dorp_rl.trainers import (
-    RepresentationConfig,
-    RepresentationTrainer,
-    load_encoder,
-    load_video_model,
-)
+from dorp_rl.trainers import RepresentationTrainer, load_encoder, load_video_model
 
 
-@dataclass
-class Setting:
-    env: str
-    num_objects: int
-    groups: Any
-    paper: str
-
-    @property
-    def codes_name(self) -> str:
-        if self.env == "rearrangement":
-            return f"rearrangement{self.num_objects}"
-        return self.env.replace("-", "")
-
-    @property
-    def video_name(self) -> str:
-        """The run name ``benchmarks/video_model_accuracy.py`` gives this env's video model."""
-        return self.codes_name if self.env == "rearrangement" else self.env
-
-    def preset(self, **overrides: Any) -> RepresentationConfig:
-        if self.env == "key-wall":
-            return RepresentationConfig.key_wall(**overrides)
-        if self.env == "key-corridor":
-            return RepresentationConfig.key_corridor(**overrides)
-        # The step and data budgets of the representation benchmark's runs.
-        steps = {1: 1500, 2: 1500, 3: 2000}.get(self.num_objects, 3000)
-        frames = {1: 60_000, 2: 100_000, 3: 150_000}.get(self.num_objects, 200_000)
-        return RepresentationConfig.rearrangement(
-            self.num_objects, num_steps=steps, num_frames=frames, **overrides
-        )
+def codes_name(setting: Setting) -> str:
+    """Folder name of a setting's codes and play data: rearrangement<k>, keywall, ..."""
+    if setting.env == "rearrangement":
+        return f"rearrangement{setting.num_objects}"
+    return setting.env.replace("-", "")
 
 
-SETTINGS = {
-    "1obj": Setting("rearrangement", 1, "onehot", "1.00 in 25 steps"),
-    "2obj": Setting("rearrangement", 2, "onehot", "1.00 in 49 steps"),
-    "3obj": Setting("rearrangement", 3, "onehot", "1.00 in 75 steps"),
-    "5obj": Setting("rearrangement", 5, [(0, 1), (2, 3, 4)], "0.87 in 1091 steps"),
-    "3obj-full": Setting("rearrangement", 3, "full", "1.00 (full graph)"),
-    "5obj-full": Setting("rearrangement", 5, "full", "0.00 (full graph)"),
-    "keywall": Setting("key-wall", 1, [(0, 1)], "37/40 (gt), 9/10 (SV2P)"),
-    "keycorridor": Setting("key-corridor", 1, [(0, 1)], "33/40 (gt)"),
-}
+def video_name(setting: Setting) -> str:
+    """The run name ``benchmarks/video_model_accuracy.py`` gives this env's video model."""
+    return codes_name(setting) if setting.env == "rearrangement" else setting.env
 
 
 def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[Any, CodeGraph, dict]:
     """The encoder (trained or oracle) and its code graph, from disk when already built."""
-    name = f"{setting.codes_name}-seed{args.code_seed}"
+    name = f"{codes_name(setting)}-seed{args.code_seed}"
     play_dir = args.out_dir / "play" / name
-    cfg = setting.preset(
+    cfg = setting.representation_config(
         seed=args.code_seed,
         out_dir=str(args.out_dir / "codes" / name),
         data_dir=str(play_dir),
@@ -130,14 +93,12 @@ def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[An
 def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str, Any]:
     setting = SETTINGS[setting_name]
     batch = args.tasks_per_rollout
-    env = make_env(
-        setting.env, num_objects=setting.num_objects, batch_size=(batch,), seed=args.seed
-    )
+    env = setting.make_env(batch_size=(batch,), seed=args.seed)
     encoder, graph, timings = codes_and_graph(setting, args, env)
     if low_level == "gt":
         level: Any = "ground_truth"
     else:
-        path = args.video_checkpoint.format(name=setting.video_name)
+        path = args.video_checkpoint.format(name=video_name(setting))
         level = load_video_model(path, env)
     policy = make_dorp_policy(
         env,
