@@ -70,6 +70,14 @@ class UniformRandomPolicy:
         num_actions: size of the discrete action space.
         seed: seed of the policy's generator (independent of torch's global RNG).
         device: where actions are created.
+
+    Examples:
+        >>> from dorp_rl.data import UniformRandomPolicy
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> env = ObjectRearrangementEnv(num_objects=2, batch_size=(4,), seed=0)
+        >>> action = UniformRandomPolicy(env.num_actions, seed=0)(env.reset())["action"]
+        >>> action.shape, action.dtype, 0 <= int(action.min()) <= int(action.max()) < 8
+        (torch.Size([4, 1]), torch.int64, True)
     """
 
     def __init__(self, num_actions: int, seed: int = 0, device: torch.device | str = "cpu") -> None:
@@ -94,6 +102,13 @@ def play_env(env: GridWorldEnv, trajectory_length: int | None = None) -> GridWor
 
     Rearrangement play data resets after every step (``trajectory_length=1``); key rooms
     walk 1000 (key-wall) or 1500 (key-corridor) random steps, as in the paper.
+
+    Examples:
+        >>> from dorp_rl.data import play_env
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> env = play_env(KeyWallEnv(batch_size=(2,)), trajectory_length=1000)
+        >>> env.max_steps, env.terminate_on_success
+        (1000, False)
     """
     if not isinstance(env, GridWorldEnv):
         raise ValueError(f"env must be a dorp_rl GridWorldEnv, got {type(env).__name__}.")
