@@ -17,7 +17,13 @@ _CLASSES: dict[str, type[GridWorldEnv]] = {
 
 
 def env_class(name: str) -> type[GridWorldEnv]:
-    """The class of the environment called ``name`` (one of :data:`ENV_NAMES`)."""
+    """The class of the environment called ``name`` (one of :data:`ENV_NAMES`).
+
+    Examples:
+        >>> from dorp_rl.envs import ENV_NAMES, env_class
+        >>> ENV_NAMES, env_class("key-corridor").__name__
+        (('rearrangement', 'key-wall', 'key-corridor'), 'KeyCorridorEnv')
+    """
     if name not in _CLASSES:
         raise ValueError(f"env must be one of {ENV_NAMES}, got {name!r}.")
     return _CLASSES[name]

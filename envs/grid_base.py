@@ -50,6 +50,16 @@ def paint_layers(masks: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
 
     Returns:
         uint8 ``[*B, 3, H, W]`` image.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs import paint_layers
+        >>> masks = torch.zeros(2, 4, 4, dtype=torch.bool)
+        >>> masks[0, :2] = True  # layer 0: the top two rows
+        >>> masks[1, :, 0] = True  # layer 1: the left column, painted over layer 0
+        >>> image = paint_layers(masks, torch.tensor([[255, 0, 0], [0, 0, 255]], dtype=torch.uint8))
+        >>> image.shape, image[:, 0, 0].tolist(), image[:, 0, 1].tolist(), image[:, 3, 3].tolist()
+        (torch.Size([3, 4, 4]), [0, 0, 255], [255, 0, 0], [0, 0, 0])
     """
     num_layers = masks.shape[-3]
     # Index of the top-most layer covering each pixel (0 = background).
@@ -95,14 +105,28 @@ class _EmittedTensors:
 
 
 def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
-    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``."""
+    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.viz import upscale_frames
+        >>> upscale_frames(torch.zeros(2, 3, 16, 16, dtype=torch.uint8), scale=4).shape
+        torch.Size([2, 3, 64, 64])
+    """
     frames = check_frames(frames, "frames", lead="...", size=None)
     scale = check_int("scale", scale, low=1)
     return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
 
 
 def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
-    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's rgb_array)."""
+    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's rgb_array).
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.viz import frames_to_rgb_array
+        >>> frames_to_rgb_array(torch.zeros(3, 16, 16, dtype=torch.uint8)).shape
+        (128, 128, 3)
+    """
     return upscale_frames(frames, scale).movedim(-3, -1).cpu().numpy().copy()
 
 
@@ -133,6 +157,20 @@ class GridWorldEnv(EnvBase):
         batch_locked: if ``False`` (only with ``batch_size=()``), any leading shape works.
         terminate_on_success: set ``terminated`` when the goal is reached. Play-data
             collection turns it off so that random walks are not cut by random goals.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+        >>> task = TensorDict(
+        ...     state=torch.tensor([[[0, 0]]]), goal_state=torch.tensor([[[1, 0]]]), batch_size=(1,)
+        ... )
+        >>> td = env.reset(task, set_state=True)  # start and goal as given
+        >>> td["action"] = torch.tensor([[1]])  # block 0 one cell down
+        >>> out = env.step(td)["next"]
+        >>> out["state"].tolist(), out["success"].tolist(), out["reward"].tolist()
+        ([[[1, 0]]], [[True]], [[1.0]])
     """
 
     _supports_set_state = True

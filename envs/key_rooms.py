@@ -41,6 +41,17 @@ class KeyRoomEnv(GridWorldEnv):
     a random goal has the key taken, the door open and the agent on any free cell.
 
     Subclasses set :attr:`LAYOUT` (an ASCII map) and :attr:`DEFAULT_MAX_STEPS`.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> env = KeyWallEnv(batch_size=(1,), seed=0)
+        >>> start = TensorDict(state=torch.tensor([[0, 1, 0]]), batch_size=(1,))
+        >>> td = env.reset(start, set_state=True)  # the agent just right of the key
+        >>> td["action"] = torch.tensor([[2]])  # left, onto the key
+        >>> env.step(td)["next", "state"].tolist()  # row, column, has-key
+        [[0, 0, 1]]
     """
 
     LAYOUT: str = ""

@@ -154,6 +154,11 @@ def best_assignment(matrix: torch.Tensor | np.ndarray | Sequence[Sequence[float]
     Returns:
         A list of length ``R``: the column of each row. When ``R > K`` only ``K`` rows get
         a column and the others get ``None``.
+
+    Examples:
+        >>> from dorp_rl.eval import best_assignment
+        >>> best_assignment([[0.1, 0.9], [0.8, 0.3]])  # object 0 -> one-hot 1, 1 -> 0
+        [1, 0]
     """
     scores = np.asarray(
         matrix.detach().cpu().numpy() if isinstance(matrix, torch.Tensor) else matrix,
@@ -227,6 +232,13 @@ def connected_fraction(code_map: torch.Tensor) -> tuple[float, int]:
 
     Returns:
         ``(fraction, number_of_codes)``; the fraction is ``nan`` when the map has no code.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.eval import connected_fraction
+        >>> code_map = torch.tensor([[0, 0, 1, 1], [0, 2, 1, 1], [2, 2, 0, -1]])
+        >>> connected_fraction(code_map)  # code 0 is split in two regions
+        (0.6666666666666666, 3)
     """
     codes = torch.unique(code_map[code_map >= 0])
     if len(codes) == 0:

@@ -64,7 +64,16 @@ def _show(value: Any) -> str:
 
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
-    """``rows`` as a markdown table with :data:`RESULT_COLUMNS` (floats with 2 decimals)."""
+    """``rows`` as a markdown table with :data:`RESULT_COLUMNS` (floats with 2 decimals).
+
+    Examples:
+        >>> from dorp_rl.eval import format_table
+        >>> row = dict(setting="1obj", method="random", low_level="gt", tasks=4,
+        ...            success_rate=0.25, mean_steps=14.0, mean_lower_bound=2.0,
+        ...            steps_over_bound=7.0, seconds_per_task=0.01)
+        >>> print(format_table([row]).splitlines()[-1])
+        | 1obj | random | gt | 4 | 0.25 | 14.00 | 2.00 | 7.00 | 0.01 |
+    """
     lines = [
         "| " + " | ".join(RESULT_COLUMNS) + " |",
         "|" + "---|" * len(RESULT_COLUMNS),

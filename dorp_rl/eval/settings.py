@@ -24,6 +24,14 @@ class Setting:
         groups: graph groups (:meth:`~dorp_rl.planners.CodeGraph.from_play_data`):
             ``"onehot"``, ``"full"`` or tuples of one-hot indices.
         paper: the paper's figure for DORP, for comparison in result tables.
+
+    Examples:
+        >>> from dorp_rl.eval import SETTINGS
+        >>> setting = SETTINGS["5obj"]
+        >>> setting.env, setting.num_objects, setting.groups
+        ('rearrangement', 5, ((0, 1), (2, 3, 4)))
+        >>> setting.make_env(batch_size=(2,)).batch_size
+        torch.Size([2])
     """
 
     env: str

@@ -96,6 +96,17 @@ def evaluate_policy(
         the limit), ``success_rate``, ``mean_steps`` (over successful tasks, ``nan`` if
         none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``,
         and one list per entry of ``report_keys``.
+
+    Examples:
+        >>> from dorp_rl.data import UniformRandomPolicy
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.eval import evaluate_policy, make_task_set
+        >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(), batch_locked=False, seed=0)
+        >>> tasks = make_task_set(env, 4, seed=0)
+        >>> policy = UniformRandomPolicy(env.num_actions, seed=0)
+        >>> result = evaluate_policy(env, policy, tasks, max_steps=20, tasks_per_rollout=4)
+        >>> result["num_tasks"], len(result["success"]), max(result["steps"]) <= 20
+        (4, 4, True)
     """
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
     tasks_per_rollout = check_int("tasks_per_rollout", tasks_per_rollout, low=1)

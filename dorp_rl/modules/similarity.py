@@ -123,7 +123,13 @@ SIMILARITIES = {"dddp": DDDPSimilarity, "full": FullSimilarity, "identity": Iden
 
 
 def make_similarity(kind: str, dim: int, **kwargs) -> _Similarity:
-    """Builds a similarity by name: ``"dddp"``, ``"full"`` or ``"identity"``."""
+    """Builds a similarity by name: ``"dddp"``, ``"full"`` or ``"identity"``.
+
+    Examples:
+        >>> from dorp_rl.modules import make_similarity
+        >>> make_similarity("dddp", 8, alpha=2.0).alpha, make_similarity("full", 8).matrix().shape
+        (2.0, torch.Size([8, 8]))
+    """
     if kind not in SIMILARITIES:
         raise ValueError(f"similarity must be one of {sorted(SIMILARITIES)}, got {kind!r}.")
     return SIMILARITIES[kind](dim, **kwargs)

@@ -22,6 +22,15 @@ def standardize_codes(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     Args:
         logits: ``[*B, C, Z]`` with ``-inf`` where ``mask`` is True.
         mask: bool ``[C, Z]``, True on codes a one-hot does not have.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.objectives import standardize_codes
+        >>> mask = torch.tensor([[False, False, False], [False, False, True]])  # Z = 3 and 2
+        >>> logits = torch.tensor([[[1.0, 2.0, 3.0], [5.0, 7.0, float("-inf")]]])
+        >>> standardize_codes(logits, mask)
+        tensor([[[-1.2247,  0.0000,  1.2247],
+                 [-1.0000,  1.0000,    -inf]]])
     """
     valid = (~mask).to(logits.dtype)
     count = valid.sum(-1, keepdim=True)

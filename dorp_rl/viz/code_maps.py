@@ -57,6 +57,13 @@ def code_colours(codes: torch.Tensor | np.ndarray) -> np.ndarray:
 
     Args:
         codes: int ``[H, W]`` codes, ``-1`` for cells without a code.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.viz import code_colours
+        >>> image = code_colours(torch.tensor([[0, 1], [-1, 1]]))
+        >>> image.shape, image[1, 0].tolist(), bool((image[0, 1] == image[1, 1]).all())
+        ((2, 2, 3), [1.0, 1.0, 1.0], True)
     """
     codes = _as_array(codes)
     rgb = _PALETTE[np.maximum(codes, 0) % len(_PALETTE)]

@@ -23,6 +23,13 @@ def frame_grid(frames: torch.Tensor, scale: int = 8, gap: int = 1) -> np.ndarray
 
     Frames are separated by ``gap`` grey pixels (in upscaled units) so that black
     backgrounds stay distinguishable.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.viz import frame_grid
+        >>> frames = torch.zeros(2, 4, 3, 16, 16, dtype=torch.uint8)  # 2 rows of 4 frames
+        >>> frame_grid(frames, scale=2, gap=1).shape  # 2 * 32 + 3 gaps, 4 * 32 + 5 gaps
+        (67, 133, 3)
     """
     frames = _check_frames(frames)
     if frames.dim() == 4:
