@@ -11,8 +11,8 @@ states, for any encoder given as a plain callable::
 
 Why not just the paper's Figure 4(c) number (the fraction of single-object moves that
 change at most one one-hot)? Each one-hot changes on only 15-25% of moves, so an
-untrained or fully entangled encoder already scores ~0.97 on it (REFERENCE.md, "Measured
-here"). It is reported, but the numbers that separate good codes from bad ones are:
+untrained or fully entangled encoder already scores ~0.97 on it. It is reported, but
+the numbers that separate good codes from bad ones are:
 
 - **selectivity**: of all one-hot changes caused by moving one object, the share that land
   on that object's own one-hot, under the best object-to-one-hot assignment (chance is

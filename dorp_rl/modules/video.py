@@ -6,7 +6,7 @@ therefore predicts, for every pixel, scores over that *palette* instead of RGB v
 predicted frames are always made of palette colours, never blur and never drift in
 colour, and training is a per-pixel cross-entropy.
 
-Layout of one prediction step (measured on this 2-core CPU, see ``REFERENCE.md``):
+Layout of one prediction step (accuracy and speed in ``docs/RESULTS.md``):
 
 1. the frame's palette one-hot ``[N, K, 16, 16]`` is folded (space-to-depth) to an 8x8
    grid of ``4 K`` channels, the action one-hot and the latent ``z`` are broadcast as
