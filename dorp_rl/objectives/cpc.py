@@ -124,13 +124,13 @@ class CPCLoss(LossModule):
         sparsity_weight: weight of an optional term, the mean value of the object maps,
             that drives each map to zero away from its object. In key rooms it shrinks
             what the key and the door leave in the agent's map, which otherwise flips the
-            agent's code with the key at the borders of code regions (docs/RESULTS.md).
+            agent's code with the key at the borders of code regions (docs/NOTES.md).
         motion_weight: weight of an optional motion-coverage term
             (:func:`uncovered_motion`): every pixel that changes between the two frames
             of a pair should lie under the object map of a one-hot of more than 2 codes.
             Without it a key-wall agent map held almost nothing on the agent (mean 0.0003
             on its pixel) and its code followed what the key leaves in the map; with it
-            the map sits on the agent (docs/RESULTS.md, "key-wall").
+            the map sits on the agent (docs/NOTES.md, "Key-wall codes").
 
     Reads ``pixels`` (o_t) and ``future_pixels`` (o_{t+k}) and returns ``loss_cpc`` (plus
     ``loss_usage``, ``loss_exclusivity``, ``loss_sparsity`` and ``loss_motion`` when
@@ -268,7 +268,7 @@ class CPCLoss(LossModule):
             out.set("loss_sparsity", self.sparsity_weight * maps.mean())
         if self.motion_weight > 0:
             # Only the wide one-hots' maps may cover motion: a key bit's map that did
-            # took the agent (docs/RESULTS.md, "key-wall").
+            # took the agent (docs/NOTES.md, "Key-wall codes").
             wide = self._wide_onehots.to(maps.device)
             uncovered = uncovered_motion(anchor, future, maps[:batch, wide], maps[batch:, wide])
             out.set("loss_motion", self.motion_weight * uncovered)
