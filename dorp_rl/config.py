@@ -1,20 +1,23 @@
-"""The one config system: flat dataclasses that round-trip through plain dicts.
+"""The one config system: dataclasses that round-trip through plain dicts.
 
-Every config of the library (video model, trainers) is a dataclass with
-:class:`ConfigMixin`: ``to_dict()`` gives JSON-friendly values (tuples as lists), the
-form stored in checkpoints, and ``from_dict()`` rebuilds the config, refusing unknown
-fields so that a checkpoint of another version fails loudly instead of half-loading.
+Every config of the library (encoder, video model, trainers) is a dataclass with
+:class:`ConfigMixin`: ``to_dict()`` gives JSON-friendly values (tuples as lists, nested
+configs as dicts), the form stored in checkpoints, and ``from_dict()`` rebuilds the
+config, refusing unknown fields so that a checkpoint of another version fails loudly
+instead of half-loading. A config may embed another as a field (a trainer config holds
+its model's config); :meth:`ConfigMixin.replace` changes fields of both at once.
 
-Every field has a rule (``FIELD_RULES``, see :mod:`dorp_rl.validation`), checked when
-the config is built (also by :func:`dataclasses.replace` and ``from_dict``): a wrong
-value raises ``ValueError`` naming the field and its allowed range, and values are
-normalised (``3.0`` steps become ``3``). Rules between fields live in
-:meth:`ConfigMixin.check_relations`.
+Every field has a rule (``FIELD_RULES``, see :mod:`dorp_rl.validation`; :class:`Nested`
+for an embedded config), checked when the config is built (also by
+:func:`dataclasses.replace` and ``from_dict``): a wrong value raises ``ValueError``
+naming the field and its allowed range, and values are normalised (``3.0`` steps become
+``3``). Rules between fields live in :meth:`ConfigMixin.check_relations`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 import typing
 from typing import Any, ClassVar, TypeVar
 
@@ -23,12 +26,57 @@ from dorp_rl.validation import check_fields
 T = TypeVar("T", bound="ConfigMixin")
 
 
+@dataclasses.dataclass(frozen=True)
+class Nested:
+    """Rule of a field holding another config: an instance of ``cls`` or a dict of its fields.
+
+    The value is validated and copied (two configs never share one nested config); a
+    wrong nested value raises ``ValueError`` naming ``<field>.<nested field>``.
+    """
+
+    cls: type
+
+    def __call__(self, name: str, value: Any) -> Any:
+        try:
+            if isinstance(value, dict):
+                return self.cls.from_dict(value)
+            if not isinstance(value, self.cls):
+                raise ValueError(
+                    f"must be a {self.cls.__name__} or a dict of its fields, "
+                    f"got {type(value).__name__}."
+                )
+            return dataclasses.replace(value)
+        except ValueError as err:
+            raise _nested_error(name, self.cls, err) from None
+
+
+def _nested_error(name: str, cls: type, err: ValueError) -> ValueError:
+    """``err`` of a nested config ``cls`` in field ``name``, naming ``<name>.<field>``."""
+    text = str(err)
+    if text.startswith(f"{name}.") or text.startswith(f"{name}:"):
+        return err
+    first = re.split(r"[\s\[(,:]", text, maxsplit=1)[0]
+    names = {f.name for f in dataclasses.fields(cls)}
+    return ValueError(f"{name}.{text}" if first in names else f"{name}: {text}")
+
+
+def _plain(value: Any) -> Any:
+    """JSON-friendly ``value``: nested configs as dicts, tuples as lists."""
+    if isinstance(value, ConfigMixin):
+        return value.to_dict()
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
 class ConfigMixin:
-    """``to_dict`` / ``from_dict`` and field validation for dataclass configs.
+    """``to_dict`` / ``from_dict``, ``replace`` and field validation for dataclass configs.
 
     Examples:
-        >>> from dataclasses import dataclass
-        >>> from dorp_rl.config import ConfigMixin
+        >>> from dataclasses import dataclass, field
+        >>> from dorp_rl.config import ConfigMixin, Nested
         >>> from dorp_rl.validation import Int
         >>> @dataclass
         ... class Sizes(ConfigMixin):
@@ -41,6 +89,19 @@ class ConfigMixin:
         Traceback (most recent call last):
         ...
         ValueError: depth must be >= 1, got 0.
+        >>> @dataclass
+        ... class Run(ConfigMixin):
+        ...     FIELD_RULES = {"model": Nested(Sizes), "steps": Int(low=1)}
+        ...     model: Sizes = field(default_factory=Sizes)
+        ...     steps: int = 10
+        >>> Run().replace(steps=5, model={"depth": 3})
+        Run(model=Sizes(widths=(32, 32), depth=3), steps=5)
+        >>> Run().to_dict()
+        {'model': {'widths': [32, 32], 'depth': 2}, 'steps': 10}
+        >>> Run(model=Sizes(depth=1)).replace(model={"depth": 0})
+        Traceback (most recent call last):
+        ...
+        ValueError: model.depth must be >= 1, got 0.
     """
 
     #: field name -> rule ``rule(name, value) -> normalised value`` (raises ``ValueError``)
@@ -63,28 +124,72 @@ class ConfigMixin:
         """Stored values of an older version, made valid (``from_dict`` calls it); as is by default."""
         return values
 
+    @classmethod
+    def nested_fields(cls) -> dict[str, type]:
+        """``{field: config class}`` of the fields holding another config."""
+        return {k: r.cls for k, r in cls.FIELD_RULES.items() if isinstance(r, Nested)}
+
     def to_dict(self) -> dict[str, Any]:
-        out = dataclasses.asdict(self)  # type: ignore[call-overload]
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in out.items()}
+        """Every field as JSON-friendly values (nested configs as dicts, tuples as lists)."""
+        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
 
     @classmethod
     def from_dict(cls: type[T], values: dict[str, Any]) -> T:
+        """The config of ``values`` (a :meth:`to_dict` result, possibly of an older version).
+
+        Raises:
+            ValueError: not a dict, a field this class does not have, or a value that
+                breaks its rule.
+        """
         if not isinstance(values, dict):
             raise ValueError(f"{cls.__name__}.from_dict needs a dict, got {type(values).__name__}.")
+        values = cls.upgrade(dict(values))
         fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
         unknown = sorted(set(values) - set(fields))
         if unknown:
             raise ValueError(f"unknown {cls.__name__} fields {unknown}.")
         hints = typing.get_type_hints(cls)
-        values = cls.upgrade(dict(values))
         for name, value in values.items():
             if isinstance(value, list) and "tuple" in str(hints.get(name, "")):
                 values[name] = tuple(value)
         return cls(**values)
 
+    def replace(self: T, **changes: Any) -> T:
+        """A copy with ``changes``; a dict given for a nested config changes only its fields.
+
+        ``cfg.replace(lr=1e-4, encoder={"code_sizes": (16,)})`` keeps every other field
+        of ``cfg.encoder``. Validated like a new config.
+        """
+        for name, cls in self.nested_fields().items():
+            value = changes.get(name)
+            if isinstance(value, dict):
+                current = getattr(self, name)
+                base = current if isinstance(current, cls) else cls()
+                try:
+                    changes[name] = base.replace(**value)
+                except (ValueError, TypeError) as err:
+                    raise _nested_error(name, cls, ValueError(str(err))) from None
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+
+def flatten_dict(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"encoder": {"code_sizes": [8]}}`` as ``{"encoder.code_sizes": [8]}`` (dicts only)."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, dict) and value:
+            out.update(flatten_dict(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
 
 def config_differences(stored: dict[str, Any], current: dict[str, Any]) -> dict[str, tuple]:
-    """``{field: (stored value, current value)}`` for the fields two config dicts disagree on."""
+    """``{field: (stored value, current value)}`` for the fields two config dicts disagree on.
+
+    Nested configs are compared field by field and named ``<field>.<nested field>``
+    (e.g. ``encoder.code_sizes``).
+    """
+    stored, current = flatten_dict(stored), flatten_dict(current)
     keys = sorted(set(stored) | set(current))
     return {k: (stored.get(k), current.get(k)) for k in keys if stored.get(k) != current.get(k)}
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -10,6 +9,7 @@ from typing import Any
 import pytest
 import torch
 
+from dorp_rl.modules import VideoModelConfig
 from dorp_rl.trainers import RepresentationConfig, WorldModelConfig
 
 
@@ -20,7 +20,7 @@ class TinyConfigs:
     def representation(out_dir: str | Path, **overrides: Any) -> RepresentationConfig:
         base = RepresentationConfig.rearrangement(
             1,
-            code_size=8,
+            encoder={"code_sizes": (8,)},
             num_frames=256,
             num_envs=16,
             batch_size=32,
@@ -32,7 +32,7 @@ class TinyConfigs:
             out_dir=str(out_dir),
             collapse_check_after=10**9,
         )
-        return dataclasses.replace(base, **overrides)
+        return base.replace(**overrides)
 
     @staticmethod
     def world_model(out_dir: str | Path, **overrides: Any) -> WorldModelConfig:
@@ -45,7 +45,7 @@ class TinyConfigs:
             trajectory_length=4,
             eval_frames=128,
             eval_sequences=8,
-            model_preset="small",
+            model=VideoModelConfig.small(),
             batch_size=8,
             log_every=2,
             checkpoint_every=2,
@@ -53,7 +53,7 @@ class TinyConfigs:
             progress=False,
             out_dir=str(out_dir),
         )
-        return dataclasses.replace(base, **overrides)
+        return base.replace(**overrides)
 
 
 @pytest.fixture(scope="session")

@@ -214,7 +214,7 @@ def test_a_trainer_checkpoint_without_rng_states_is_refused(trained, tmp_path, t
         ({"batch_size": 16}, "batch_size"),
         ({"seed": 3}, "seed"),
         ({"usage_weight": 0.5}, "usage_weight"),
-        ({"code_size": 16}, "code_size"),
+        ({"encoder": {"code_sizes": (16,)}}, "encoder.code_sizes"),
     ],
 )
 def test_resume_refuses_fields_that_change_the_result(representation_config, changes, field):

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from dorp_rl.config import Nested
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
-from dorp_rl.modules import VideoModelConfig
+from dorp_rl.modules import EncoderConfig, VideoModelConfig
 from dorp_rl.trainers import (
     RepresentationConfig,
     RepresentationTrainer,
@@ -27,7 +28,7 @@ from dorp_rl.validation import Choice, Device, Flag, Float, Int, Ints, Seed, Tex
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-CONFIGS = [RepresentationConfig, WorldModelConfig, VideoModelConfig]
+CONFIGS = [RepresentationConfig, WorldModelConfig, VideoModelConfig, EncoderConfig]
 
 
 def bad_values(rule) -> list:
@@ -61,7 +62,14 @@ def bad_values(rule) -> list:
     if isinstance(rule, Device):
         return [("gpu0", "torch device")]
     if isinstance(rule, Ints):
-        return [((), "at least"), ((1, 0), ">= 1"), ((1, 2.5), "integer")]
+        low = 1 if rule.low is None else rule.low
+        out = [((low, low - 1), f">= {low}"), ((low, 2.5), "integer")]
+        return out + ([((), "at least")] if rule.min_length > 0 else [])
+    if isinstance(rule, Nested):  # the nested config's own bad values, given as a dict
+        nested = [
+            ({k: v}, text) for k, r in rule.cls.FIELD_RULES.items() for v, text in bad_values(r)
+        ]
+        return [(3, "dict of its fields"), *nested]
     raise AssertionError(f"no bad values for {rule!r}")
 
 
@@ -94,6 +102,8 @@ def test_a_bad_field_value_is_refused_naming_the_field_and_range(cls, name, valu
     message = str(info.value)
     assert message.startswith(f"{name}") or f"{name}[" in message, message
     assert text in message, message
+    if isinstance(value, dict):  # a nested field is named <field>.<nested field>
+        assert message.startswith(f"{name}.{next(iter(value))}"), message
 
 
 @pytest.mark.parametrize("cls", CONFIGS, ids=lambda c: c.__name__)
@@ -141,7 +151,7 @@ def test_common_mistakes_name_the_field(cls, changes, message):
             ["trajectory_length", "horizon"],
         ),
         (RepresentationConfig, {"num_candidates": 2, "candidate_steps": 3000}, ["candidate_steps"]),
-        (RepresentationConfig, {"extractor_kernel_size": 4}, ["extractor_kernel_size"]),
+        (RepresentationConfig, {"encoder": {"kernel_size": 4}}, ["encoder.kernel_size"]),
         (RepresentationConfig, {"gumbel_temperature_start": 1.0}, ["gumbel_anneal_steps"]),
         (RepresentationConfig, {"similarity": "full", "alpha": 2.0}, ["alpha", "similarity"]),
         (RepresentationConfig, {"min_offset": 3, "max_offset": 2}, ["min_offset", "max_offset"]),
@@ -154,7 +164,7 @@ def test_common_mistakes_name_the_field(cls, changes, message):
 )
 def test_rules_between_fields_name_every_field_involved(cls, changes, fields):
     with pytest.raises(ValueError) as info:
-        dataclasses.replace(cls(), **changes)
+        cls().replace(**changes)
     for field in fields:
         assert field in str(info.value)
 
@@ -208,7 +218,7 @@ def test_representation_trainer_refuses_trajectories_shorter_than_max_offset(
     representation_config,
 ):
     short = collect_play_data(KeyWallEnv(batch_size=(2,)), 256, seed=0, trajectory_length=2)
-    cfg = representation_config(env="key-wall", code_size=8, max_offset=4)
+    cfg = representation_config(env="key-wall", max_offset=4)
     with pytest.raises(ValueError, match="trajectories of 2 step"):
         RepresentationTrainer(cfg, buffer=short)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import replace
 
 import pytest
 import torch
@@ -35,7 +34,7 @@ def _pixels(n: int, seed: int = 0) -> torch.Tensor:
 def _tiny_config(tmp_path, **overrides) -> RepresentationConfig:
     base = RepresentationConfig.rearrangement(
         1,
-        code_size=8,
+        encoder={"code_sizes": (8,)},
         num_frames=512,
         num_envs=16,
         batch_size=32,
@@ -47,7 +46,7 @@ def _tiny_config(tmp_path, **overrides) -> RepresentationConfig:
         out_dir=str(tmp_path / "run"),
         collapse_check_after=10**9,
     )
-    return replace(base, **overrides)
+    return base.replace(**overrides)
 
 
 # ---------------------------------------------------------------- encoder
@@ -322,7 +321,7 @@ def test_collapse_detector_restarts_and_reports(tmp_path):
     # at log B, so every attempt is declared collapsed.
     cfg = _tiny_config(tmp_path, lr=0.0, collapse_check_after=4, max_restarts=2, num_steps=15)
     trainer = RepresentationTrainer(cfg)
-    reason = trainer.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 0.1}, 10)
+    reason = trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 0.1}, 10)
     assert reason is not None and "only 1 code" in reason
     with pytest.warns(RuntimeWarning, match="collapsed"):
         result = trainer.train()
@@ -332,8 +331,8 @@ def test_collapse_detector_restarts_and_reports(tmp_path):
 
 def test_healthy_metrics_are_not_collapse(tmp_path):
     trainer = RepresentationTrainer(_tiny_config(tmp_path))
-    assert trainer.collapse_reason({"min_codes_in_batch": 9.0, "loss_cpc": 2.0}, 10**6) is None
-    assert trainer.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 2.0}, 0) is None
+    assert trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 9.0, "loss_cpc": 2.0}, 10**6) is None
+    assert trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 2.0}, 0) is None
 
 
 def test_one_noisy_batch_is_not_a_flat_loss(tmp_path):
@@ -341,13 +340,13 @@ def test_one_noisy_batch_is_not_a_flat_loss(tmp_path):
     log_b = math.log(trainer.config.batch_size)
     noisy = {"min_codes_in_batch": 9.0, "loss_cpc": log_b + 0.5}
     trainer.history = [{"step": s, "loss_cpc": 2.0} for s in range(1, 6)]
-    assert trainer.collapse_reason(noisy, 10**6) is None
+    assert trainer.collapse_hook.collapse_reason(noisy, 10**6) is None
     trainer.history = [{"step": s, "loss_cpc": log_b} for s in range(1, 6)]
-    assert "flat" in trainer.collapse_reason(noisy, 10**6)
+    assert "flat" in trainer.collapse_hook.collapse_reason(noisy, 10**6)
     trainer.history_start = 5  # a restarted attempt does not inherit the old history
-    assert "flat" in trainer.collapse_reason(noisy, 10**6)
+    assert "flat" in trainer.collapse_hook.collapse_reason(noisy, 10**6)
     trainer.history = [{"step": s, "loss_cpc": 2.0} for s in range(1, 6)]
-    assert "flat" in trainer.collapse_reason(noisy, 10**6)
+    assert "flat" in trainer.collapse_hook.collapse_reason(noisy, 10**6)
 
 
 def test_checkpoint_from_another_env_or_corrupted(tmp_path):
@@ -408,14 +407,14 @@ def test_exclusivity_gradient_reaches_the_extractor():
 def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
     trainer = RepresentationTrainer(_tiny_config(tmp_path, entanglement_check_after=100))
     trainer.history = [{"step": s, "map_entanglement": 0.2} for s in range(1, 6)]
-    assert trainer.entanglement_reason(50) is None  # too early in the attempt
-    reason = trainer.entanglement_reason(500)
+    assert trainer.entanglement_hook.entanglement_reason(50) is None  # too early in the attempt
+    reason = trainer.entanglement_hook.entanglement_reason(500)
     assert reason is not None and "entangled" in reason
     trainer.history_start = 5  # a restarted attempt does not inherit the old history
-    assert trainer.entanglement_reason(500) is None
+    assert trainer.entanglement_hook.entanglement_reason(500) is None
     trainer.history_start = 0
     trainer.history = [{"step": s, "map_entanglement": 0.01} for s in range(1, 6)]
-    assert trainer.entanglement_reason(500) is None
+    assert trainer.entanglement_hook.entanglement_reason(500) is None
 
 
 def test_key_bit_does_not_count_as_collapse():
@@ -459,7 +458,7 @@ def test_screening_continues_the_highest_scoring_candidate(tmp_path):
     best = max(candidates, key=lambda c: c["score"])
     assert trainer.attempt == best["attempt"]
     assert result["chosen_candidate"] == best
-    assert trainer.screening_score() == pytest.approx(best["score"])
+    assert trainer.screening_hook.score() == pytest.approx(best["score"])
     stored = load_checkpoint(best["path"], kind="representation")["state"]["encoder"]
     for name, value in trainer.encoder.state_dict().items():
         assert torch.equal(value, stored[name]), name

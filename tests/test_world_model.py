@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 from tensordict import TensorDict
@@ -45,7 +43,7 @@ def tiny_config(tmp_path, **overrides) -> WorldModelConfig:
         trajectory_length=4,
         eval_frames=128,
         eval_sequences=16,
-        model_preset="small",
+        model=VideoModelConfig.small(),
         batch_size=8,
         log_every=2,
         checkpoint_every=3,
@@ -53,7 +51,7 @@ def tiny_config(tmp_path, **overrides) -> WorldModelConfig:
         progress=False,
         out_dir=str(tmp_path / "wm"),
     )
-    return dataclasses.replace(base, **overrides)
+    return base.replace(**overrides)
 
 
 # ------------------------------------------------------------------ palette and model
@@ -288,7 +286,7 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
     two_objects = WorldModelTrainer(tiny_config(tmp_path / "two", num_objects=2))
     with pytest.raises(ValueError, match="another environment"):
         two_objects.load(path)
-    bigger = WorldModelTrainer(tiny_config(tmp_path / "big", model_preset="default"))
+    bigger = WorldModelTrainer(tiny_config(tmp_path / "big", model=VideoModelConfig.default()))
     with pytest.raises(ValueError, match="video model"):
         bigger.load(path)
     broken = tmp_path / "broken.pt"

@@ -1,10 +1,25 @@
-"""Trainers: RepresentationTrainer (codes), WorldModelTrainer (video model), their Trainer base."""
+"""Trainers: RepresentationTrainer (codes), WorldModelTrainer (video model), their OfflineTrainer base.
 
-from dorp_rl.trainers.base import Trainer, TrainingDivergedError
+Configs share :class:`TrainerConfig` (environment, play data, bookkeeping) and embed
+their model's config (``RepresentationConfig.encoder``, ``WorldModelConfig.model``).
+Behaviour around the loop (restarts, screening) lives in :class:`TrainerHook` objects
+registered on the trainer, their state checkpointed with it.
+"""
+
+from dorp_rl.envs import ENV_NAMES
+from dorp_rl.trainers.base import (
+    OfflineTrainer,
+    TrainerConfig,
+    TrainerHook,
+    TrainingDivergedError,
+)
 from dorp_rl.trainers.representation import (
-    ENV_NAMES,
+    CandidateScreening,
+    CollapseRestart,
+    EntanglementRestart,
     RepresentationConfig,
     RepresentationTrainer,
+    RestartHook,
     diagnose,
     load_encoder,
 )
@@ -12,9 +27,15 @@ from dorp_rl.trainers.world_model import WorldModelConfig, WorldModelTrainer, lo
 
 __all__ = [
     "ENV_NAMES",
+    "CandidateScreening",
+    "CollapseRestart",
+    "EntanglementRestart",
+    "OfflineTrainer",
     "RepresentationConfig",
     "RepresentationTrainer",
-    "Trainer",
+    "RestartHook",
+    "TrainerConfig",
+    "TrainerHook",
     "TrainingDivergedError",
     "WorldModelConfig",
     "WorldModelTrainer",

@@ -1,10 +1,15 @@
-"""Trainer: the loop, logging, checkpoint and resume conventions every dorp-rl trainer shares."""
+"""OfflineTrainer, TrainerConfig and TrainerHook: what every dorp-rl trainer shares.
+
+The loop over a play buffer, logging, checkpoints, resume and hooks; the config base with
+the environment, play-data and bookkeeping fields.
+"""
 
 from __future__ import annotations
 
 import math
 import warnings
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -12,21 +17,75 @@ import torch
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.config import ConfigMixin, config_differences, format_differences
-from dorp_rl.envs import GridWorldEnv
+from dorp_rl.envs import ENV_NAMES, GridWorldEnv, env_class, make_env
 from dorp_rl.integrity import DirectoryLock, IntegrityError
+from dorp_rl.validation import Choice, Device, Flag, Int, Seed, Text
+
+#: Upper bound of ``num_objects`` (the default colour palette).
+MAX_OBJECTS = 8
 
 
-class EnvConfigMixin(ConfigMixin):
-    """The ``env`` / ``num_objects`` fields shared by the trainer configs.
+@dataclass
+class TrainerConfig(ConfigMixin):
+    """What every trainer config holds: environment, play data and bookkeeping.
 
-    ``num_objects=None`` means :attr:`default_num_objects` for rearrangement and 1 for the
-    key rooms (one agent); any other count with a key room would be ignored, so it is
-    refused. Stored configs of older versions (whose key-room presets kept the
-    rearrangement default) are read with ``num_objects=1``.
+    :class:`~dorp_rl.trainers.RepresentationConfig` and
+    :class:`~dorp_rl.trainers.WorldModelConfig` add their model's config (a nested
+    field), loss and optimisation fields. ``num_objects=None`` means
+    :attr:`default_num_objects` for rearrangement and 1 for the key rooms (one agent);
+    any other count with a key room would be ignored, so it is refused. Stored configs
+    of older versions (whose key-room presets kept the rearrangement default) are read
+    with ``num_objects=1``.
     """
+
+    FIELD_RULES = {
+        "env": Choice(ENV_NAMES),
+        "num_objects": Int(low=1, high=MAX_OBJECTS, optional=True),
+        "num_frames": Int(low=1),
+        "num_envs": Int(low=1),
+        "trajectory_length": Int(low=1, optional=True),
+        "data_dir": Text(optional=True),
+        "seed": Seed(),
+        "device": Device(),
+        "out_dir": Text(),
+        "log_every": Int(low=1),
+        "checkpoint_every": Int(low=1),
+        "progress": Flag(),
+    }
 
     #: objects of a rearrangement config that does not say
     default_num_objects: ClassVar[int] = 2
+
+    # environment and play data
+    env: str = "rearrangement"
+    """environment: rearrangement, key-wall or key-corridor"""
+    num_objects: int | None = None
+    """objects of a rearrangement env (None: the config's default; 1 for the key rooms)"""
+    num_frames: int = 100_000
+    """play transitions to collect"""
+    num_envs: int = 64
+    """envs collecting play data side by side"""
+    trajectory_length: int | None = None
+    """steps per play trajectory (None: the env's, 1 for rearrangement)"""
+    data_dir: str | None = None
+    """folder of the play data (None: kept in memory)"""
+    # bookkeeping
+    seed: int = 0
+    """seed of play data, initialisation and sampling"""
+    device: str = "cpu"
+    """torch device"""
+    out_dir: str = "outputs/run"
+    """folder of checkpoints and logs"""
+    log_every: int = 50
+    """steps between logged metrics"""
+    checkpoint_every: int = 500
+    """steps between checkpoints"""
+    progress: bool = True
+    """show a progress bar"""
+
+    def check_relations(self) -> None:
+        """Resolves ``num_objects`` (see the class docstring); subclasses add their rules."""
+        self.check_num_objects()
 
     def check_num_objects(self) -> None:
         if self.num_objects is None:
@@ -43,15 +102,57 @@ class EnvConfigMixin(ConfigMixin):
             values["num_objects"] = 1  # it never had an effect on key rooms
         return values
 
+    @property
+    def play_trajectory_length(self) -> int:
+        """Steps of each play trajectory: ``trajectory_length`` or the env's default."""
+        return self.trajectory_length or env_class(self.env).PLAY_TRAJECTORY_LENGTH
+
+    def make_env(self, **kwargs: Any) -> GridWorldEnv:
+        """The environment this config trains on (``kwargs`` go to :func:`~dorp_rl.envs.make_env`)."""
+        return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
+
+
+class TrainerHook:
+    """A piece of trainer behaviour with its own state, called by the trainer loop.
+
+    In the spirit of torchrl's ``TrainerHookBase``: a hook is registered on an
+    :class:`OfflineTrainer` under a name (:meth:`OfflineTrainer.register_hook`), which
+    calls :meth:`after_step` after every step (after logging, before evaluation and
+    checkpoints), in registration order. A hook returning ``True`` has acted on the step
+    (e.g. re-initialised the model); the hooks after it are not called for that step.
+    Its :meth:`state_dict` is saved in every checkpoint and given back to
+    :meth:`load_state_dict` on load and resume, so a resumed run continues the hook
+    where it was.
+    """
+
+    trainer: Any = None
+
+    def register(self, trainer: OfflineTrainer, name: str) -> None:
+        """Called by :meth:`OfflineTrainer.register_hook`."""
+        self.trainer = trainer
+        self.name = name
+
+    def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
+        """Called after every step with its metrics; ``True``: later hooks are skipped."""
+        return False
+
+    def state_dict(self) -> dict[str, Any]:
+        """JSON-like state saved with checkpoints."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores :meth:`state_dict` (a checkpoint of an older version may lack it)."""
+
 
 class TrainingDivergedError(ValueError):
     """Training produced a non-finite loss, gradient or weight; nothing was saved after it."""
 
 
-class Trainer:
-    """Base class of :class:`RepresentationTrainer` and :class:`WorldModelTrainer`.
+class OfflineTrainer:
+    """Base class of :class:`RepresentationTrainer` and :class:`WorldModelTrainer`: training from a play buffer.
 
-    A subclass sets :attr:`kind` (the checkpoint kind), builds its model, loss and
+    Not torchrl's ``Trainer``, which is built around a data collector: these trainers
+    sample batches from a fixed play buffer. A subclass sets :attr:`kind` (the checkpoint kind), builds its model, loss and
     optimiser, and implements :meth:`train_step`, :meth:`state_dict` /
     :meth:`load_state_dict` and :meth:`evaluate`. This class gives it:
 
@@ -72,7 +173,9 @@ class Trainer:
       non-finite weight after an update too), and no checkpoint is written after it, so
       the last good one stays;
     - a lock on ``out_dir`` while :meth:`train` runs, so two runs never write into one
-      directory (:class:`~dorp_rl.integrity.DirectoryLockedError`).
+      directory (:class:`~dorp_rl.integrity.DirectoryLockedError`);
+    - hooks (:class:`TrainerHook`, :meth:`register_hook`): called after every step,
+      their state checkpointed with the trainer's.
 
     The config must have ``to_dict``, ``num_steps``, ``log_every``,
     ``checkpoint_every``, ``out_dir`` and ``progress``.
@@ -110,8 +213,24 @@ class Trainer:
         #: the scalar results of every evaluation, with the step it was made at
         self.evaluations: list[dict[str, float]] = []
         self.last_evaluation: dict[str, Any] = {}
+        #: registered hooks by name, in the order they are called
+        self.hooks: dict[str, TrainerHook] = {}
 
-    # ------------------------------------------------------------------ hooks
+    def register_hook(self, name: str, hook: TrainerHook) -> TrainerHook:
+        """Registers ``hook`` under ``name``: called after every step, checkpointed under ``name``.
+
+        Raises:
+            ValueError: a hook is already registered under ``name``.
+        """
+        if name in self.hooks:
+            raise ValueError(
+                f"a hook is already registered as {name!r} (hooks: {sorted(self.hooks)})."
+            )
+        hook.register(self, name)
+        self.hooks[name] = hook
+        return hook
+
+    # ------------------------------------------------------------------ subclass methods
     def train_step(self) -> dict[str, float]:
         """One gradient step; returns detached scalar metrics."""
         raise NotImplementedError
@@ -145,15 +264,26 @@ class Trainer:
         return self.config.num_steps
 
     def after_step(self, metrics: dict[str, float], logged: bool) -> None:
-        """Called after every step (after logging): restarts, schedules, ..."""
+        """Called after every step (after logging): the hooks in order (see :class:`TrainerHook`)."""
+        for hook in self.hooks.values():
+            if hook.after_step(metrics, logged):
+                break
 
     def extra_state(self) -> dict[str, Any]:
-        """JSON-like state saved with checkpoints besides the state dicts."""
-        return {"history": self.history, "evaluations": self.evaluations}
+        """JSON-like state saved with checkpoints besides the state dicts (hooks' too)."""
+        return {
+            "history": self.history,
+            "evaluations": self.evaluations,
+            "hooks": {name: hook.state_dict() for name, hook in self.hooks.items()},
+        }
 
     def load_extra_state(self, extra: dict[str, Any]) -> None:
+        """Restores :meth:`extra_state`; a hook missing from it gets ``{}``."""
         self.history = list(extra.get("history", []))
         self.evaluations = list(extra.get("evaluations", []))
+        hooks = extra.get("hooks") or {}
+        for name, hook in self.hooks.items():
+            hook.load_state_dict(dict(hooks.get(name) or {}))
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         """Raises ``ValueError`` if a stored config cannot be loaded into this trainer."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -13,22 +13,19 @@ from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
+from dorp_rl.config import Nested
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
-from dorp_rl.envs import ENV_NAMES, GridWorldEnv, KeyRoomEnv, env_class, make_env
+from dorp_rl.envs import GridWorldEnv, KeyRoomEnv
 from dorp_rl.eval.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
-from dorp_rl.trainers.base import EnvConfigMixin, Trainer
-from dorp_rl.validation import Choice, Device, Flag, Float, Int, Seed, Text, derive_seed
+from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
+from dorp_rl.validation import Choice, Float, Int, derive_seed
 
-#: Upper bound of ``num_objects`` (the default colour palette).
-_MAX_OBJECTS = 8
-
-# What the key-room presets share (docs/RESULTS.md, "key-wall"): the motion-coverage
-# term, which puts the agent's object map on the agent, the map-sparsity and code-usage
-# terms, and a restart when the agent one-hot is left with a few codes (without the usage
-# term, runs that used 3-5 codes of 16 at step 300-500 stayed there).
+#: What the key-room presets share: the motion-coverage term (puts the agent's object map
+#: on the agent), the map-sparsity and code-usage terms, and a collapse restart when the
+#: agent one-hot is left with a few codes.
 KEY_ROOM_RECIPE: dict[str, Any] = {
     "max_offset": 4,
     "motion_weight": 1.0,
@@ -39,28 +36,32 @@ KEY_ROOM_RECIPE: dict[str, Any] = {
     "collapse_min_codes": 4,
 }
 
+#: Flat fields of older representation configs that now live in ``encoder``.
+_FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extractor_kernel_size")
+
+
+def _default_encoder() -> EncoderConfig:
+    return EncoderConfig.small((32,))
+
 
 @dataclass
-class RepresentationConfig(EnvConfigMixin):
-    """Everything that defines a representation run (a CleanRL-style flat dataclass).
+class RepresentationConfig(TrainerConfig):
+    """Everything that defines a representation run: env and play data, encoder, CPC loss.
 
     Use the presets :meth:`rearrangement`, :meth:`key_wall` and :meth:`key_corridor`, then
-    override fields with :func:`dataclasses.replace`.
+    override fields with :meth:`replace` (``cfg.replace(encoder={"code_sizes": (16,)})``
+    changes one encoder field). ``encoder.code_sizes`` may be one number, the size of
+    every object one-hot: rearrangement gets one such one-hot per object, a key room an
+    agent one-hot plus a 2-way key bit (:attr:`code_sizes` gives the full sizes).
+    Configs stored by older versions, with flat ``code_size``, ``encoder_preset``,
+    ``map_competition`` and ``extractor_kernel_size`` fields, are read into ``encoder``.
     """
 
     FIELD_RULES = {
-        "env": Choice(ENV_NAMES),
-        "num_objects": Int(low=1, high=_MAX_OBJECTS, optional=True),
-        "num_frames": Int(low=1),
-        "num_envs": Int(low=1),
-        "trajectory_length": Int(low=1, optional=True),
+        **TrainerConfig.FIELD_RULES,
         "min_offset": Int(low=1),
         "max_offset": Int(low=1),
-        "data_dir": Text(optional=True),
-        "code_size": Int(low=2),
-        "encoder_preset": Choice(("small", "authors")),
-        "map_competition": Choice(("sigmoid", "softmax")),
-        "extractor_kernel_size": Int(low=1),
+        "encoder": Nested(EncoderConfig),
         "similarity": Choice(tuple(SIMILARITIES)),
         "dddp_sign": Choice(("paper", "authors")),
         "alpha": Float(low=1.0),
@@ -77,14 +78,8 @@ class RepresentationConfig(EnvConfigMixin):
         "lr": Float(low=0.0),
         "similarity_lr_scale": Float(low=0.0),
         "num_steps": Int(low=1),
-        "seed": Seed(),
-        "device": Device(),
-        "out_dir": Text(),
-        "log_every": Int(low=1),
         "diagnostics_every": Int(low=1),
         "diagnostics_samples": Int(low=1),
-        "checkpoint_every": Int(low=1),
-        "progress": Flag(),
         "collapse_check_after": Int(low=0),
         "collapse_min_codes": Int(low=0),
         "collapse_loss_margin": Float(),
@@ -96,32 +91,16 @@ class RepresentationConfig(EnvConfigMixin):
         "screening_frames": Int(low=1),
     }
 
-    # environment and play data
-    env: str = "rearrangement"
-    """environment: rearrangement, key-wall or key-corridor"""
-    num_objects: int | None = None
-    """objects of a rearrangement env (None: 2; 1 for the key rooms)"""
-    num_frames: int = 100_000
-    """play transitions to collect"""
-    num_envs: int = 64
-    """envs collecting play data side by side"""
-    trajectory_length: int | None = None
-    """steps per play trajectory (None: the env's, 1 for rearrangement)"""
+    out_dir: str = "outputs/representation"
+    """folder of checkpoints and logs"""
+    # training pairs
     min_offset: int = 1
     """smallest offset k of the (o_t, o_t+k) training pairs"""
     max_offset: int = 1
     """largest offset k of the training pairs"""
-    data_dir: str | None = None
-    """folder of the play data (None: kept in memory)"""
     # encoder
-    code_size: int = 32
-    """codes per one-hot"""
-    encoder_preset: str = "small"
-    """encoder size: small or authors"""
-    map_competition: str = "sigmoid"
-    """how object maps share a pixel: sigmoid (independent) or softmax"""
-    extractor_kernel_size: int = 3
-    """kernel size of the object-map extractor (odd)"""
+    encoder: EncoderConfig = field(default_factory=_default_encoder)
+    """the encoder; its code_sizes may be one number, the size of every object one-hot"""
     # loss
     similarity: str = "dddp"
     """code similarity of the CPC loss: dddp, full or identity"""
@@ -156,24 +135,12 @@ class RepresentationConfig(EnvConfigMixin):
     """learning rate of the similarity, as a multiple of lr"""
     num_steps: int = 2000
     """training steps (of the last attempt)"""
-    # bookkeeping
-    seed: int = 0
-    """seed of play data, initialisation and sampling"""
-    device: str = "cpu"
-    """torch device"""
-    out_dir: str = "outputs/representation"
-    """folder of checkpoints and logs"""
-    log_every: int = 50
-    """steps between logged metrics"""
+    # diagnostics
     diagnostics_every: int = 500
     """steps between ground-truth diagnostics"""
     diagnostics_samples: int = 2048
     """states drawn for the diagnostics"""
-    checkpoint_every: int = 500
-    """steps between checkpoints"""
-    progress: bool = True
-    """show a progress bar"""
-    # collapse detection
+    # collapse and entanglement restarts
     collapse_check_after: int = 300
     """steps of an attempt before the collapse check"""
     collapse_min_codes: int = 2
@@ -196,82 +163,98 @@ class RepresentationConfig(EnvConfigMixin):
 
     @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
-        """k-object rearrangement: one-step play transitions, one one-hot per object.
-
-        With several objects the map exclusivity term is on (weight 3) and the maps compete
-        per pixel (softmax): without them most seeds learned one-hots that each follow
-        several objects (see docs/RESULTS.md).
-        """
+        """k-object rearrangement: one-step play pairs, one one-hot per object (maps compete with several)."""
         base = cls(
             env="rearrangement",
             num_objects=num_objects,
-            code_size=16 if num_objects == 1 else 32,
+            encoder=EncoderConfig.small(
+                (16 if num_objects == 1 else 32,),
+                map_competition="softmax" if num_objects > 1 else "sigmoid",
+            ),
             exclusivity_weight=3.0 if num_objects > 1 else 0.0,
-            map_competition="softmax" if num_objects > 1 else "sigmoid",
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
 
     @classmethod
     def key_wall(cls, **overrides: Any) -> RepresentationConfig:
-        """Key-wall: 1000-step random walks, a 16-code agent one-hot plus a 2-way key bit.
-
-        Adam 1e-3 for 3000 steps with the motion-coverage term (weight 1), which puts the
-        agent's object map on the agent (mean map value 0.999 on its pixel, where without
-        it the map held 0.0003 there and the key decided the code at region borders), the
-        map-sparsity term (weight 5) and the code-usage term (weight 1). A collapse
-        restart fires when the agent one-hot uses at most 4 codes after 500 steps. Met
-        the goal in 4 of 5 seeds (the fifth had two codes that were not connected
-        regions); see docs/RESULTS.md, "key-wall".
-        """
+        """Key-wall: 4-step pairs from long random walks, a 16-code agent one-hot plus a key bit."""
         base = cls(
             env="key-wall",
             num_objects=1,
-            code_size=16,
+            encoder=EncoderConfig.small((16,)),
             num_frames=64_000,
             **KEY_ROOM_RECIPE,
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> RepresentationConfig:
-        """Key-corridor: 1500-step random walks, a 32-code agent one-hot plus a key bit.
-
-        Same recipe as :meth:`key_wall`. Over seeds 0-2 (3000 steps) the agent is learned
-        (8-15 codes) and the key bit in every seed, but only seed 0 met the key-wall goal:
-        seed 1 had a code that was not a connected region, seed 2's agent one-hot changed
-        with the key on 63% of key events.
-        """
+        """Key-corridor: the key-wall recipe with a 32-code agent one-hot and more play data."""
         base = cls(
             env="key-corridor",
             num_objects=1,
-            code_size=32,
+            encoder=EncoderConfig.small((32,)),
             num_frames=96_000,
             **KEY_ROOM_RECIPE,
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
+
+    @classmethod
+    def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """Older flat configs: ``code_size``, ``encoder_preset``, ``map_competition`` and
+        ``extractor_kernel_size`` become the ``encoder`` field."""
+        values = super().upgrade(values)
+        flat = {k: values.pop(k) for k in _FLAT_ENCODER_FIELDS if k in values}
+        if flat:
+            if "encoder" in values:
+                raise ValueError(
+                    f"a representation config holds both 'encoder' and the older flat "
+                    f"encoder fields {sorted(flat)}; keep one."
+                )
+            preset = flat.get("encoder_preset", "small")
+            if preset not in ("small", "authors"):
+                raise ValueError(f"encoder_preset must be 'small' or 'authors', got {preset!r}.")
+            make = EncoderConfig.small if preset == "small" else EncoderConfig.authors
+            encoder = make(
+                (flat.get("code_size", 32),),
+                map_competition=flat.get("map_competition", "sigmoid"),
+                kernel_size=flat.get("extractor_kernel_size", 3),
+            )
+            values["encoder"] = encoder.to_dict()
+        return values
 
     def encoder_config(self) -> EncoderConfig:
-        """The encoder this config trains (preset, code sizes, map competition)."""
-        preset = EncoderConfig.small if self.encoder_preset == "small" else EncoderConfig.authors
-        enc_cfg = preset(self.code_sizes)
-        enc_cfg.map_competition = self.map_competition
-        enc_cfg.kernel_size = self.extractor_kernel_size
-        return enc_cfg
+        """The encoder this config trains: ``encoder`` with the full :attr:`code_sizes`."""
+        return self.encoder.replace(code_sizes=self.code_sizes)
 
     @property
     def code_sizes(self) -> tuple[int, ...]:
-        if self.env == "rearrangement":
-            return (self.code_size,) * self.num_objects
-        return (self.code_size, 2)
+        """Codes of each one-hot: ``encoder.code_sizes``, one number laid out by the env."""
+        sizes = tuple(self.encoder.code_sizes)
+        return self._layout(sizes[0]) if len(sizes) == 1 else sizes
 
-    @property
-    def play_trajectory_length(self) -> int:
-        """Steps of each play trajectory: ``trajectory_length`` or the env's default."""
-        return self.trajectory_length or env_class(self.env).PLAY_TRAJECTORY_LENGTH
+    def _layout(self, size: int) -> tuple[int, ...]:
+        if self.env == "rearrangement":
+            return (size,) * self.num_objects
+        return (size, 2)
 
     def check_relations(self) -> None:
         """Rules between fields; each message names the fields and what they allow."""
-        self.check_num_objects()
+        super().check_relations()
+        sizes = tuple(self.encoder.code_sizes)
+        if len(sizes) > 1:
+            expected = self._layout(sizes[0])
+            if len(sizes) != len(expected) or (self.env != "rearrangement" and sizes[1] != 2):
+                shape = (
+                    f"{self.num_objects} one-hot(s), one per object"
+                    if self.env == "rearrangement"
+                    else "an agent one-hot and a 2-way key bit, e.g. (16, 2)"
+                )
+                raise ValueError(
+                    f"encoder.code_sizes {sizes} does not fit env={self.env!r} with "
+                    f"num_objects={self.num_objects}: it needs {shape}, or one number, the "
+                    "size of every object one-hot."
+                )
         if not self.min_offset <= self.max_offset <= self.play_trajectory_length:
             raise ValueError(
                 "offsets must satisfy 1 <= min_offset <= max_offset <= the play trajectory "
@@ -286,10 +269,6 @@ class RepresentationConfig(EnvConfigMixin):
                 f"num_candidates={self.num_candidates}, candidate_steps={self.candidate_steps}, "
                 f"num_steps={self.num_steps}."
             )
-        if self.extractor_kernel_size % 2 == 0:
-            raise ValueError(
-                f"extractor_kernel_size must be an odd integer >= 1, got {self.extractor_kernel_size}."
-            )
         if self.gumbel_temperature_start is not None and self.gumbel_anneal_steps < 1:
             raise ValueError(
                 "gumbel_temperature_start needs gumbel_anneal_steps >= 1 (it is the start of "
@@ -300,10 +279,6 @@ class RepresentationConfig(EnvConfigMixin):
                 f"alpha and dddp_sign apply to similarity='dddp' only; similarity="
                 f"{self.similarity!r} would ignore alpha={self.alpha}, dddp_sign={self.dddp_sign!r}."
             )
-
-    def make_env(self, **kwargs: Any) -> GridWorldEnv:
-        """The environment this config trains on."""
-        return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
 
 
 def diagnose(
@@ -320,7 +295,195 @@ def diagnose(
     return result.to_dict() if hasattr(result, "to_dict") else dict(result)
 
 
-class RepresentationTrainer(Trainer):
+class RestartHook(TrainerHook):
+    """Re-initialises the encoder when :meth:`reason` finds the attempt failed (a base class).
+
+    Restarts of every restart hook share the trainer's ``max_restarts`` budget. The
+    state is this hook's restarts (step, attempt, reason).
+    """
+
+    def __init__(self) -> None:
+        self.restarts: list[dict[str, Any]] = []
+
+    def reason(self, metrics: dict[str, float], logged: bool) -> str | None:
+        """Why the current attempt failed (``None``: it did not, or it is too early)."""
+        raise NotImplementedError
+
+    def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
+        trainer = self.trainer
+        if trainer.screening:
+            return False
+        reason = self.reason(metrics, logged)
+        if reason is None or len(trainer.restarts) >= trainer.config.max_restarts:
+            return False
+        trainer.new_init()
+        self.restarts.append({"step": trainer.step, "attempt": trainer.attempt, "reason": reason})
+        count = len(trainer.restarts)
+        warnings.warn(
+            f"representation restarted at step {trainer.step} ({reason}); re-initialising "
+            f"encoder and similarity (restart {count}/{trainer.config.max_restarts}).",
+            RuntimeWarning,
+            stacklevel=5,
+        )
+        trainer.logger.log_scalar("restart", float(count), step=trainer.step)
+        return True
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"restarts": list(self.restarts)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.restarts = list(state.get("restarts", []))
+
+
+class CollapseRestart(RestartHook):
+    """Restarts an attempt whose codes collapsed (few codes in a batch, or a flat loss).
+
+    After ``collapse_check_after`` steps of an attempt: a one-hot using at most
+    ``collapse_min_codes`` codes on a batch, or a loss still within
+    ``collapse_loss_margin`` of ``log B`` (nothing learned).
+    """
+
+    def reason(self, metrics: dict[str, float], logged: bool = True) -> str | None:
+        trainer = self.trainer
+        return self.collapse_reason(metrics, trainer.step - trainer.attempt_start)
+
+    def collapse_reason(self, metrics: dict[str, float], attempt_steps: int) -> str | None:
+        """Why an attempt of ``attempt_steps`` steps looks collapsed (``None`` if it does not)."""
+        cfg = self.trainer.config
+        if attempt_steps < cfg.collapse_check_after:
+            return None
+        if metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
+            return (
+                f"a one-hot uses only {int(metrics['min_codes_in_batch'])} code(s) in a batch "
+                f"of {cfg.batch_size}"
+            )
+        loss = self.trainer.recent_loss(metrics)
+        if loss > math.log(cfg.batch_size) - cfg.collapse_loss_margin:
+            return (
+                f"the loss is flat at log B = {math.log(cfg.batch_size):.3f} (mean of the "
+                f"last logged steps {loss:.3f})"
+            )
+        return None
+
+
+class EntanglementRestart(RestartHook):
+    """Restarts an attempt whose object maps stay entangled (checked on logged steps).
+
+    After ``entanglement_check_after`` steps of an attempt, if the mean
+    ``map_entanglement`` of its last five logged steps is above
+    ``entanglement_threshold``: some object map follows several objects or none.
+    """
+
+    def reason(self, metrics: dict[str, float], logged: bool) -> str | None:
+        if not logged:
+            return None
+        trainer = self.trainer
+        return self.entanglement_reason(trainer.step - trainer.attempt_start)
+
+    def entanglement_reason(self, attempt_steps: int) -> str | None:
+        """Why the object maps look entangled (``None`` if they do not or it is too early)."""
+        trainer = self.trainer
+        cfg = trainer.config
+        recent = [
+            h["map_entanglement"]
+            for h in trainer.history[-5:]
+            if h["step"] > trainer.history_start and "map_entanglement" in h
+        ]
+        if attempt_steps < cfg.entanglement_check_after or len(recent) < 5:
+            return None
+        value = sum(recent) / len(recent)
+        if value > cfg.entanglement_threshold:
+            return (
+                f"the object maps are still entangled (map_entanglement {value:.3f} > "
+                f"{cfg.entanglement_threshold}): some map follows several objects or none"
+            )
+        return None
+
+
+class CandidateScreening(TrainerHook):
+    """Trains ``num_candidates`` initialisations for ``candidate_steps`` each, then continues the best.
+
+    Each candidate is scored by :meth:`score` (label-free, see the
+    :class:`RepresentationTrainer` docstring) and saved to
+    ``<out_dir>/checkpoints/candidate<i>.pt``. The state is the scored candidates.
+    While screening it acts on every step, so the restart hooks after it wait.
+    """
+
+    def __init__(self) -> None:
+        self.candidates: list[dict[str, Any]] = []
+
+    @property
+    def active(self) -> bool:
+        """Whether candidates are still being trained."""
+        n = self.trainer.config.num_candidates
+        return n > 1 and len(self.candidates) < n
+
+    @property
+    def chosen(self) -> dict[str, Any] | None:
+        """The highest-scoring candidate once screening has ended (else ``None``)."""
+        if self.active or not self.candidates:
+            return None
+        return max(self.candidates, key=lambda c: c["score"])
+
+    def score(self) -> float:
+        """Label-free ``unique_information`` (nats) of the codes of evenly spaced stored play frames."""
+        trainer = self.trainer
+        stored = len(trainer.buffer)
+        count = min(stored, trainer.config.screening_frames)
+        index = torch.linspace(0, stored - 1, count).round().long()
+        pixels = trainer.buffer.storage[index]["pixels"]
+        codes = trainer.encoder.encode(pixels.reshape(-1, *pixels.shape[-3:]))
+        return float(code_information(codes)["unique_information"])
+
+    def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
+        trainer = self.trainer
+        if not self.active:
+            return False
+        if trainer.step - trainer.attempt_start >= trainer.config.candidate_steps:
+            self._end_candidate(metrics)
+        return True
+
+    def _end_candidate(self, metrics: dict[str, float]) -> None:
+        """Scores the current candidate; starts the next one or continues the best."""
+        trainer = self.trainer
+        score = self.score()
+        path = trainer.checkpoint_path.with_name(f"candidate{len(self.candidates)}.pt")
+        trainer.save(path)
+        self.candidates.append(
+            {
+                "attempt": trainer.attempt,
+                "step": trainer.step,
+                "score": score,
+                "loss": trainer.recent_loss(metrics),
+                "path": str(path),
+            }
+        )
+        trainer.logger.log_scalar("candidate_score", score, step=trainer.step)
+        if self.active:
+            trainer.new_init()
+            return
+        best = self.chosen
+        if best["attempt"] != trainer.attempt:
+            trainer.attempt = best["attempt"]
+            trainer._build(seed=trainer._attempt_seed(trainer.attempt))
+            payload = load_checkpoint(
+                best["path"],
+                kind=trainer.kind,
+                env_config=trainer.env.config(),
+                state_keys=trainer.state_keys,
+            )
+            trainer.load_state_dict(payload["state"])
+        trainer.attempt_start = trainer.step - trainer.config.candidate_steps
+        trainer.history_start = trainer.step
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"candidates": list(self.candidates)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.candidates = list(state.get("candidates", []))
+
+
+class RepresentationTrainer(OfflineTrainer):
     """Trains a :class:`~dorp_rl.modules.DiscreteCodeEncoder` with :class:`~dorp_rl.objectives.CPCLoss`.
 
     Data come from a play buffer (collected, or loaded from ``config.data_dir``) through a
@@ -328,54 +491,53 @@ class RepresentationTrainer(Trainer):
     instead must hold play data of the config's environment, with trajectories of at
     least ``max_offset`` steps (:func:`~dorp_rl.data.check_play_buffer`); it gets this
     trainer's sampler and generator. Logging, checkpoints and resume follow
-    :class:`~dorp_rl.trainers.Trainer`: a torchrl CSV logger, a tqdm bar, ground-truth
-    diagnostics every ``diagnostics_every`` steps, a checkpoint (config, weights,
-    optimiser, step, RNG states, restarts) every ``checkpoint_every`` steps and at the
-    end; ``train(resume=True)`` ends exactly where an uninterrupted run would.
+    :class:`~dorp_rl.trainers.OfflineTrainer`: a torchrl CSV logger, a tqdm bar,
+    ground-truth diagnostics every ``diagnostics_every`` steps, a checkpoint (config,
+    weights, optimiser, step, RNG states, hook states) every ``checkpoint_every`` steps
+    and at the end; ``train(resume=True)`` ends exactly where an uninterrupted run would.
 
-    Collapse: after ``collapse_check_after`` steps of an attempt, if the anchor codes of a
-    batch use at most ``collapse_min_codes`` codes on some one-hot, or the loss is still
-    within ``collapse_loss_margin`` of ``log B`` (nothing learned), the attempt is declared
-    collapsed: a warning names the cause, the encoder and similarity are re-initialised
-    from a new seed and training restarts (up to ``max_restarts`` times). If the last
-    attempt collapses too, ``train`` still returns, with ``collapsed=True`` in its result
-    and a ``RuntimeWarning``: a dead encoder is never returned silently.
+    Three hooks (:attr:`~dorp_rl.trainers.OfflineTrainer.hooks`), called in this order
+    after every step, each with its own checkpointed state:
 
-    Entanglement (with the exclusivity term on): after ``entanglement_check_after`` steps
-    of an attempt, if the mean ``map_entanglement`` of the last five logged steps is above
-    ``entanglement_threshold``, some object map still follows several objects or none;
-    such attempts rarely recover, so they are restarted the same way. ``num_steps``
-    counts the steps of the last attempt: restarts add steps rather than eat the budget.
+    - ``"screening"`` (:class:`CandidateScreening`, ``num_candidates > 1``): some
+      initialisations end in a poor local optimum that longer training does not leave,
+      with no higher contrastive loss to show it. The trainer first trains
+      ``num_candidates`` initialisations for ``candidate_steps`` steps each, scores each
+      by :func:`~dorp_rl.eval.code_information`'s ``unique_information`` of its codes on
+      ``screening_frames`` evenly spaced stored play frames (the one-hots' entropies
+      minus what pairs of them share; no ground truth), and continues only the highest.
+      The chosen candidate's steps count towards ``num_steps``; the others add
+      ``(num_candidates - 1) * candidate_steps`` steps. The score is a proxy, not a
+      guarantee; no preset turns screening on.
+    - ``"collapse"`` (:class:`CollapseRestart`): after ``collapse_check_after`` steps of
+      an attempt, if the anchor codes of a batch use at most ``collapse_min_codes`` codes
+      on some one-hot, or the loss is still within ``collapse_loss_margin`` of ``log B``,
+      a warning names the cause, the encoder and similarity are re-initialised from a
+      new seed and training restarts. If the last attempt collapses too, ``train``
+      still returns, with ``collapsed=True`` and a ``RuntimeWarning``: a dead encoder is
+      never returned silently.
+    - ``"entanglement"`` (:class:`EntanglementRestart`): after
+      ``entanglement_check_after`` steps of an attempt, if the mean ``map_entanglement``
+      of the last five logged steps is above ``entanglement_threshold``, the attempt is
+      restarted the same way.
 
-    Screening (``num_candidates > 1``): some initialisations end in a poor local optimum
-    that longer training does not leave (key-wall: the agent one-hot also codes the key,
-    or uses few codes), with no higher contrastive loss to show it. The trainer then
-    first trains ``num_candidates`` initialisations for ``candidate_steps`` steps each,
-    scores each by :func:`~dorp_rl.eval.code_information`'s ``unique_information`` of
-    its codes on ``screening_frames`` evenly spaced stored play frames (the one-hots'
-    entropies minus what pairs of them share; no ground truth), and continues only the
-    highest (the others' checkpoints stay in ``<out_dir>/checkpoints/candidate<i>.pt``).
-    The chosen candidate's steps count towards ``num_steps``; the others add
-    ``(num_candidates - 1) * candidate_steps`` steps. The result lists every candidate
-    with its score and loss under ``candidates``, the one continued under
-    ``chosen_candidate`` (a collapse restart after screening still starts afresh). The
-    score is a proxy, not a guarantee: on key-wall (12 candidates of 1000 steps, with the
-    preset of the time) the chosen run met the goal in 2 of 5 seeds, as without
-    screening, and the highest-scoring final run was one that missed it
-    (docs/RESULTS.md, "key-wall"); no preset turns it on.
+    Restarts of both kinds share ``max_restarts``; ``num_steps`` counts the steps of the
+    last attempt, so restarts add steps rather than eat the budget. The result of
+    :meth:`train` lists ``restarts``, ``candidates`` and ``chosen_candidate``.
 
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
         >>> cfg = RepresentationConfig.rearrangement(1, num_steps=20, num_frames=2000,
         ...     progress=False, out_dir="/tmp/dorp_doc_repr", diagnostics_every=10**9)
         >>> result = RepresentationTrainer(cfg).train()
-        >>> result["step"]
-        20
+        >>> result["step"], list(RepresentationTrainer.hook_names)
+        (20, ['screening', 'collapse', 'entanglement'])
     """
 
     kind = "representation"
     progress_metric = "loss_cpc"
     state_keys = ("encoder", "similarity", "optimizer")
+    hook_names = ("screening", "collapse", "entanglement")
 
     def __init__(
         self,
@@ -407,8 +569,9 @@ class RepresentationTrainer(Trainer):
         self.inits = 1
         self.attempt_start = 0
         self.history_start = 0
-        self.restarts: list[dict[str, Any]] = []
-        self.candidates: list[dict[str, Any]] = []
+        self.screening_hook = self.register_hook("screening", CandidateScreening())
+        self.collapse_hook = self.register_hook("collapse", CollapseRestart())
+        self.entanglement_hook = self.register_hook("entanglement", EntanglementRestart())
         self._build(seed=config.seed)
 
     # ------------------------------------------------------------------ #
@@ -482,17 +645,25 @@ class RepresentationTrainer(Trainer):
             "inits": self.inits,
             "attempt_start": self.attempt_start,
             "history_start": self.history_start,
-            "restarts": self.restarts,
-            "candidates": self.candidates,
         }
 
     def load_extra_state(self, extra: dict[str, Any]) -> None:
+        if "hooks" not in extra:  # older checkpoints kept restarts and candidates here
+            restarts = list(extra.get("restarts", []))
+            entangled = [r for r in restarts if "entangled" in str(r.get("reason", ""))]
+            extra = {
+                **extra,
+                "hooks": {
+                    "screening": {"candidates": list(extra.get("candidates", []))},
+                    "collapse": {"restarts": [r for r in restarts if r not in entangled]},
+                    "entanglement": {"restarts": entangled},
+                },
+            }
         super().load_extra_state(extra)
         self.attempt = int(extra.get("attempt", 0))
         self.inits = int(extra.get("inits", self.attempt + 1))
-        self.restarts = list(extra.get("restarts", []))
-        self.candidates = list(extra.get("candidates", []))
-        fallback = self.restarts[-1]["step"] if self.restarts else 0
+        restarts = self.restarts
+        fallback = restarts[-1]["step"] if restarts else 0
         self.attempt_start = int(extra.get("attempt_start", fallback))
         self.history_start = int(extra.get("history_start", fallback))
         if self.attempt:  # the weights to load belong to the restarted attempt's modules
@@ -508,24 +679,27 @@ class RepresentationTrainer(Trainer):
     def _attempt_seed(self, attempt: int) -> int:
         return derive_seed(self.config.seed, 7919 * attempt)
 
-    # ------------------------------------------------------------------ collapse
-    def collapse_reason(self, metrics: dict[str, float], attempt_steps: int) -> str | None:
-        """Why the current attempt looks collapsed (``None`` if it does not)."""
-        cfg = self.config
-        if attempt_steps < cfg.collapse_check_after:
-            return None
-        if metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
-            return (
-                f"a one-hot uses only {int(metrics['min_codes_in_batch'])} code(s) in a batch "
-                f"of {cfg.batch_size}"
-            )
-        loss = self.recent_loss(metrics)
-        if loss > math.log(cfg.batch_size) - cfg.collapse_loss_margin:
-            return (
-                f"the loss is flat at log B = {math.log(cfg.batch_size):.3f} (mean of the "
-                f"last logged steps {loss:.3f})"
-            )
-        return None
+    # ------------------------------------------------------------------ attempts
+    @property
+    def restarts(self) -> list[dict[str, Any]]:
+        """Every restart (collapse and entanglement hooks), in step order."""
+        hooks = (self.collapse_hook, self.entanglement_hook)
+        return sorted((r for h in hooks for r in h.restarts), key=lambda r: r["step"])
+
+    @property
+    def candidates(self) -> list[dict[str, Any]]:
+        """The screened candidates so far (see :class:`CandidateScreening`)."""
+        return self.screening_hook.candidates
+
+    @property
+    def screening(self) -> bool:
+        """Whether candidates are still being trained."""
+        return self.screening_hook.active
+
+    @property
+    def chosen_candidate(self) -> dict[str, Any] | None:
+        """The highest-scoring candidate once screening has ended (else ``None``)."""
+        return self.screening_hook.chosen
 
     def recent_loss(self, metrics: dict[str, float], window: int = 5) -> float:
         """Mean ``loss_cpc`` of this attempt's last ``window`` logged steps (else this step's).
@@ -540,106 +714,12 @@ class RepresentationTrainer(Trainer):
         ]
         return sum(recent) / len(recent) if recent else float(metrics["loss_cpc"])
 
-    def entanglement_reason(self, attempt_steps: int) -> str | None:
-        """Why the object maps look entangled (``None`` if they do not or it is too early)."""
-        cfg = self.config
-        recent = [
-            h["map_entanglement"]
-            for h in self.history[-5:]
-            if h["step"] > self.history_start and "map_entanglement" in h
-        ]
-        if attempt_steps < cfg.entanglement_check_after or len(recent) < 5:
-            return None
-        value = sum(recent) / len(recent)
-        if value > cfg.entanglement_threshold:
-            return (
-                f"the object maps are still entangled (map_entanglement {value:.3f} > "
-                f"{cfg.entanglement_threshold}): some map follows several objects or none"
-            )
-        return None
-
-    def _new_init(self) -> None:
-        """Re-initialises encoder, similarity and optimiser from the next attempt seed."""
+    def new_init(self) -> None:
+        """Starts a new attempt: encoder, similarity and optimiser from the next attempt seed."""
         self.attempt = self.inits
         self.inits += 1
         self._build(seed=self._attempt_seed(self.attempt))
         self.attempt_start = self.history_start = self.step
-
-    @property
-    def screening(self) -> bool:
-        """Whether candidates are still being trained (see the class docstring)."""
-        n = self.config.num_candidates
-        return n > 1 and len(self.candidates) < n
-
-    @property
-    def chosen_candidate(self) -> dict[str, Any] | None:
-        """The highest-scoring candidate once screening has ended (else ``None``)."""
-        if self.screening or not self.candidates:
-            return None
-        return max(self.candidates, key=lambda c: c["score"])
-
-    def screening_score(self) -> float:
-        """Label-free ``unique_information`` (nats) of the codes of evenly spaced stored play frames."""
-        stored = len(self.buffer)
-        count = min(stored, self.config.screening_frames)
-        index = torch.linspace(0, stored - 1, count).round().long()
-        pixels = self.buffer.storage[index]["pixels"]
-        codes = self.encoder.encode(pixels.reshape(-1, *pixels.shape[-3:]))
-        return float(code_information(codes)["unique_information"])
-
-    def _end_candidate(self, metrics: dict[str, float]) -> None:
-        """Scores the current candidate; starts the next one or continues the best."""
-        score = self.screening_score()
-        path = self.checkpoint_path.with_name(f"candidate{len(self.candidates)}.pt")
-        self.save(path)
-        self.candidates.append(
-            {
-                "attempt": self.attempt,
-                "step": self.step,
-                "score": score,
-                "loss": self.recent_loss(metrics),
-                "path": str(path),
-            }
-        )
-        self.logger.log_scalar("candidate_score", score, step=self.step)
-        if self.screening:
-            self._new_init()
-            return
-        best = self.chosen_candidate
-        if best["attempt"] != self.attempt:
-            self.attempt = best["attempt"]
-            self._build(seed=self._attempt_seed(self.attempt))
-            payload = load_checkpoint(
-                best["path"],
-                kind=self.kind,
-                env_config=self.env.config(),
-                state_keys=self.state_keys,
-            )
-            self.load_state_dict(payload["state"])
-        self.attempt_start = self.step - self.config.candidate_steps
-        self.history_start = self.step
-
-    def after_step(self, metrics: dict[str, float], logged: bool) -> None:
-        """Screens candidates, restarts a collapsed or entangled attempt (see the class docstring)."""
-        cfg = self.config
-        if self.screening:
-            if self.step - self.attempt_start >= cfg.candidate_steps:
-                self._end_candidate(metrics)
-            return
-        reason = self.collapse_reason(metrics, self.step - self.attempt_start)
-        if logged:
-            reason = reason or self.entanglement_reason(self.step - self.attempt_start)
-        if reason is None or len(self.restarts) >= cfg.max_restarts:
-            return
-        self._new_init()
-        self.restarts.append({"step": self.step, "attempt": self.attempt, "reason": reason})
-        warnings.warn(
-            f"representation restarted at step {self.step} ({reason}); re-initialising "
-            f"encoder and similarity (restart {len(self.restarts)}/{cfg.max_restarts}).",
-            RuntimeWarning,
-            stacklevel=4,
-        )
-        self.logger.log_scalar("restart", float(len(self.restarts)), step=self.step)
 
     @property
     def planned_steps(self) -> int:
@@ -681,9 +761,7 @@ class RepresentationTrainer(Trainer):
         """
         result = super().train(resume=resume)
         metrics = result["metrics"]
-        final_reason = (
-            self.collapse_reason(metrics, self.step - self.attempt_start) if metrics else None
-        )
+        final_reason = self.collapse_hook.reason(metrics) if metrics else None
         if final_reason is not None:
             warnings.warn(
                 f"representation still collapsed after {len(self.restarts)} restart(s): "

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -12,22 +12,27 @@ from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
+from dorp_rl.config import Nested
 from dorp_rl.data import SequenceSampler, check_play_buffer, collect_play_data
-from dorp_rl.envs import ENV_NAMES, GridWorldEnv, make_env
+from dorp_rl.envs import GridWorldEnv, make_env
 from dorp_rl.eval.world_model import open_loop_accuracy
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
-from dorp_rl.trainers.base import EnvConfigMixin, Trainer
-from dorp_rl.validation import Choice, Device, Flag, Float, Int, Seed, Text, derive_seed
+from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
+from dorp_rl.validation import Choice, Float, Int, derive_seed
 
 #: seed offset of the held-out play data used for evaluation
 HELD_OUT_SEED_OFFSET = 100_003
 
 
+#: Flat fields of older world-model configs that now live in ``model``.
+_FLAT_MODEL_FIELDS = ("model_preset", "latent_dim", "prior")
+
+
 @dataclass
-class WorldModelConfig(EnvConfigMixin):
-    """Everything that defines a world-model run (a CleanRL-style flat dataclass).
+class WorldModelConfig(TrainerConfig):
+    """Everything that defines a world-model run: env and play data, video model, loss.
 
     Play data are random-action trajectories of ``trajectory_length`` steps (for
     rearrangement a fresh random configuration starts each one); the model trains on
@@ -37,22 +42,18 @@ class WorldModelConfig(EnvConfigMixin):
     training first, full open-loop rollouts after.
 
     Use :meth:`rearrangement`, :meth:`key_wall` or :meth:`key_corridor`, then override
-    fields with :func:`dataclasses.replace`.
+    fields with :meth:`replace` (``cfg.replace(model=VideoModelConfig.small())`` or
+    ``cfg.replace(model={"latent_dim": 0})``). Configs stored by older versions, with
+    flat ``model_preset``, ``latent_dim`` and ``prior`` fields, are read into ``model``.
     """
 
     FIELD_RULES = {
-        "env": Choice(ENV_NAMES),
-        "num_objects": Int(low=1, high=8, optional=True),
-        "num_frames": Int(low=1),
-        "num_envs": Int(low=1),
+        **TrainerConfig.FIELD_RULES,
         "trajectory_length": Int(low=1),
         "horizon": Int(low=1),
-        "data_dir": Text(optional=True),
         "eval_frames": Int(low=1),
         "eval_sequences": Int(low=1),
-        "model_preset": Choice(("small", "default")),
-        "latent_dim": Int(low=0),
-        "prior": Choice(("fixed", "learned")),
+        "model": Nested(VideoModelConfig),
         "feedback": Choice(FEEDBACK_MODES),
         "kl_weight": Float(low=0.0),
         "free_bits": Float(low=0.0),
@@ -68,43 +69,27 @@ class WorldModelConfig(EnvConfigMixin):
             hint="(0 would freeze every weight; math.inf turns clipping off)",
         ),
         "num_steps": Int(low=1),
-        "seed": Seed(),
-        "device": Device(),
-        "out_dir": Text(),
-        "log_every": Int(low=1),
         "eval_every": Int(low=1),
-        "checkpoint_every": Int(low=1),
-        "progress": Flag(),
     }
 
     default_num_objects = 3
 
-    # environment and play data
-    env: str = "rearrangement"
-    """environment: rearrangement, key-wall or key-corridor"""
-    num_objects: int | None = None
-    """objects of a rearrangement env (None: 3; 1 for the key rooms)"""
-    num_frames: int = 100_000
-    """play transitions to collect"""
-    num_envs: int = 64
-    """envs collecting play data side by side"""
     trajectory_length: int = 16
     """steps per play trajectory"""
+    out_dir: str = "outputs/world_model"
+    """folder of checkpoints and logs"""
+    # windows and evaluation
     horizon: int = 14
     """steps per training window"""
-    data_dir: str | None = None
-    """folder of the play data (None: kept in memory)"""
     eval_frames: int = 8_000
     """held-out play transitions for evaluation"""
     eval_sequences: int = 512
     """held-out windows the open-loop accuracy is measured on"""
+    eval_every: int = 1000
+    """steps between evaluations"""
     # model
-    model_preset: str = "default"
-    """model size: small or default"""
-    latent_dim: int = 4
-    """dimensions of the latent z (0: deterministic)"""
-    prior: str = "fixed"
-    """prior of z: fixed or learned"""
+    model: VideoModelConfig = field(default_factory=VideoModelConfig.default)
+    """the video model (VideoModelConfig.small() is about 4x smaller)"""
     # loss
     feedback: str = "straight_through"
     """how predictions are fed back: straight_through, soft or hard"""
@@ -127,57 +112,52 @@ class WorldModelConfig(EnvConfigMixin):
     """gradient-norm clip (inf: off)"""
     num_steps: int = 6000
     """training steps"""
-    # bookkeeping
-    seed: int = 0
-    """seed of play data, initialisation and sampling"""
-    device: str = "cpu"
-    """torch device"""
-    out_dir: str = "outputs/world_model"
-    """folder of checkpoints and logs"""
-    log_every: int = 50
-    """steps between logged metrics"""
-    eval_every: int = 1000
-    """steps between evaluations"""
-    checkpoint_every: int = 500
-    """steps between checkpoints"""
-    progress: bool = True
-    """show a progress bar"""
 
     @classmethod
     def rearrangement(cls, num_objects: int = 3, **overrides: Any) -> WorldModelConfig:
         """k-object rearrangement: 16-step random-action trajectories, 14-step windows."""
-        return replace(cls(env="rearrangement", num_objects=num_objects), **overrides)
+        return cls(env="rearrangement", num_objects=num_objects).replace(**overrides)
 
     @classmethod
     def key_wall(cls, **overrides: Any) -> WorldModelConfig:
         """Key-wall: windows from the 1000-step random walks of the play data."""
-        return replace(cls(env="key-wall", num_objects=1, trajectory_length=1000), **overrides)
+        return cls(env="key-wall", num_objects=1, trajectory_length=1000).replace(**overrides)
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> WorldModelConfig:
         """Key-corridor: windows from the 1500-step random walks of the play data."""
-        return replace(cls(env="key-corridor", num_objects=1, trajectory_length=1500), **overrides)
+        return cls(env="key-corridor", num_objects=1, trajectory_length=1500).replace(**overrides)
+
+    @classmethod
+    def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """Older flat configs: ``model_preset``, ``latent_dim`` and ``prior`` become ``model``."""
+        values = super().upgrade(values)
+        flat = {k: values.pop(k) for k in _FLAT_MODEL_FIELDS if k in values}
+        if flat:
+            if "model" in values:
+                raise ValueError(
+                    f"a world-model config holds both 'model' and the older flat model "
+                    f"fields {sorted(flat)}; keep one."
+                )
+            preset = flat.pop("model_preset", "default")
+            values["model"] = VideoModelConfig.preset(preset, **flat).to_dict()
+        return values
 
     def check_relations(self) -> None:
         """Rules between fields; each message names the fields and what they allow."""
-        self.check_num_objects()
+        super().check_relations()
         if self.trajectory_length < self.horizon:
             raise ValueError(
                 f"trajectory_length ({self.trajectory_length}) must be >= horizon "
                 f"({self.horizon}): windows never cross a trajectory boundary."
             )
 
-    def make_env(self, **kwargs: Any) -> GridWorldEnv:
-        """The environment this config trains on."""
-        return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
-
     def model_config(self) -> VideoModelConfig:
-        return VideoModelConfig.preset(
-            self.model_preset, latent_dim=self.latent_dim, prior=self.prior
-        )
+        """The video model this config trains (a copy of ``model``)."""
+        return self.model.replace()
 
 
-class WorldModelTrainer(Trainer):
+class WorldModelTrainer(OfflineTrainer):
     """Trains a :class:`~dorp_rl.modules.VideoPredictionModel` with :class:`~dorp_rl.objectives.VideoPredictionLoss`.
 
     Play data (collected, or loaded from ``config.data_dir``) are sampled as windows of
@@ -187,12 +167,13 @@ class WorldModelTrainer(Trainer):
     ``eval_every`` steps and at the end. The palette is read off the play data. Adam
     with a cosine learning-rate decay from ``lr`` to ``lr_final`` and gradient-norm
     clipping. Logging, checkpoints and ``train(resume=True)`` follow
-    :class:`~dorp_rl.trainers.Trainer`.
+    :class:`~dorp_rl.trainers.OfflineTrainer`.
 
     Examples:
+        >>> from dorp_rl.modules import VideoModelConfig
         >>> from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer
         >>> cfg = WorldModelConfig.rearrangement(1, num_steps=5, num_frames=640, horizon=3,
-        ...     trajectory_length=4, eval_frames=256, eval_sequences=8, model_preset="small",
+        ...     trajectory_length=4, eval_frames=256, eval_sequences=8, model=VideoModelConfig.small(),
         ...     progress=False, out_dir="/tmp/dorp_doc_world_model")
         >>> result = WorldModelTrainer(cfg).train()
         >>> result["step"], len(result["evaluation"]["exact_accuracy"])

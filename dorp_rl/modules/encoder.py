@@ -4,52 +4,78 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dorp_rl.validation import as_tensor, check_choice, check_int, frames_to_unit_float
+from dorp_rl.config import ConfigMixin
+from dorp_rl.validation import (
+    Choice,
+    Float,
+    Int,
+    Ints,
+    as_tensor,
+    check_choice,
+    check_int,
+    frames_to_unit_float,
+)
 
 
 @dataclass
-class EncoderConfig:
+class EncoderConfig(ConfigMixin):
     """Sizes of :class:`DiscreteCodeEncoder`.
 
-    Attributes:
-        code_sizes: number of codes of each one-hot, e.g. ``(32, 32)`` for two objects
-            or ``(16, 2)`` for key rooms (agent one-hot plus a 2-way key bit).
-        channels: width of the object extractor's convolutions.
-        conv_layers: number of hidden conv + BatchNorm + ReLU layers.
-        kernel_size: the extractor's conv kernel size (odd). 3 is the authors'; 1 makes
-            the extractor a per-pixel colour classifier, so that a map holds only the
-            pixels of its own object and nothing of what lies next to it (key rooms:
-            the agent map cannot see the key or the door).
-        mlp_sizes: hidden widths of the shared per-map encoder; the last is followed by
-            LayerNorm and ReLU, as in the authors' release.
-        input_scale: pixels in ``[0, 1]`` are multiplied by this (the authors used 10).
-        map_competition: ``"sigmoid"`` (the authors': each map independent) or
-            ``"softmax"``: each pixel's maps compete through a softmax over the one-hots
-            plus one background map, so that a pixel feeds mostly one one-hot.
+    Use :meth:`small` (what the trainer presets use) or :meth:`authors` (the authors'
+    release), then override fields. In a
+    :class:`~dorp_rl.trainers.RepresentationConfig`, ``code_sizes`` may be one number:
+    the size of every object one-hot, laid out by the environment.
     """
 
+    FIELD_RULES = {
+        "code_sizes": Ints(low=2),
+        "channels": Int(low=1),
+        "conv_layers": Int(low=0),
+        "kernel_size": Int(low=1),
+        "mlp_sizes": Ints(low=1, min_length=0),
+        "input_scale": Float(low=0.0, low_open=True),
+        "map_competition": Choice(("sigmoid", "softmax")),
+    }
+
     code_sizes: tuple[int, ...] = (32,)
+    """codes of each one-hot, e.g. (32, 32) for two objects or (16, 2) for a key room
+    (agent one-hot plus a 2-way key bit)"""
     channels: int = 32
+    """width of the object extractor's convolutions"""
     conv_layers: int = 3
+    """hidden conv + BatchNorm + ReLU layers of the object extractor"""
     kernel_size: int = 3
+    """the extractor's conv kernel size (odd); 1 makes it a per-pixel colour classifier,
+    so a map holds only the pixels of its own object"""
     mlp_sizes: tuple[int, ...] = (512, 512)
+    """hidden widths of the per-map encoder shared by all maps (the last is followed by
+    LayerNorm and ReLU)"""
     input_scale: float = 10.0
+    """pixels in [0, 1] are multiplied by this"""
     map_competition: str = "sigmoid"
+    """how object maps share a pixel: sigmoid (each map independent) or softmax (a
+    pixel's maps compete, plus one background map)"""
 
     @classmethod
-    def authors(cls, code_sizes: Sequence[int]) -> EncoderConfig:
+    def authors(cls, code_sizes: Sequence[int] = (32,), **overrides: Any) -> EncoderConfig:
         """The authors' release: 32 channels, per-map MLP 256-512-512-Z."""
-        return cls(code_sizes=tuple(code_sizes))
+        return cls(code_sizes=tuple(code_sizes), **overrides)
 
     @classmethod
-    def small(cls, code_sizes: Sequence[int]) -> EncoderConfig:
+    def small(cls, code_sizes: Sequence[int] = (32,), **overrides: Any) -> EncoderConfig:
         """About 3x faster on a 2-core CPU: 16 channels, per-map MLP 256-128-128-Z."""
-        return cls(code_sizes=tuple(code_sizes), channels=16, mlp_sizes=(128, 128))
+        values = {"channels": 16, "mlp_sizes": (128, 128), **overrides}
+        return cls(code_sizes=tuple(code_sizes), **values)
+
+    def check_relations(self) -> None:
+        if self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be an odd int >= 1, got {self.kernel_size}.")
 
 
 def module_device(module: nn.Module) -> torch.device:

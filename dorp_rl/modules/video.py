@@ -108,22 +108,6 @@ def check_palette(palette: torch.Tensor) -> torch.Tensor:
 class VideoModelConfig(ConfigMixin):
     """Sizes of :class:`VideoPredictionModel`.
 
-    Attributes:
-        channels: width of the residual trunk (on the 8x8 grid).
-        dilations: one residual block per entry, its 3x3 conv's dilation. With the stem,
-            ``(1, 2, 4, 1)`` sees 9 grid cells (18 pixels) around each cell.
-        global_context: add a global max-pool of each block's features to its FiLM.
-        latent_dim: size of the latent ``z`` (0: a deterministic model).
-        prior: ``"fixed"`` (``N(0, I)``) or ``"learned"`` (``p(z | o_t, a_t)``).
-        latent_channels: width of the posterior / prior conv nets.
-        copy_init: initial gain of the advection path (score added to the advected
-            input colours).
-        advection: move each colour's map by a predicted 3x3 kernel (CDNA-style) before
-            the copy path; ``False`` copies the input frame unchanged.
-        collision_features: give the kernel head, for every colour and shift, how much
-            of the colour would overlap other colours or leave the frame (see
-            :meth:`VideoPredictionModel._collisions`).
-
     Use :meth:`small` (fast, for planning with thousands of candidates) or
     :meth:`default` (more accurate), then override fields.
     """
@@ -141,14 +125,26 @@ class VideoModelConfig(ConfigMixin):
     }
 
     channels: int = 32
+    """width of the residual trunk (on the 8x8 grid)"""
     dilations: tuple[int, ...] = (1, 2, 4, 1)
+    """one residual block per entry, its 3x3 conv's dilation; with the stem, (1, 2, 4, 1)
+    sees 9 grid cells (18 pixels) around each cell"""
     global_context: bool = True
+    """add a global max-pool of each block's features to its FiLM"""
     latent_dim: int = 4
+    """size of the latent z (0: a deterministic model)"""
     prior: str = "fixed"
+    """prior of z: fixed (N(0, I)) or learned (p(z | o_t, a_t))"""
     latent_channels: int = 16
+    """width of the posterior / prior conv nets"""
     copy_init: float = 4.0
+    """initial gain of the advection path (score added to the advected input colours)"""
     advection: bool = True
+    """move each colour's map by a predicted 3x3 kernel (CDNA-style) before the copy
+    path; off: copy the input frame unchanged"""
     collision_features: bool = True
+    """give the kernel head, for every colour and shift, how much of the colour would
+    overlap other colours or leave the frame"""
 
     @classmethod
     def small(cls, **overrides: Any) -> VideoModelConfig:
