@@ -141,7 +141,7 @@ def load_dir(directory: Path) -> Any:
 def rep_config(**overrides: Any) -> RepresentationConfig:
     base = RepresentationConfig.rearrangement(
         1,
-        code_size=8,
+        encoder={"code_sizes": (8,)},
         num_frames=256,
         num_envs=16,
         batch_size=32,
@@ -153,7 +153,7 @@ def rep_config(**overrides: Any) -> RepresentationConfig:
         out_dir=str(fresh("rep")),
         collapse_check_after=10**9,
     )
-    return dataclasses.replace(base, **overrides)
+    return base.replace(**overrides)
 
 
 def wm_config(**overrides: Any) -> WorldModelConfig:
@@ -166,7 +166,7 @@ def wm_config(**overrides: Any) -> WorldModelConfig:
         trajectory_length=4,
         eval_frames=128,
         eval_sequences=8,
-        model_preset="small",
+        model=VideoModelConfig.small(),
         batch_size=8,
         log_every=2,
         checkpoint_every=2,
@@ -174,7 +174,7 @@ def wm_config(**overrides: Any) -> WorldModelConfig:
         progress=False,
         out_dir=str(fresh("wm")),
     )
-    return dataclasses.replace(base, **overrides)
+    return base.replace(**overrides)
 
 
 _CHECKPOINTS: dict[str, Path] = {}
@@ -562,7 +562,7 @@ for _field, _value in [
     ("ce_temperature", -1.0),
     ("usage_weight", math.nan),
     ("alpha", 0.5),
-    ("code_size", 1),
+    ("encoder", {"code_sizes": (1,)}),
     ("num_objects", 0),
 ]:
     FAULTS.append(
@@ -573,7 +573,7 @@ FAULTS.append(
     Fault(
         "training",
         "rep num_objects=3 with env='key-wall' (ignored)",
-        _train("rep", env="key-wall", num_objects=3, code_size=8),
+        _train("rep", env="key-wall", num_objects=3),
         ("num_objects",),
     )
 )

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from dorp_rl.modules import VideoModelConfig
 from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer
 
 
@@ -50,7 +51,7 @@ def main() -> None:
         **overrides,
         num_steps=args.steps,
         num_frames=args.num_frames,
-        model_preset=args.model_preset,
+        model=VideoModelConfig.preset(args.model_preset),
         batch_size=args.batch_size,
         seed=args.seed,
         out_dir=str(out_dir),

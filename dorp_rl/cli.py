@@ -52,9 +52,9 @@ from dorp_rl.eval import (
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy
 from dorp_rl.trainers import (
+    OfflineTrainer,
     RepresentationConfig,
     RepresentationTrainer,
-    Trainer,
     WorldModelConfig,
     WorldModelTrainer,
     load_encoder,
@@ -65,7 +65,19 @@ from dorp_rl.viz import plot_results
 SettingName = Literal[
     "1obj", "2obj", "3obj", "5obj", "3obj-full", "5obj-full", "keywall", "keycorridor"
 ]
-Method = Literal["dorp", "vf-rs", "vf-cem", "random"]
+Method = Literal[
+    "dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem", "random"
+]
+#: DORP and its ablations (the paper's Table 1): method -> (similarity of its codes, graph
+#: groups); None keeps the codes' own similarity / the setting's groups. The ablations
+#: train codes of their own (arbitrary: a learned matrix, identity: the identity) or plan
+#: over whole codes (full graph) with DORP's codes.
+DORP_VARIANTS: dict[str, tuple[str | None, Any]] = {
+    "dorp": (None, None),
+    "dorp-arbitrary": ("full", None),
+    "dorp-identity": ("identity", None),
+    "dorp-full": (None, "full"),
+}
 
 #: fields of a representation config that decide its play data
 PLAY_FIELDS = (
@@ -142,7 +154,9 @@ class Evaluate(BuildGraph):
     world_model: WorldModelConfig = field(default_factory=_world_model_default)
     """world-model config, used when --low-level world-model"""
     methods: tuple[Method, ...] = ("dorp",)
-    """methods: dorp (code graph + MPC), vf-rs / vf-cem (visual foresight), random"""
+    """methods: dorp (code graph + MPC), its ablations dorp-arbitrary / dorp-identity
+    (codes with another similarity) and dorp-full (one graph over whole codes), vf-rs /
+    vf-cem (visual foresight), random"""
     low_level: str = "gt"
     """planning model: 'gt' (the true dynamics), 'world-model' (this run's world model,
     trained first if needed) or the path of a world-model checkpoint"""
@@ -163,7 +177,19 @@ class Evaluate(BuildGraph):
     waypoint_budget: int = 28
     """DORP: steps to reach a waypoint code before its graph edge is removed"""
     max_steps: int | None = None
-    """step limit per task (default: the env's, 400 for 2 objects)"""
+    """step limit per task (default: the env's, 400 for 2 objects, 1400 for 5)"""
+    workers: int = 1
+    """processes (or Ray actors) the tasks are spread over, chunk by chunk, one torch thread
+    each; the results equal a one-process run (dorp_rl.eval.evaluate_parallel)"""
+    backend: Literal["local", "ray"] = "local"
+    """'local': worker processes on this machine; 'ray': Ray actors on a cluster
+    (pip install dorp-rl[ray])"""
+    address: str | None = None
+    """--backend ray: the cluster to join ('auto', 'ray://host:port'); default: a running
+    Ray or a new local one"""
+    gifs: int = 2
+    """DORP rollouts (the first tasks of the set) drawn as GIFs into pictures/, beside the
+    code maps and factorisation histogram of the codes (0: no GIFs)"""
 
 
 @dataclass
@@ -171,9 +197,19 @@ class Reproduce(Evaluate):
     """The whole pipeline for one setting: play data, codes, graph, then DORP and VF-CEM."""
 
     methods: tuple[Method, ...] = ("dorp", "vf-cem")
-    """methods: dorp (code graph + MPC), vf-rs / vf-cem (visual foresight), random"""
+    """methods: dorp (code graph + MPC), its ablations dorp-arbitrary / dorp-identity
+    (codes with another similarity) and dorp-full (one graph over whole codes), vf-rs /
+    vf-cem (visual foresight), random"""
     tasks: int = 50
     """tasks of the seeded task set (dorp_rl.eval.make_task_set); the paper used 50"""
+    paper: bool = False
+    """the paper's Table 1 instead of one setting: every method of the table in each of
+    --settings, one sub-run per setting (<name>/<setting>/), one table and timings.csv
+    in the run folder; --codes.* / --world-model.* changes apply to every setting"""
+    settings: tuple[SettingName, ...] = (
+        "1obj", "2obj", "3obj", "5obj", "keywall", "keycorridor"
+    )  # fmt: skip
+    """with --paper: the settings to run"""
 
 
 @dataclass
@@ -333,7 +369,7 @@ def _remove(path: Path) -> None:
 # --------------------------------------------------------------------------- stages
 def _stage_config(cfg: Any) -> dict[str, Any]:
     """A trainer config without the fields that never change its result (paths, progress)."""
-    return {k: v for k, v in cfg.to_dict().items() if k not in Trainer.bookkeeping_fields}
+    return {k: v for k, v in cfg.to_dict().items() if k not in OfflineTrainer.bookkeeping_fields}
 
 
 def _play_config(codes: RepresentationConfig) -> dict[str, Any]:
@@ -365,16 +401,25 @@ def play_stage(run: Run, codes: RepresentationConfig):
     )
 
 
-def codes_stage(run: Run, codes: RepresentationConfig):
-    """The trained encoder (trained into ``codes/``, or loaded); play data first."""
+def _tagged(name: str, variant: str, sep: str = ":") -> str:
+    return f"{name}{sep}{variant}" if variant else name
+
+
+def codes_stage(run: Run, codes: RepresentationConfig, variant: str = ""):
+    """The trained encoder (trained into ``codes/``, or loaded); play data first.
+
+    A ``variant`` (e.g. ``"arbitrary"``) is a stage of its own, ``codes:<variant>`` in
+    ``codes-<variant>/``, on the same play data.
+    """
     buffer = play_stage(run, codes)
+    codes_dir = run.dir / _tagged("codes", variant, "-")
     cfg = replace(
         codes,
-        out_dir=str(run.dir / "codes"),
+        out_dir=str(codes_dir),
         data_dir=str(run.dir / "play"),
         progress=run.progress,
     )
-    checkpoint = run.dir / "codes" / "checkpoints" / "last.pt"
+    checkpoint = codes_dir / "checkpoints" / "last.pt"
 
     def build():
         trainer = RepresentationTrainer(cfg, buffer=buffer)
@@ -386,21 +431,33 @@ def codes_stage(run: Run, codes: RepresentationConfig):
             if k in diagnostics and isinstance(diagnostics[k], (int, float, list))
         }
         if summary:
-            run.say(f"codes: {json.dumps(summary)}")
+            run.say(f"{_tagged('codes', variant)}: {json.dumps(summary)}")
         return trainer.encoder.eval(), summary
 
     def load():
         return load_encoder(checkpoint, codes.make_env())
 
-    encoder = run.stage("codes", _stage_config(cfg), [run.dir / "codes"], build, load)
+    name = _tagged("codes", variant)
+    encoder = run.stage(name, _stage_config(cfg), [codes_dir], build, load)
     return encoder, buffer
 
 
-def graph_stage(run: Run, codes: RepresentationConfig, setting: str):
-    """The code graph over the play data (built into ``graph.pt``, or loaded); codes first."""
-    encoder, buffer = codes_stage(run, codes)
-    path = run.dir / "graph.pt"
-    groups = SETTINGS[setting].groups
+def graph_stage(
+    run: Run,
+    codes: RepresentationConfig,
+    setting: str,
+    variant: str = "",
+    codes_variant: str = "",
+    groups: Any = None,
+):
+    """The code graph over the play data (built into ``graph.pt``, or loaded); codes first.
+
+    A ``variant`` is stage ``graph:<variant>`` in ``graph-<variant>.pt``, over the codes
+    of ``codes_variant`` with ``groups`` (default: the setting's).
+    """
+    encoder, buffer = codes_stage(run, codes, codes_variant)
+    path = run.dir / f"{_tagged('graph', variant, '-')}.pt"
+    groups = SETTINGS[setting].groups if groups is None else groups
     env_config = codes.make_env().config()
 
     def build():
@@ -413,7 +470,20 @@ def graph_stage(run: Run, codes: RepresentationConfig, setting: str):
         return CodeGraph.load(path, encoder=encoder, env_config=env_config)
 
     config = {"groups": groups, "codes": _stage_config(codes)}
-    return encoder, run.stage("graph", config, [path], build, load)
+    return encoder, run.stage(_tagged("graph", variant), config, [path], build, load)
+
+
+def dorp_stages(run: Run, cmd: Evaluate, method: str) -> tuple[Any, Any, str]:
+    """Encoder, graph and graph stage name of DORP or one of its ablations
+    (:data:`DORP_VARIANTS`), each trained or built once per run."""
+    similarity, groups = DORP_VARIANTS[method]
+    variant = method.removeprefix("dorp").removeprefix("-")
+    codes, codes_variant = cmd.codes, ""
+    if similarity is not None and similarity != codes.similarity:
+        codes = replace(codes, similarity=similarity, alpha=1.0, dddp_sign="paper")
+        codes_variant = variant
+    encoder, graph = graph_stage(run, codes, cmd.setting, variant, codes_variant, groups)
+    return encoder, graph, _tagged("graph", variant)
 
 
 def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
@@ -440,8 +510,8 @@ def _policy(cmd: Evaluate, method: str, env: GridWorldEnv, low_level: Any, dorp:
     if method == "random":
         torch.manual_seed(cmd.seed)
         return env.rand_action
-    if method == "dorp":
-        encoder, graph = dorp
+    if method in DORP_VARIANTS:
+        encoder, graph = dorp[:2]
         return make_dorp_policy(
             env,
             encoder,
@@ -480,7 +550,7 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
         low_config = {"path": str(low_level.resolve()), "mtime": low_level.stat().st_mtime}
     batch = min(cmd.tasks, cmd.tasks_per_rollout)
     for method in cmd.methods:
-        dorp = graph_stage(run, cmd.codes, cmd.setting) if method == "dorp" else None
+        dorp = dorp_stages(run, cmd, method) if method in DORP_VARIANTS else None
         config: dict[str, Any] = {
             k: getattr(cmd, k) for k in ("setting", "tasks", "task_seed", "seed", "max_steps")
         }
@@ -491,23 +561,28 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
                 candidates=cmd.candidates,
                 planning_horizon=cmd.planning_horizon,
             )
-        if method == "dorp":
+        if dorp is not None:
             config.update(
                 planner=cmd.dorp_planner,
                 waypoint_budget=cmd.waypoint_budget,
-                graph=run.stages["graph"]["config"],
+                graph=run.stages[dorp[2]]["config"],
             )
 
         def build(method: str = method, dorp: Any = dorp) -> tuple[None, dict[str, Any]]:
-            env = setting.make_env(batch_size=(batch,), seed=cmd.seed)
-            tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed)
-            policy = _policy(cmd, method, env, low_level, dorp)
-            result = evaluate_policy(
-                env,
-                policy,
+            # Picklable factories: --workers/--backend rebuild env and policy per worker;
+            # the policy is reseeded with seed + k per chunk k, so any --workers agrees.
+            make_env = functools.partial(setting.make_env, batch_size=(batch,), seed=cmd.seed)
+            tasks = make_task_set(make_env(), cmd.tasks, seed=cmd.task_seed)
+            result = evaluate_parallel(
+                make_env,
+                functools.partial(_policy, cmd, method, low_level=low_level, dorp=dorp),
                 tasks,
+                seed=cmd.seed,
                 max_steps=cmd.max_steps,
                 tasks_per_rollout=batch,
+                workers=cmd.workers,
+                backend=cmd.backend,
+                address=cmd.address,
                 progress=run.progress,
             )
             level = "none" if method == "random" else level_name
@@ -548,7 +623,7 @@ def _check(command: str, cmd: Any) -> None:
             )
     defaults = default_command(command, cmd.setting)
     for key in ("codes", "world_model"):
-        for name in Trainer.bookkeeping_fields:
+        for name in OfflineTrainer.bookkeeping_fields:
             if key in vars(cmd) and name != "checkpoint_every":
                 given, default = (
                     getattr(getattr(cmd, key), name),
@@ -566,6 +641,22 @@ def _check(command: str, cmd: Any) -> None:
                 raise UsageError(f"--{name.replace('_', '-')} must be >= 1.")
         if not cmd.methods:
             raise UsageError("--methods needs at least one method.")
+        if cmd.workers < 1:
+            raise UsageError(f"--workers must be >= 1, got {cmd.workers}.")
+        if cmd.address is not None and cmd.backend != "ray":
+            raise UsageError("--address is for --backend ray (the Ray cluster to join).")
+        if cmd.gifs < 0:
+            raise UsageError(f"--gifs must be >= 0, got {cmd.gifs}.")
+        if getattr(cmd, "paper", False):
+            if command != "reproduce":
+                raise UsageError(f"--paper is an option of reproduce, not of {command}.")
+            if cmd.methods != defaults.methods:
+                raise UsageError(
+                    "--methods does not apply with --paper: it runs the methods of the "
+                    "paper's Table 1 in each setting (choose settings with --settings)."
+                )
+            if not cmd.settings:
+                raise UsageError("--settings needs at least one setting.")
         if cmd.low_level not in ("gt", "world-model") and not Path(cmd.low_level).is_file():
             raise UsageError(
                 f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file; "
@@ -625,10 +716,18 @@ def run_command(name: str, cmd: Any) -> Path:
         graph_stage(run, cmd.codes, cmd.setting)
     elif name == "train-world-model":
         world_model_stage(run, cmd.world_model)
+    elif getattr(cmd, "paper", False):
+        from dorp_rl.reproduce import reproduce_paper
+
+        reproduce_paper(run, cmd)
     else:
+        from dorp_rl.reproduce import pictures_stage, say_pictures
+
         rows = evaluate_stage(run, cmd)
+        pictures = pictures_stage(run, cmd)
         print(f"\n{format_table(rows)}\n")
         run.say(f"results: {run.dir / 'results.csv'}, {run.dir / 'results.md'}")
+        say_pictures(run, pictures)
     run.say(f"dorp {name}: finished in {time.perf_counter() - start:.0f} s; files in {run.dir}")
     return run.dir
 

@@ -20,7 +20,7 @@ TINY_CODES = [
     "--setting", "1obj",
     "--codes.num-frames", "256",
     "--codes.num-envs", "16",
-    "--codes.code-size", "8",
+    "--codes.encoder.code-sizes", "8",
     "--codes.batch-size", "32",
     "--codes.num-steps", "5",
     "--codes.diagnostics-samples", "64",
@@ -33,7 +33,8 @@ TINY_WORLD_MODEL = [
     "--world-model.trajectory-length", "4",
     "--world-model.eval-frames", "128",
     "--world-model.eval-sequences", "8",
-    "--world-model.model-preset", "small",
+    "--world-model.model.channels", "16",
+    "--world-model.model.dilations", "1", "2", "4",
     "--world-model.batch-size", "8",
 ]  # fmt: skip
 TINY_EVAL = [
@@ -115,6 +116,11 @@ def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, capsys) -
     assert "play: running (changed: num_frames 256 -> 320)" in out
     assert "codes: running (changed: num_frames 256 -> 320)" in out
     assert "graph: running (changed: codes.num_frames 256 -> 320)" in out
+
+    out = dorp(capsys, tmp_path, "train-encoder", *TINY_CODES, "--codes.num-steps", "6",
+               "--codes.num-frames", "320", "--codes.encoder.code-sizes", "4")  # fmt: skip
+    assert "play: done for this config, skipped" in out  # the encoder does not change the data
+    assert "codes: running (changed: encoder.code_sizes [8] -> [4])" in out
 
 
 def test_a_stage_that_did_not_finish_runs_again(tmp_path, capsys) -> None:
@@ -251,7 +257,8 @@ def test_python_m_dorp_rl_help_lists_every_field_with_its_default() -> None:
     )
     assert sub.returncode == 0, sub.stderr
     for option in ("--threads", "--tasks", "--methods", "--low-level", "--codes.num-steps",
-                   "--world-model.num-steps", "--root", "--name"):  # fmt: skip
+                   "--world-model.num-steps", "--root", "--name", "--codes.encoder.code-sizes",
+                   "--world-model.model.latent-dim"):  # fmt: skip
         assert option in sub.stdout
     assert "100x slower" in sub.stdout  # why threads defaults to 1
     assert "(default: 10)" in sub.stdout and "(default: 1500)" in sub.stdout
