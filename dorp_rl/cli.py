@@ -43,7 +43,7 @@ from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     SETTINGS,
-    evaluate_policy,
+    evaluate_parallel,
     format_table,
     make_task_set,
     result_row,

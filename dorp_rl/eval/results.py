@@ -2,6 +2,10 @@
 
 :func:`result_row` turns one evaluation into a flat row with :data:`RESULT_COLUMNS`;
 :func:`write_results` writes rows as ``results.csv`` and a markdown ``results.md``.
+:data:`PAPER_TABLE` holds the paper's Table 1 (and its key-room figures);
+:func:`add_paper_figures` puts them beside a row (:data:`PAPER_COLUMNS`) and
+:func:`format_paper_table` lays rows out as Table 1. :func:`write_timings` writes the
+wall-clock of each stage of a run.
 """
 
 from __future__ import annotations
@@ -27,6 +31,112 @@ RESULT_COLUMNS: tuple[str, ...] = (
     "steps_over_bound",
     "seconds_per_task",
 )
+
+#: the paper's figures beside ours, in ``dorp reproduce --paper`` tables
+PAPER_COLUMNS: tuple[str, ...] = ("paper_success_rate", "paper_steps")
+
+#: The paper's Table 1 per (setting, method): success rate and steps (mean +- std over
+#: its tasks; "max": every task hit the step limit, 1400 at 5 objects). The methods run
+#: through the paper's SV2P video model. Key rooms: DORP with the true dynamics (37 of
+#: 40 key-wall, 33 of 40 key-corridor tasks; key-wall through SV2P: 9 of 10), no steps.
+PAPER_TABLE: dict[tuple[str, str], tuple[float | None, str]] = {
+    ("1obj", "dorp"): (1.00, "25 ± 15"),
+    ("2obj", "dorp"): (1.00, "49 ± 22"),
+    ("3obj", "dorp"): (1.00, "75 ± 28"),
+    ("5obj", "dorp"): (0.87, "1091 ± 1010"),
+    ("1obj", "dorp-arbitrary"): (0.92, "26 ± 19"),
+    ("2obj", "dorp-arbitrary"): (0.58, "52 ± 16"),
+    ("3obj", "dorp-arbitrary"): (0.26, "52 ± 16"),
+    ("1obj", "dorp-identity"): (1.00, "34 ± 12"),
+    ("2obj", "dorp-identity"): (0.94, "18 ± 7"),
+    ("3obj", "dorp-identity"): (0.48, "83 ± 23"),
+    ("1obj", "dorp-full"): (1.00, "25 ± 15"),
+    ("2obj", "dorp-full"): (1.00, "56 ± 17"),
+    ("3obj", "dorp-full"): (1.00, "76 ± 26"),
+    ("5obj", "dorp-full"): (0.00, "max"),
+    ("1obj", "vf-rs"): (0.83, "19 ± 19"),
+    ("2obj", "vf-rs"): (0.58, "53 ± 25"),
+    ("3obj", "vf-rs"): (0.25, "93 ± 24"),
+    ("5obj", "vf-rs"): (0.00, "max"),
+    ("1obj", "vf-cem"): (1.00, "12 ± 15"),
+    ("2obj", "vf-cem"): (0.60, "47 ± 25"),
+    ("3obj", "vf-cem"): (0.30, "89 ± 27"),
+    ("5obj", "vf-cem"): (0.10, "max"),
+    ("keywall", "dorp"): (37 / 40, ""),
+    ("keycorridor", "dorp"): (33 / 40, ""),
+}
+#: the paper's names of the methods (rows of Table 1)
+PAPER_METHOD_NAMES: dict[str, str] = {
+    "dorp": "DORP",
+    "dorp-arbitrary": "– arbitrary weight",
+    "dorp-identity": "– identity weight",
+    "dorp-full": "– full graph",
+    "vf-rs": "VF-RS",
+    "vf-cem": "VF-CEM",
+    "random": "random",
+}
+
+
+def paper_figures(setting: str, method: str, low_level: str = "gt") -> tuple[float | None, str]:
+    """The paper's (success rate, steps) for ``method`` in ``setting`` (``(None, "")``:
+    not reported). ``3obj-full``/``5obj-full`` with ``dorp`` are the full-graph rows;
+    key-wall through a video model is the paper's 9 of 10 with SV2P."""
+    if setting.endswith("-full") and method == "dorp":
+        setting, method = setting.removesuffix("-full"), "dorp-full"
+    if (setting, method) == ("keywall", "dorp") and low_level not in ("gt", "none"):
+        return 0.9, ""
+    return PAPER_TABLE.get((setting, method), (None, ""))
+
+
+def add_paper_figures(row: dict[str, Any]) -> dict[str, Any]:
+    """``row`` with :data:`PAPER_COLUMNS` filled in from :func:`paper_figures`."""
+    success, steps = paper_figures(row["setting"], row["method"], row.get("low_level", "gt"))
+    return {**row, "paper_success_rate": "" if success is None else success, "paper_steps": steps}
+
+
+def steps_spread(row: dict[str, Any]) -> str:
+    """Steps of the solved tasks as ``mean ± std`` (the paper's form) from ``row["per_task"]``;
+    ``"max"`` when no task was solved, ``""`` without per-task figures."""
+    per_task = row.get("per_task") or {}
+    if not per_task:
+        return ""
+    steps = [s for s, ok in zip(per_task["steps"], per_task["success"], strict=True) if ok]
+    if not steps:
+        return "max"
+    values = torch.tensor(steps, dtype=torch.float64)
+    std = float(values.std()) if len(steps) > 1 else 0.0
+    return f"{float(values.mean()):.0f} ± {std:.0f}"
+
+
+def format_paper_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Rows laid out as the paper's Table 1: one line per method, per setting our success
+    rate and steps with the paper's in brackets (``-``: not run here or not reported).
+
+    Args:
+        rows: result rows (with ``per_task`` for the steps' spread).
+    """
+    settings = list(dict.fromkeys(r["setting"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    by_key = {(r["setting"], r["method"]): r for r in rows}
+    header = "| method | " + " | ".join(f"{s} SR | {s} steps" for s in settings) + " |"
+    lines = [header, "|---|" + "---|---|" * len(settings)]
+    for method in methods:
+        cells = [PAPER_METHOD_NAMES.get(method, method)]
+        for setting in settings:
+            row = by_key.get((setting, method))
+            paper_sr, paper_steps = paper_figures(
+                setting, method, (row or {}).get("low_level", "gt")
+            )
+            paper_sr_text = "-" if paper_sr is None else f"{paper_sr:.2f}"
+            if row is None:
+                cells += [f"- ({paper_sr_text})", f"- ({paper_steps or '-'})"]
+                continue
+            cells += [
+                f"{row['success_rate']:.2f} ({paper_sr_text})",
+                f"{steps_spread(row) or _show(row['mean_steps'])} ({paper_steps or '-'})",
+            ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def steps_over_bound(result: dict[str, Any], tasks: TensorDictBase) -> float:
@@ -63,8 +173,8 @@ def _show(value: Any) -> str:
     return str(value)
 
 
-def format_table(rows: Sequence[dict[str, Any]]) -> str:
-    """``rows`` as a markdown table with :data:`RESULT_COLUMNS` (floats with 2 decimals).
+def format_table(rows: Sequence[dict[str, Any]], columns: Sequence[str] = RESULT_COLUMNS) -> str:
+    """``rows`` as a markdown table with ``columns`` (floats with 2 decimals).
 
     Examples:
         >>> from dorp_rl.eval import format_table
@@ -74,33 +184,104 @@ def format_table(rows: Sequence[dict[str, Any]]) -> str:
         >>> print(format_table([row]).splitlines()[-1])
         | 1obj | random | gt | 4 | 0.25 | 14.00 | 2.00 | 7.00 | 0.01 |
     """
+    missing = [c for c in columns if any(c not in r for r in rows)]
+    if missing:
+        raise KeyError(f"rows lack the columns {missing} (expected {list(columns)}).")
     lines = [
-        "| " + " | ".join(RESULT_COLUMNS) + " |",
-        "|" + "---|" * len(RESULT_COLUMNS),
+        "| " + " | ".join(columns) + " |",
+        "|" + "---|" * len(columns),
     ]
-    lines += ["| " + " | ".join(_show(r[c]) for c in RESULT_COLUMNS) + " |" for r in rows]
+    lines += ["| " + " | ".join(_show(r[c]) for c in columns) + " |" for r in rows]
     return "\n".join(lines)
 
 
 def write_results(
-    rows: Sequence[dict[str, Any]], directory: str | Path, figures: Sequence[str | Path] = ()
+    rows: Sequence[dict[str, Any]],
+    directory: str | Path,
+    figures: Sequence[str | Path] = (),
+    *,
+    columns: Sequence[str] = RESULT_COLUMNS,
+    sections: Sequence[str] = (),
 ) -> tuple[Path, Path]:
-    """Writes ``results.csv`` and ``results.md`` (see :data:`RESULT_COLUMNS`) into ``directory``.
+    """Writes ``results.csv`` and ``results.md`` (``columns``, by default
+    :data:`RESULT_COLUMNS`) into ``directory``.
 
-    ``figures`` (pictures in ``directory``) are shown in ``results.md`` below the table.
+    ``sections`` (markdown) follow the table in ``results.md``, then ``figures``
+    (pictures in ``directory``).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     csv_path, md_path = directory / "results.csv", directory / "results.md"
     with csv_path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
+        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
     md_path.write_text(
         "# Results\n\nSuccess rate, mean steps of the solved tasks next to their mean lower "
         "bound (sum of Manhattan distances), and mean of steps / bound over them.\n\n"
-        + format_table(rows)
+        + format_table(rows, columns)
         + "\n"
+        + "".join(f"\n{section.rstrip()}\n" for section in sections)
         + "".join(f"\n![{Path(f).stem}]({Path(f).name})\n" for f in figures)
+    )
+    return csv_path, md_path
+
+
+#: the columns of a run's timing table
+TIMING_COLUMNS: tuple[str, ...] = ("setting", "stage", "does", "seconds", "this_command")
+
+
+def describe_stage(stage: str) -> str:
+    """What a stage of a run folder does, in words (``codes:arbitrary`` -> ``train codes
+    (arbitrary weight)``)."""
+    name, _, rest = stage.partition(":")
+    variant = {"arbitrary": "arbitrary weight", "identity": "identity weight", "full": "full graph"}
+    if name == "play":
+        return "collect play data"
+    if name == "codes":
+        return "train codes" + (f" ({variant.get(rest, rest)})" if rest else "")
+    if name == "graph":
+        return "build graph" + (f" ({variant.get(rest, rest)})" if rest else "")
+    if name == "world_model":
+        return "train video model"
+    if name == "evaluate":
+        method, _, level = rest.partition(":")
+        return f"evaluate {method}" + (f" ({level})" if level else "")
+    if name == "pictures":
+        return "draw code maps, histogram and GIFs"
+    return stage
+
+
+def format_timings(rows: Sequence[dict[str, Any]]) -> str:
+    """Timing rows (:data:`TIMING_COLUMNS`) as a markdown table with totals per setting
+    and overall."""
+    lines = ["| " + " | ".join(TIMING_COLUMNS) + " |", "|" + "---|" * len(TIMING_COLUMNS)]
+    totals: dict[str, float] = {}
+    for r in rows:
+        lines.append(
+            f"| {r['setting']} | {r['stage']} | {r['does']} | {r['seconds']:.1f} | "
+            f"{r['this_command']} |"
+        )
+        totals[r["setting"]] = totals.get(r["setting"], 0.0) + r["seconds"]
+    for setting, seconds in totals.items():
+        lines.append(f"| {setting} | total | every stage | {seconds:.1f} | |")
+    lines.append(f"| all | total | every stage | {sum(totals.values()):.1f} | |")
+    return "\n".join(lines)
+
+
+def write_timings(rows: Sequence[dict[str, Any]], directory: str | Path) -> tuple[Path, Path]:
+    """Writes ``timings.csv`` and ``timings.md`` (:data:`TIMING_COLUMNS`: per stage of
+    each setting its wall-clock seconds and whether this command ran it (``ran``) or
+    reused it from an earlier command (``reused``)) into ``directory``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    csv_path, md_path = directory / "timings.csv", directory / "timings.md"
+    with csv_path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=TIMING_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    md_path.write_text(
+        "# Wall-clock per stage\n\nSeconds each stage took when it ran (stages reused from "
+        "an earlier command keep the time they took then).\n\n" + format_timings(rows) + "\n"
     )
     return csv_path, md_path

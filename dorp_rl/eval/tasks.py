@@ -127,7 +127,7 @@ def evaluate_policy(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=n, desc="tasks")
+        bar = tqdm(total=n, desc="tasks", unit="task")
     success: list[bool] = []
     steps: list[int] = []
     reported: dict[str, list[float]] = {key: [] for key in report_keys}
@@ -141,9 +141,17 @@ def evaluate_policy(
             state=chunk["state"], goal_state=chunk["goal_state"], batch_size=chunk.shape
         ).to(env.device)
         td = env.reset(given, set_state=True)
+
+        def tick(_env: Any, step: TensorDictBase, first: int = first, rows: int = rows) -> None:
+            # The bar moves as tasks finish, not only per chunk, so it can tell time left.
+            finished = first + int(step["done"].reshape(-1)[:rows].sum())
+            if bar is not None and finished > bar.n:
+                bar.update(finished - bar.n)
+
         rollout = env.rollout(
             limit,
             policy,
+            None if bar is None else tick,
             tensordict=td,
             auto_reset=False,
             break_when_any_done=False,
@@ -169,8 +177,8 @@ def evaluate_policy(
             values = rollout.get(key)[:rows]
             values = values.reshape(rows, t, -1)[torch.arange(rows), first_done, 0]
             reported[key] += values.float().tolist()
-        if bar is not None:
-            bar.update(rows)
+        if bar is not None and first + rows > bar.n:
+            bar.update(first + rows - bar.n)
     if bar is not None:
         bar.close()
     ok = torch.tensor(success)

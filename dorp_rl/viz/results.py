@@ -14,6 +14,8 @@ from typing import Any
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from dorp_rl.eval.results import paper_figures
+
 __all__ = ["plot_results", "plot_steps_vs_bound", "plot_success"]
 
 
@@ -29,15 +31,23 @@ def _save(fig: Figure, path: Path) -> Path:
     return path
 
 
+def _paper_success(row: dict[str, Any], paper: dict[str, dict[str, float]]) -> float | None:
+    value = paper.get(row["setting"], {}).get(row["method"])
+    if value is None:  # the ablations of Table 1
+        value = paper_figures(row["setting"], row["method"], row.get("low_level", "gt"))[0]
+    return value
+
+
 def plot_success(
     rows: Sequence[dict[str, Any]], path: str | Path, paper: dict[str, dict[str, float]]
 ) -> Path:
-    """Bars of each row's success rate, with the paper's (``paper[setting][method]``) beside it."""
+    """Bars of each row's success rate, with the paper's beside it (``paper[setting][method]``,
+    else :data:`~dorp_rl.eval.results.PAPER_TABLE`)."""
     fig = Figure(figsize=(max(4.0, 1.2 * len(rows) + 1.5), 3.2))
     ax = fig.add_subplot()
     xs = range(len(rows))
     ax.bar([x - 0.2 for x in xs], [r["success_rate"] for r in rows], 0.4, label="this run")
-    known = [(x, paper.get(r["setting"], {}).get(r["method"])) for x, r in enumerate(rows)]
+    known = [(x, _paper_success(r, paper)) for x, r in enumerate(rows)]
     known = [(x, v) for x, v in known if v is not None]
     if known:
         ax.bar(

@@ -1,0 +1,293 @@
+"""``dorp reproduce --paper`` (the paper's Table 1) and the pictures of a run folder.
+
+:func:`reproduce_paper` runs the single-setting pipeline of :mod:`dorp_rl.cli` once per
+setting, each in a sub-run ``<run>/<setting>/`` with its own stages (so a finished stage is
+skipped when the command runs again), and gathers the rows into one table next to the
+paper's figures and one table of stage wall-clock times. :func:`pictures_stage` draws, as
+a stage of a run, the code maps and factorisation histogram (the paper's Figures 5 and
+4(c)) of every code variant evaluated, and DORP rollouts as GIFs with the waypoint beside
+each frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from tensordict import TensorDict
+
+from dorp_rl.cli import (
+    DORP_VARIANTS,
+    Evaluate,
+    Reproduce,
+    Run,
+    _policy,
+    default_command,
+    dorp_stages,
+    evaluate_stage,
+)
+from dorp_rl.envs import KeyRoomEnv
+from dorp_rl.eval import (
+    PAPER_SUCCESS,
+    RESULT_COLUMNS,
+    SETTINGS,
+    make_task_set,
+    rearrangement_code_maps,
+    rearrangement_diagnostics,
+)
+from dorp_rl.eval.diagnostics import key_room_diagnostics
+from dorp_rl.eval.results import (
+    PAPER_COLUMNS,
+    add_paper_figures,
+    describe_stage,
+    format_paper_table,
+    format_timings,
+    write_results,
+    write_timings,
+)
+from dorp_rl.viz import plot_results, write_diagnostic_plots
+from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
+
+__all__ = ["paper_methods", "pictures_stage", "reproduce_paper", "say_pictures"]
+
+#: fields that a setting decides (never carried from one setting's preset to another)
+_SETTING_FIELDS = ("env", "num_objects")
+
+
+def paper_methods(setting: str) -> tuple[str, ...]:
+    """The methods of the paper's Table 1 in ``setting``: every method at 1-3 objects; no
+    similarity ablations at 5 objects (the paper reports none); DORP only in key rooms."""
+    if SETTINGS[setting].env in ("key-wall", "key-corridor"):
+        return ("dorp",)
+    if SETTINGS[setting].num_objects >= 5:
+        return ("dorp", "dorp-full", "vf-rs", "vf-cem")
+    return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
+
+
+def _level_name(cmd: Evaluate) -> str:
+    return cmd.low_level if cmd.low_level in ("gt", "world-model") else "checkpoint"
+
+
+def _evaluation_key(cmd: Evaluate, method: str) -> str:
+    return f"evaluate:{method}" + ("" if method == "random" else f":{_level_name(cmd)}")
+
+
+def _low_level_path(run: Run, cmd: Evaluate) -> Path | None:
+    """The planning model the evaluation used (``None``: the true dynamics)."""
+    if cmd.low_level == "gt":
+        return None
+    if cmd.low_level == "world-model":
+        return run.dir / "world_model" / "checkpoints" / "last.pt"
+    return Path(cmd.low_level)
+
+
+def _diagnostic_pictures(env: Any, encoder: Any, directory: Path, num_samples: int):
+    """Code map and factorisation histogram of ``encoder`` into ``directory``; returns the
+    waypoint maps (:func:`~dorp_rl.viz.rollouts.code_maps_for_waypoints`) and the files."""
+    encode = encoder.encode
+    if isinstance(env, KeyRoomEnv):
+        result = key_room_diagnostics(env, encode, with_steps=False)
+        maps: Any = result
+    else:
+        result = rearrangement_diagnostics(env, encode, num_samples=max(num_samples, 2))
+        maps = rearrangement_code_maps(env, encode) if env.num_objects == 1 else result
+    written = write_diagnostic_plots(env, encode, directory, result=result)
+    return code_maps_for_waypoints(maps, result["num_onehots"]), list(written.values())
+
+
+def pictures_stage(run: Run, cmd: Evaluate) -> list[Path]:
+    """Pictures of the DORP methods of ``cmd`` (after :func:`~dorp_rl.cli.evaluate_stage`).
+
+    Writes into ``<run>/pictures/``: ``code_map.png`` and ``factorization_histogram.png``
+    of DORP's codes (``arbitrary/`` and ``identity/`` for the ablations' codes), and
+    ``rollout_<i>.gif`` for the first ``cmd.gifs`` tasks of the set, run with the first
+    DORP method of ``cmd.methods``. A stage of the run: skipped when nothing changed.
+
+    Returns:
+        The files written (none without a DORP method).
+    """
+    methods = [m for m in cmd.methods if m in DORP_VARIANTS]
+    if not methods:
+        return []
+    directory = run.dir / "pictures"
+    config = {
+        "gifs": cmd.gifs,
+        "evaluations": {m: run.stages[_evaluation_key(cmd, m)]["config"] for m in methods},
+    }
+
+    def build() -> tuple[list[Path], dict[str, Any]]:
+        files: list[Path] = []
+        maps: dict[str, Any] = {}
+        loaded: dict[str, Any] = {}
+        env = cmd.codes.make_env()
+        for method in methods:
+            sub = _codes_variant(method)
+            if sub not in maps:
+                loaded[method] = dorp_stages(run, cmd, method)
+                maps[sub], written = _diagnostic_pictures(
+                    env, loaded[method][0], directory / sub, cmd.codes.diagnostics_samples
+                )
+                files += written
+        gifs, solved = _rollout_gifs(run, cmd, methods[0], loaded[methods[0]], maps, directory)
+        return files + gifs, {"files": [str(p) for p in files + gifs], "gif_solved": solved}
+
+    def load() -> list[Path]:
+        return [Path(p) for p in run.stages["pictures"]["summary"]["files"]]
+
+    return run.stage("pictures", config, [directory], build, load)
+
+
+def _codes_variant(method: str) -> str:
+    """The codes a DORP method plans with: ``""`` (DORP's), ``"arbitrary"``, ``"identity"``."""
+    return "" if DORP_VARIANTS[method][0] is None else method.removeprefix("dorp-")
+
+
+def _rollout_gifs(
+    run: Run, cmd: Evaluate, method: str, dorp: Any, maps: dict[str, Any], directory: Path
+) -> tuple[list[Path], list[bool]]:
+    """The first ``cmd.gifs`` tasks of the set, run with ``method`` (``dorp``: its
+    encoder, graph and graph stage), as GIFs."""
+    n = min(cmd.gifs, cmd.tasks)
+    if n == 0:
+        return [], []
+    setting = SETTINGS[cmd.setting]
+    env = setting.make_env(batch_size=(n,), seed=cmd.seed)
+    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed)[:n]
+    policy = _policy(cmd, method, env, _low_level_path(run, cmd), dorp)
+    given = TensorDict(state=tasks["state"], goal_state=tasks["goal_state"], batch_size=[n])
+    td = env.reset(given.to(env.device), set_state=True)
+    limit = env.max_steps if cmd.max_steps is None else cmd.max_steps
+    rollout = env.rollout(
+        limit,
+        policy,
+        tensordict=td,
+        auto_reset=False,
+        break_when_any_done=False,
+        break_when_all_done=True,
+    )
+    code_maps = maps.get(_codes_variant(method))
+    done = rollout["next", "done"].reshape(n, -1)
+    success = rollout["next", "success"].reshape(n, -1)
+    paths: list[Path] = []
+    solved: list[bool] = []
+    for i in range(n):
+        steps = int(done[i].float().argmax()) + 1 if bool(done[i].any()) else done.shape[1]
+        solved.append(bool(success[i, steps - 1]))
+        paths.append(
+            save_rollout_gif(rollout[i, :steps], directory / f"rollout_{i}.gif", code_maps)
+        )
+    return paths, solved
+
+
+def say_pictures(run: Run, pictures: list[Path]) -> None:
+    """Names the pictures of a run (GIFs one per line)."""
+    if not pictures:
+        return
+    stills = [p for p in pictures if p.suffix != ".gif"]
+    if stills:
+        run.say("pictures: " + ", ".join(str(p) for p in stills))
+    for gif in (p for p in pictures if p.suffix == ".gif"):
+        run.say(f"rollout GIF: {gif}")
+
+
+def _carry_changes(target: Any, given: Any, default: Any) -> Any:
+    """``target`` (another setting's preset) with every field in which ``given`` differs
+    from ``default`` (the command-line overrides), nested configs field by field."""
+    changes: dict[str, Any] = {}
+    for f in dataclasses.fields(given):
+        value, base = getattr(given, f.name), getattr(default, f.name)
+        if f.name in _SETTING_FIELDS or value == base:
+            continue
+        if dataclasses.is_dataclass(value) and type(value) is type(base):
+            value = _carry_changes(getattr(target, f.name), value, base)
+        changes[f.name] = value
+    return dataclasses.replace(target, **changes)
+
+
+def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
+    """The paper's Table 1: :func:`paper_methods` in each of ``cmd.settings``.
+
+    Each setting is a sub-run ``<run>/<setting>/`` (its own play data, codes per
+    similarity, graphs, world model, results and pictures). ``--codes.*`` and
+    ``--world-model.*`` changes from the defaults of ``--setting`` are applied to every
+    setting's preset. Writes into the run folder ``results.csv`` / ``results.md``
+    (:data:`~dorp_rl.eval.RESULT_COLUMNS` and the paper's figures,
+    :data:`~dorp_rl.eval.results.PAPER_COLUMNS`, plus the table in Table 1's layout),
+    ``success.png``, ``steps.png`` and ``timings.csv`` / ``timings.md`` (seconds per
+    stage and setting).
+
+    Returns:
+        The result rows, with the paper's figures.
+    """
+    base = default_command("reproduce", cmd.setting)
+    rows: list[dict[str, Any]] = []
+    timings: list[dict[str, Any]] = []
+    pictures: dict[str, list[Path]] = {}
+    for setting in cmd.settings:
+        preset = default_command("reproduce", setting)
+        sub = dataclasses.replace(
+            cmd,
+            root=str(run.dir),
+            name=setting,
+            setting=setting,
+            codes=_carry_changes(preset.codes, cmd.codes, base.codes),
+            world_model=_carry_changes(preset.world_model, cmd.world_model, base.world_model),
+            methods=paper_methods(setting),
+            paper=False,
+        )
+        subrun = Run(sub, "reproduce")
+        before = {k: json.dumps(v) for k, v in subrun.stages.items()}
+        run.say(
+            f"{setting}: {', '.join(sub.methods)} on {sub.tasks} tasks, low level "
+            f"{sub.low_level}, in {subrun.dir}"
+        )
+        evaluate_stage(subrun, sub)
+        pictures[setting] = pictures_stage(subrun, sub)
+        keys = {_evaluation_key(sub, m) for m in sub.methods}
+        for method in sub.methods:
+            rows.append(add_paper_figures(subrun.stages[_evaluation_key(sub, method)]["summary"]))
+        for stage, record in subrun.stages.items():
+            if record.get("config") is None or (
+                stage.startswith("evaluate:") and stage not in keys
+            ):
+                continue
+            timings.append(
+                {
+                    "setting": setting,
+                    "stage": stage,
+                    "does": describe_stage(stage),
+                    "seconds": float(record.get("seconds", 0.0)),
+                    "this_command": "ran" if before.get(stage) != json.dumps(record) else "reused",
+                }
+            )
+        write_timings(timings, run.dir)  # after every setting: a stopped run keeps its times
+    figures = plot_results(rows, run.dir, PAPER_SUCCESS)
+    links = [
+        f"- {setting}: "
+        + ", ".join(
+            f"[{p.relative_to(run.dir / setting / 'pictures').as_posix()}]"
+            f"({p.relative_to(run.dir).as_posix()})"
+            for p in files
+        )
+        for setting, files in pictures.items()
+        if files
+    ]
+    sections = [
+        "## As the paper's Table 1\n\nOurs, the paper's in brackets (SR: success rate; steps "
+        "of the solved tasks, mean ± std; max: none solved within the step limit).\n\n"
+        + format_paper_table(rows),
+        "## Wall-clock per stage\n\nSee [timings.md](timings.md).",
+    ]
+    if links:
+        sections.append("## Pictures\n\n" + "\n".join(links))
+    write_results(rows, run.dir, figures, columns=RESULT_COLUMNS + PAPER_COLUMNS, sections=sections)
+    print(f"\n{format_paper_table(rows)}\n\n{format_timings(timings)}\n")
+    run.say(
+        f"results: {run.dir / 'results.csv'}, {run.dir / 'results.md'}; "
+        f"timings: {run.dir / 'timings.csv'}, {run.dir / 'timings.md'}"
+    )
+    for files in pictures.values():
+        say_pictures(run, files)
+    return rows

@@ -1,0 +1,232 @@
+"""``dorp reproduce --paper``, the pictures of a run (code maps, histogram, rollout GIFs),
+the paper-table layout and the evaluation progress bar."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from tensordict import TensorDict
+
+from dorp_rl.cli import main
+from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.eval import RESULT_COLUMNS, evaluate_policy, make_task_set
+from dorp_rl.eval.results import PAPER_COLUMNS, format_paper_table
+from dorp_rl.reproduce import paper_methods
+from dorp_rl.viz.rollouts import rollout_gif_frames, waypoint_panel
+
+# 1-object codes of a few steps on 256 play frames; 2 tasks of at most 6 steps.
+TINY = [
+    "--setting", "1obj",
+    "--codes.num-frames", "256",
+    "--codes.num-envs", "16",
+    "--codes.encoder.code-sizes", "8",
+    "--codes.batch-size", "32",
+    "--codes.num-steps", "5",
+    "--codes.diagnostics-samples", "64",
+    "--tasks", "2",
+    "--tasks-per-rollout", "2",
+    "--candidates", "20",
+    "--planning-horizon", "3",
+    "--max-steps", "6",
+    "--gifs", "1",
+]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(one_torch_thread) -> None:
+    """Every test runs with one torch thread (and restores the count)."""
+
+
+def dorp(capsys, root: Path, *args: str) -> str:
+    main([args[0], "--root", str(root), "--name", "paper", "--no-progress", *args[1:]])
+    return capsys.readouterr().out
+
+
+def read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    with path.open() as f:
+        reader = csv.DictReader(f)
+        return list(reader.fieldnames or []), list(reader)
+
+
+def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path, capsys) -> None:
+    out = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj", *TINY)
+    run = tmp_path / "paper"
+    columns, rows = read_csv(run / "results.csv")
+    assert tuple(columns) == RESULT_COLUMNS + PAPER_COLUMNS
+    assert [r["method"] for r in rows] == list(paper_methods("1obj"))
+    assert {r["setting"] for r in rows} == {"1obj"} and {r["tasks"] for r in rows} == {"2"}
+    paper = {r["method"]: r["paper_success_rate"] for r in rows}
+    assert float(paper["dorp-arbitrary"]) == 0.92 and float(paper["vf-rs"]) == 0.83
+    table = (run / "results.md").read_text()
+    assert "## As the paper's Table 1" in table and "| – identity weight |" in table
+    for figure in ("success.png", "steps.png"):
+        assert f"]({figure})" in table and Image.open(run / figure).format == "PNG"
+
+    # Each ablation trained codes or built a graph of its own, in the setting's sub-run.
+    columns, timings = read_csv(run / "timings.csv")
+    stages = {t["stage"]: t for t in timings}
+    for stage in ("play", "codes", "codes:arbitrary", "codes:identity", "graph",
+                  "graph:arbitrary", "graph:identity", "graph:full", "evaluate:dorp:gt",
+                  "evaluate:vf-cem:gt", "pictures"):  # fmt: skip
+        assert stage in stages, stage
+        assert float(stages[stage]["seconds"]) > 0 and stages[stage]["this_command"] == "ran"
+    assert "codes:full" not in stages  # the full-graph ablation plans with DORP's codes
+    assert (run / "1obj" / "codes-arbitrary" / "checkpoints" / "last.pt").is_file()
+    assert "| all | total |" in (run / "timings.md").read_text()
+
+    pictures = run / "1obj" / "pictures"
+    for still in ("code_map.png", "factorization_histogram.png",
+                  "arbitrary/code_map.png", "identity/factorization_histogram.png"):  # fmt: skip
+        image = Image.open(pictures / still)
+        image.verify()
+        assert image.format == "PNG"
+    gif = Image.open(pictures / "rollout_0.gif")
+    assert gif.format == "GIF" and gif.n_frames >= 2 and gif.size[0] > 3 * 128
+    assert not (pictures / "rollout_1.gif").exists()  # --gifs 1
+    assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
+
+    # Run again: every stage is reused, the table and timings are the same.
+    again = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj", *TINY)
+    assert ": running (" not in again
+    _, rows_again = read_csv(run / "results.csv")
+    assert rows_again == rows
+    _, timings_again = read_csv(run / "timings.csv")
+    assert {t["this_command"] for t in timings_again} == {"reused"}
+    assert [t["seconds"] for t in timings_again] == [t["seconds"] for t in timings]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["reproduce", "--paper", "--methods", "dorp"], "--methods does not apply with --paper"),
+        (["demo", "--paper"], "--paper is an option of reproduce"),
+        (["evaluate", "--gifs", "-1"], "--gifs must be >= 0"),
+    ],
+)
+def test_paper_arguments_that_do_not_fit_are_refused(tmp_path, capsys, args, message) -> None:
+    with pytest.raises(SystemExit) as err:
+        main([*args, "--root", str(tmp_path)])
+    assert err.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_paper_methods_follow_table_1() -> None:
+    assert paper_methods("3obj") == (
+        "dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem"
+    )  # fmt: skip
+    assert "dorp-arbitrary" not in paper_methods("5obj")  # the paper reports none there
+    assert paper_methods("keywall") == paper_methods("keycorridor") == ("dorp",)
+
+
+def test_the_paper_table_puts_the_papers_figures_beside_ours() -> None:
+    row = {"setting": "2obj", "low_level": "gt", "mean_steps": 30.0}
+    rows = [
+        {**row, "method": "dorp", "success_rate": 0.5,
+         "per_task": {"success": [True, True, False], "steps": [20, 40, 400]}},
+        {**row, "method": "vf-cem", "success_rate": 0.0,
+         "per_task": {"success": [False], "steps": [400]}},
+        {**row, "setting": "keywall", "method": "dorp", "success_rate": 1.0,
+         "per_task": {"success": [True], "steps": [12]}},
+    ]  # fmt: skip
+    lines = format_paper_table(rows).splitlines()
+    assert lines[0] == "| method | 2obj SR | 2obj steps | keywall SR | keywall steps |"
+    # mean 30, sample std 14 of the solved tasks; the paper's DORP: 1.00, 49 +- 22
+    assert lines[2] == "| DORP | 0.50 (1.00) | 30 ± 14 (49 ± 22) | 1.00 (0.93) | 12 ± 0 (-) |"
+    # nothing solved: "max"; no key-wall row for VF-CEM here or in the paper
+    assert lines[3] == "| VF-CEM | 0.00 (0.60) | max (47 ± 25) | - (-) | - (-) |"
+
+
+def _synthetic_rollout(steps: int) -> TensorDict:
+    """A 1-object rollout of ``steps`` steps with DORP's keys (2 one-hots)."""
+    env = ObjectRearrangementEnv(num_objects=1)
+    states = torch.tensor([[[r, 0]] for r in range(steps + 1)])
+    pixels = env.render_state(states)
+    goal = pixels[-1:].expand(steps, -1, -1, -1)
+    return TensorDict(
+        pixels=pixels[:-1],
+        goal_pixels=goal,
+        code=torch.tensor([[r // 4, 0] for r in range(steps)]),
+        subgoal_code=torch.tensor([[r // 4 + 1, 0] for r in range(steps)]),
+        subgoal_mask=torch.tensor([[True, False]] * steps),
+        dorp_mode=torch.ones(steps, 1, dtype=torch.int64),
+        dorp_group=torch.zeros(steps, 1, dtype=torch.int64),
+        next=TensorDict(pixels=pixels[1:], batch_size=[steps]),
+        batch_size=[steps],
+    )
+
+
+def test_rollout_gif_frames_show_each_frame_and_the_one_reached() -> None:
+    rollout = _synthetic_rollout(5)
+    frames = rollout_gif_frames(rollout, scale=4)
+    assert len(frames) == 6  # 5 steps and the frame after the last
+    assert len({f.shape for f in frames}) == 1
+    # The first panel (after its caption) is the upscaled current frame.
+    first = rollout["pixels"][2].repeat_interleave(4, -2).repeat_interleave(4, -1)
+    expected = first.permute(1, 2, 0).numpy()
+    found = [
+        (y, x)
+        for y in range(frames[2].shape[0] - 63)
+        for x in range(8)
+        if np.array_equal(frames[2][y : y + 64, x : x + 64], expected)
+    ]
+    assert found
+    assert len(rollout_gif_frames(rollout, max_frames=3)) == 3
+    plain = rollout.exclude("code", "subgoal_code", "subgoal_mask", "dorp_mode", "dorp_group")
+    assert rollout_gif_frames(plain, scale=4)[0].shape[1] < frames[0].shape[1]
+    with pytest.raises(ValueError, match="goal_pixels"):
+        rollout_gif_frames(rollout.exclude("goal_pixels"))
+
+
+def test_waypoint_panel_borders_the_masked_one_hots_and_lights_the_waypoint_region() -> None:
+    code_map = np.array([[0, 0, 1], [1, 2, 2]])
+    panel = waypoint_panel([0, 3], [1, 3], [True, False], 1, 0, [[code_map], None])
+    yellow = np.all(panel == (255, 210, 0), axis=-1)
+    assert yellow.any()  # the masked tile's border (and its waypoint code text)
+    # Mask the second one-hot instead: the yellow moves right.
+    other = waypoint_panel([0, 3], [1, 3], [False, True], 1, 0, [[code_map], None])
+    other_yellow = np.all(other == (255, 210, 0), axis=-1)
+    assert np.argwhere(other_yellow)[:, 1].min() > np.argwhere(yellow)[:, 1].min()
+    # The waypoint code's cells keep their colour, the others are faded.
+    from dorp_rl.viz import code_colours
+
+    colours = (code_colours(code_map) * 255).round().astype(np.uint8)
+    flat = panel.reshape(-1, 3)
+    assert (flat == colours[0, 2]).all(-1).any()  # code 1: the waypoint
+    assert not (flat == colours[1, 2]).all(-1).any()  # code 2: faded
+    with pytest.raises(ValueError, match="subgoal_mask"):
+        waypoint_panel([0], [1, 3], [True], 1)
+
+
+def test_the_evaluation_bar_moves_as_tasks_finish(monkeypatch) -> None:
+    import tqdm.auto
+
+    updates: list[int] = []
+
+    class Recorder(tqdm.auto.tqdm):
+        def update(self, n=1):
+            updates.append(int(n))
+            return super().update(n)
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recorder)
+
+    def greedy(td):  # one object straight to its goal: done after its lower bound
+        diff = (td["goal_state"] - td["state"])[:, 0]
+        action = torch.where(
+            diff[:, 0] < 0, 0, torch.where(diff[:, 0] > 0, 1, torch.where(diff[:, 1] < 0, 2, 3))
+        )
+        return td.set("action", action[:, None])
+
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(4,), seed=0)
+    tasks = make_task_set(env, 4, seed=0)
+    result = evaluate_policy(env, greedy, tasks, tasks_per_rollout=4, progress=True)
+    assert result["success"] == [True] * 4
+    assert result["steps"] == tasks["lower_bound"].tolist()
+    # One update per distinct finishing step, not one for the whole chunk at its end.
+    assert sum(updates) == 4
+    assert len(updates) == len(set(result["steps"])) > 1
