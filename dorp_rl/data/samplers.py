@@ -103,7 +103,7 @@ class FuturePairSampler(_WindowSampler):
     Examples:
         >>> from dorp_rl.envs import KeyWallEnv
         >>> from dorp_rl.data import FuturePairSampler, collect_play_data, future_pairs
-        >>> buffer = collect_play_data(KeyWallEnv(batch_size=(2,)), 2000,
+        >>> buffer = collect_play_data(KeyWallEnv(batch_size=(2,)), 200,
         ...                            sampler=FuturePairSampler(1, 3), batch_size=8)
         >>> anchor, future, offset = future_pairs(buffer.sample())
         >>> anchor.shape, int(offset.min()) >= 1, int(offset.max()) <= 3
@@ -165,7 +165,7 @@ class SequenceSampler(_WindowSampler):
     Examples:
         >>> from dorp_rl.envs import KeyWallEnv
         >>> from dorp_rl.data import SequenceSampler, collect_play_data
-        >>> buffer = collect_play_data(KeyWallEnv(batch_size=(2,)), 2000,
+        >>> buffer = collect_play_data(KeyWallEnv(batch_size=(2,)), 200,
         ...                            sampler=SequenceSampler(5), batch_size=4)
         >>> buffer.sample()["action"].shape
         torch.Size([4, 5, 1])
