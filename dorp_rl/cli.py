@@ -89,6 +89,8 @@ PLAY_FIELDS = (
     "seed",
     "device",
 )
+#: other names of --low-level values
+LOW_LEVEL_NAMES = {"ground-truth": "gt", "video": "world-model"}
 #: training steps of the demo's codes (the preset's 1500 do not fit its 5-minute budget)
 DEMO_CODE_STEPS = 1000
 
@@ -159,7 +161,8 @@ class Evaluate(BuildGraph):
     vf-cem (visual foresight), random"""
     low_level: str = "gt"
     """planning model: 'gt' (the true dynamics), 'world-model' (this run's world model,
-    trained first if needed) or the path of a world-model checkpoint"""
+    trained first if needed) or the path of a world-model checkpoint; 'ground-truth' and
+    'video' are other names of 'gt' and 'world-model'"""
     tasks: int = 10
     """tasks of the seeded task set (dorp_rl.eval.make_task_set)"""
     task_seed: int = 0
@@ -736,6 +739,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the ``dorp`` console script (and ``python -m dorp_rl``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     name, cmd = parse(argv)
+    if isinstance(cmd, Evaluate):
+        cmd.low_level = LOW_LEVEL_NAMES.get(cmd.low_level, cmd.low_level)
     try:
         _check(name, cmd)
     except UsageError as err:

@@ -159,14 +159,30 @@ def _rollout_gifs(
     given = TensorDict(state=tasks["state"], goal_state=tasks["goal_state"], batch_size=[n])
     td = env.reset(given.to(env.device), set_state=True)
     limit = env.max_steps if cmd.max_steps is None else cmd.max_steps
-    rollout = env.rollout(
-        limit,
-        policy,
-        tensordict=td,
-        auto_reset=False,
-        break_when_any_done=False,
-        break_when_all_done=True,
-    )
+    bar = None
+    if run.progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, desc="GIF rollouts", unit="task")
+
+    def tick(_env: Any, step: Any) -> None:
+        finished = int(step["done"].sum())
+        if bar is not None and finished > bar.n:
+            bar.update(finished - bar.n)
+
+    try:
+        rollout = env.rollout(
+            limit,
+            policy,
+            tick,
+            tensordict=td,
+            auto_reset=False,
+            break_when_any_done=False,
+            break_when_all_done=True,
+        )
+    finally:
+        if bar is not None:
+            bar.close()
     code_maps = maps.get(_codes_variant(method))
     done = rollout["next", "done"].reshape(n, -1)
     success = rollout["next", "success"].reshape(n, -1)

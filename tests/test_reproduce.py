@@ -54,11 +54,13 @@ def read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
 
 
 def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path, capsys) -> None:
-    out = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj", *TINY)
+    out = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj",
+               "--low-level", "ground-truth", *TINY)  # fmt: skip
     run = tmp_path / "paper"
     columns, rows = read_csv(run / "results.csv")
     assert tuple(columns) == RESULT_COLUMNS + PAPER_COLUMNS
     assert [r["method"] for r in rows] == list(paper_methods("1obj"))
+    assert {r["low_level"] for r in rows} == {"gt"}  # "ground-truth" is another name of it
     assert {r["setting"] for r in rows} == {"1obj"} and {r["tasks"] for r in rows} == {"2"}
     paper = {r["method"]: r["paper_success_rate"] for r in rows}
     assert float(paper["dorp-arbitrary"]) == 0.92 and float(paper["vf-rs"]) == 0.83
@@ -90,7 +92,7 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
     assert not (pictures / "rollout_1.gif").exists()  # --gifs 1
     assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
 
-    # Run again: every stage is reused, the table and timings are the same.
+    # Run again (with "gt"): every stage is reused, the table and timings are the same.
     again = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj", *TINY)
     assert ": running (" not in again
     _, rows_again = read_csv(run / "results.csv")
