@@ -31,6 +31,16 @@ class EncoderConfig(ConfigMixin):
     release), then override fields. In a
     :class:`~dorp_rl.trainers.RepresentationConfig`, ``code_sizes`` may be one number:
     the size of every object one-hot, laid out by the environment.
+
+    Examples:
+        >>> from dorp_rl.modules import EncoderConfig
+        >>> cfg = EncoderConfig.small((16, 2))  # an agent one-hot and a key bit
+        >>> cfg.code_sizes, EncoderConfig.from_dict(cfg.to_dict()) == cfg
+        ((16, 2), True)
+        >>> cfg.replace(map_competition="max")
+        Traceback (most recent call last):
+        ...
+        ValueError: map_competition must be one of ('sigmoid', 'softmax'), got 'max'.
     """
 
     FIELD_RULES = {

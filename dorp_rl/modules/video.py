@@ -110,6 +110,12 @@ class VideoModelConfig(ConfigMixin):
 
     Use :meth:`small` (fast, for planning with thousands of candidates) or
     :meth:`default` (more accurate), then override fields.
+
+    Examples:
+        >>> from dorp_rl.modules import VideoModelConfig
+        >>> cfg = VideoModelConfig.small(latent_dim=0)  # a deterministic model
+        >>> cfg.channels, cfg.dilations, cfg.latent_dim
+        (16, (1, 2, 4), 0)
     """
 
     FIELD_RULES = {
