@@ -241,7 +241,8 @@ def test_bad_arguments_give_a_usage_error(tmp_path, capsys, args, message) -> No
 
 
 def test_python_m_dorp_rl_help_lists_every_field_with_its_default() -> None:
-    env = {"OMP_NUM_THREADS": "1", "COLUMNS": "200", "PATH": ""}
+    # 100 columns: one column of options (wider terminals get several, side by side)
+    env = {"OMP_NUM_THREADS": "1", "COLUMNS": "100", "PATH": ""}
     top = subprocess.run(
         [sys.executable, "-m", "dorp_rl", "--help"], capture_output=True, text=True, env=env
     )
