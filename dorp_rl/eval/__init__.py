@@ -11,12 +11,17 @@ from dorp_rl.eval.diagnostics import (
     rearrangement_diagnostics,
     sample_rearrangement_states,
 )
+from dorp_rl.eval.parallel import BACKENDS, EvalSpec, evaluate_parallel
 from dorp_rl.eval.results import RESULT_COLUMNS, format_table, result_row, write_results
 from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting
-from dorp_rl.eval.tasks import evaluate_policy, make_task_set
+from dorp_rl.eval.tasks import evaluate_policy, make_task_set, seed_policy
 from dorp_rl.eval.world_model import open_loop_accuracy
 
 __all__ = [
+    "BACKENDS",
+    "EvalSpec",
+    "evaluate_parallel",
+    "seed_policy",
     "PAPER_SUCCESS",
     "RESULT_COLUMNS",
     "SETTINGS",

@@ -5,6 +5,13 @@ A task is a start ``state`` and a ``goal_state``; a task set is a TensorDict of 
 a fixed seed, so every method is measured on the same tasks. :func:`evaluate_policy`
 runs a policy on every task with ``env.rollout`` (success = exact equality with the goal
 within the step limit) and reports the steps next to the lower bound of each task.
+
+Seeding rule: with ``seed`` given, :func:`evaluate_policy` reseeds the policy before the
+chunk of tasks ``[k * tasks_per_rollout, (k + 1) * tasks_per_rollout)`` with ``seed + k``
+(:func:`seed_policy`), so a chunk's results depend only on its tasks and its index, not on
+which chunks ran before it in the same process. :func:`~dorp_rl.eval.evaluate_parallel`
+uses the same rule, which is why it gives the same per-task results on any number of
+worker processes or machines.
 """
 
 from __future__ import annotations
@@ -17,7 +24,20 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
-from dorp_rl.validation import MissingKeyError, check_int, check_seed
+from dorp_rl.validation import MissingKeyError, check_int, check_seed, derive_seed
+
+
+def seed_policy(policy: Any, seed: int) -> None:
+    """Reseeds ``policy`` for one chunk of tasks: ``policy.set_seed(seed)`` when it has
+    one (the planner-based policies), otherwise torch's global generator
+    (``torch.manual_seed(seed)``), which ``env.rand_action`` and plain functions draw from.
+    """
+    seed = check_seed(seed)
+    set_seed = getattr(policy, "set_seed", None)
+    if callable(set_seed):
+        set_seed(seed)
+    else:
+        torch.manual_seed(seed)
 
 
 def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDict:
@@ -71,6 +91,7 @@ def evaluate_policy(
     tasks_per_rollout: int = 1,
     progress: bool = False,
     report_keys: Sequence[str] = (),
+    seed: int | None = None,
 ) -> dict[str, Any]:
     """Runs ``policy`` on every task and returns success and step figures.
 
@@ -90,6 +111,10 @@ def evaluate_policy(
         report_keys: keys the policy writes (e.g. ``dorp_replans``) whose value at each
             task's last step is reported per task, as a list of numbers (the first
             element of the value).
+        seed: if given, the policy is reseeded with ``seed + k`` before the ``k``-th
+            chunk of ``tasks_per_rollout`` tasks (:func:`seed_policy`); the rule that makes
+            :func:`~dorp_rl.eval.evaluate_parallel` match this function. ``None`` (the
+            default) leaves the policy's generators as they are.
 
     Returns:
         ``success`` (bool list per task), ``steps`` (int list: steps until success, or
@@ -110,6 +135,7 @@ def evaluate_policy(
     """
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
     tasks_per_rollout = check_int("tasks_per_rollout", tasks_per_rollout, low=1)
+    seed = check_seed(seed, optional=True)
     for key in ("state", "goal_state"):
         if key not in tasks.keys():
             raise ValueError(
@@ -135,6 +161,8 @@ def evaluate_policy(
     for first in range(0, n, tasks_per_rollout):
         chunk = tasks[first : first + tasks_per_rollout]
         rows = chunk.shape[0]
+        if seed is not None:
+            seed_policy(policy, derive_seed(seed, first // tasks_per_rollout))
         if locked and rows != tasks_per_rollout:  # pad the last chunk with repeats
             chunk = torch.cat([chunk, chunk[:1].expand(tasks_per_rollout - rows)], 0)
         given = TensorDict(
@@ -181,7 +209,27 @@ def evaluate_policy(
             bar.update(first + rows - bar.n)
     if bar is not None:
         bar.close()
-    ok = torch.tensor(success)
+    return summarize(tasks, success, steps, limit, time.perf_counter() - start, reported)
+
+
+def summarize(
+    tasks: TensorDictBase,
+    success: Sequence[bool],
+    steps: Sequence[int],
+    max_steps: int,
+    seconds: float,
+    reported: dict[str, list[float]] | None = None,
+) -> dict[str, Any]:
+    """The result dict of :func:`evaluate_policy` from per-task ``success`` and ``steps``
+    (lists in task order, one entry per row of ``tasks``)."""
+    success, steps = list(success), list(steps)
+    n = tasks.shape[0]
+    if len(success) != n or len(steps) != n:
+        raise ValueError(
+            f"expected one success and one steps entry per task ({n}), "
+            f"got {len(success)} and {len(steps)}."
+        )
+    ok = torch.tensor(success, dtype=torch.bool)
     bound = tasks["lower_bound"].float() if "lower_bound" in tasks.keys() else None
     return {
         "num_tasks": n,
@@ -194,7 +242,7 @@ def evaluate_policy(
         "mean_lower_bound": float(bound[ok].mean())
         if bound is not None and ok.any()
         else float("nan"),
-        "max_steps": limit,
-        "seconds": time.perf_counter() - start,
-        **reported,
+        "max_steps": max_steps,
+        "seconds": seconds,
+        **(reported or {}),
     }
