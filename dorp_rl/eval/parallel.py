@@ -28,12 +28,15 @@ Backends:
   frames or whole episodes from the env's own resets, while a task set needs every
   rollout to start from given start and goal states and to stop when all its tasks are
   done, with a seed per chunk; the executor gives exactly that with the plain
-  :func:`~dorp_rl.eval.evaluate_policy` loop inside.
+  :func:`~dorp_rl.eval.evaluate_policy` loop inside. As with any ``spawn`` pool, a
+  script that calls it must keep its top-level code under
+  ``if __name__ == "__main__":`` (each new process imports the script).
 - ``"ray"``: one Ray actor per worker (one CPU each), chunks dealt out as actors become
-  free. Ray is optional (``pip install dorp-rl[ray]``) and imported only here. With
-  ``address=None`` an already initialised Ray is used, or a local instance is started
-  (and shut down after); ``"auto"`` joins the cluster of this machine, ``"ray://host:port"``
-  a remote one. On a cluster, every node needs dorp-rl installed and the files an
+  free. Ray is optional (``pip install dorp-rl[ray]``) and imported only here. An
+  already initialised Ray (``ray.init`` by the caller) is used as it is and left running.
+  Otherwise Ray is started here and shut down after: ``address=None`` starts a local
+  instance, ``"auto"`` joins the cluster of this machine, ``"ray://host:port"`` a remote
+  one. On a cluster, every node needs dorp-rl installed and the files an
   :class:`EvalSpec` names (checkpoints, graph) at the same paths.
 """
 
