@@ -660,6 +660,11 @@ def _check(command: str, cmd: Any) -> None:
                 )
             if not cmd.settings:
                 raise UsageError("--settings needs at least one setting.")
+            if cmd.low_level not in ("gt", "world-model"):
+                raise UsageError(
+                    "--paper runs several settings: --low-level must be 'gt' or "
+                    f"'world-model' (one model per setting), not the checkpoint {cmd.low_level!r}."
+                )
         if cmd.low_level not in ("gt", "world-model") and not Path(cmd.low_level).is_file():
             raise UsageError(
                 f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file; "

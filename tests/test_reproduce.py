@@ -107,6 +107,7 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
     [
         (["reproduce", "--paper", "--methods", "dorp"], "--methods does not apply with --paper"),
         (["demo", "--paper"], "--paper is an option of reproduce"),
+        (["reproduce", "--paper", "--low-level", __file__], "must be 'gt' or"),
         (["evaluate", "--gifs", "-1"], "--gifs must be >= 0"),
     ],
 )
