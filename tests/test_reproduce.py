@@ -102,6 +102,22 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
     assert [t["seconds"] for t in timings_again] == [t["seconds"] for t in timings]
 
 
+def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, capsys) -> None:
+    out = dorp(capsys, tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *TINY)
+    pictures = tmp_path / "paper" / "pictures"
+    assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
+    assert Image.open(pictures / "rollout_0.gif").n_frames >= 2
+    assert Image.open(pictures / "factorization_histogram.png").format == "PNG"
+    written = (pictures / "rollout_0.gif").stat().st_mtime_ns
+    again = dorp(capsys, tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *TINY)
+    assert "pictures: done for this config, skipped" in again
+    assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in again
+    assert (pictures / "rollout_0.gif").stat().st_mtime_ns == written
+    # Without DORP there are no codes to draw.
+    dorp(capsys, tmp_path / "vf", "evaluate", "--methods", "vf-rs", *TINY)
+    assert not (tmp_path / "vf" / "paper" / "pictures").exists()
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
