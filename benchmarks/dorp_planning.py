@@ -109,6 +109,10 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         planning_horizon=args.planning_horizon,
         num_candidates=args.candidates,
         waypoint_budget=args.waypoint_budget,
+        max_removed_edges=args.max_removed_edges,
+        forget_blocked_edges=not args.keep_removed_edges,
+        order=args.order,
+        goal_planner=args.goal_planner,
         seed=args.seed,
     )
     tasks = make_task_set(env, args.tasks, seed=args.task_seed)
@@ -158,6 +162,15 @@ def main() -> None:
     parser.add_argument("--candidates", type=int, default=1000)
     parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--waypoint-budget", type=int, default=28)
+    parser.add_argument("--max-removed-edges", type=int, default=32)
+    parser.add_argument(
+        "--keep-removed-edges",
+        action="store_true",
+        help="never restore a removed edge (the authors); default: restore a group's removed "
+        "edges when another group reaches a waypoint",
+    )
+    parser.add_argument("--order", choices=["index", "nearest"], default="index")
+    parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
     parser.add_argument("--tasks-per-rollout", type=int, default=10)
     parser.add_argument("--threads", type=int, default=1, help="torch threads")

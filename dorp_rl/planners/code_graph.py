@@ -464,6 +464,17 @@ class CodeGraph(nn.Module):
         hits = (self.indices[lo:hi] == b).nonzero()
         return lo + int(hits[0]) if hits.numel() else _UNREACHABLE
 
+    def group_of_edge(self, edge: int | torch.Tensor) -> torch.Tensor:
+        """Group index of each edge id (any shape); -1 for the ``-1`` (no edge) entries."""
+        edge = torch.as_tensor(edge, dtype=torch.int64)
+        total = int(self.indices.shape[0])
+        if ((edge < -1) | (edge >= total)).any():
+            raise ValueError(f"edge ids must lie in -1..{total - 1}, got {edge.tolist()}.")
+        source = self.edge_source[edge.clamp(min=0)]
+        offsets = torch.as_tensor(self._offsets[1:-1], dtype=torch.int64)
+        group = torch.bucketize(source, offsets, right=True)
+        return torch.where(edge >= 0, group, torch.full_like(group, -1))
+
     # ------------------------------------------------------------------ #
     # Search
     # ------------------------------------------------------------------ #

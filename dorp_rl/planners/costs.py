@@ -526,7 +526,9 @@ class WeightedCostSum(RolloutCost):
     ``step_aggregation=`` to the planner unless ``"sum"`` is wanted.
 
     Args:
-        weights: per-step cost key -> weight.
+        weights: per-step cost key -> weight: a number, or the key of a per-row weight
+            (``[*B, 1]`` in the acting tensordict, carried into the rollout), so a policy
+            can turn a term up or down for one env without another cost module.
         out_key: where the weighted sum ``[*B, N, H]`` is written.
         step_aggregation: how planners fold the steps (default ``"sum"``).
 
@@ -564,7 +566,7 @@ class WeightedCostSum(RolloutCost):
 
     def __init__(
         self,
-        weights: Mapping[NestedKey, float],
+        weights: Mapping[NestedKey, float | NestedKey],
         *,
         out_key: NestedKey = "cost",
         step_aggregation: str = "sum",
@@ -575,27 +577,46 @@ class WeightedCostSum(RolloutCost):
                 f"weights must be a non-empty mapping from per-step cost keys to weights, "
                 f"got {weights!r}."
             )
-        self.weights: dict[NestedKey, float] = {}
+        self.weights: dict[NestedKey, float | NestedKey] = {}
         for key, weight in weights.items():
             key = unravel_key(key)
             if key in self.weights:
                 raise ValueError(f"weights names the key {key!r} twice.")
-            if not math.isfinite(float(weight)):
-                raise ValueError(f"the weight of {key!r} must be finite, got {weight}.")
+            if isinstance(weight, (str, tuple)):
+                self.weights[key] = unravel_key(weight)
+                continue
+            if not isinstance(weight, (int, float)) or not math.isfinite(float(weight)):
+                raise ValueError(
+                    f"the weight of {key!r} must be a finite number or the key of a per-row "
+                    f"weight, got {weight!r}."
+                )
             self.weights[key] = float(weight)
-        self.in_keys = list(self.weights)
+        weight_keys = [w for w in self.weights.values() if not isinstance(w, float)]
+        self.in_keys = list(dict.fromkeys([*self.weights, *weight_keys]))
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        name = type(self).__name__
         total = None
         for key, weight in self.weights.items():
             value = rollout.get(key, None)
             if value is None:
                 raise MissingRolloutKeyError(
-                    f"{type(self).__name__} needs the per-step cost {key!r}, which is missing "
+                    f"{name} needs the per-step cost {key!r}, which is missing "
                     f"from the rollout: put a cost with out_key={key!r} before it in the "
                     "TensorDictSequential."
                 )
-            value = weight * value.to(torch.float32)
+            value = value.to(torch.float32)
+            if isinstance(weight, float):
+                value = weight * value
+            else:
+                factor = get_rollout_key(rollout, weight, name).to(torch.float32)
+                if factor.numel() != value.numel():
+                    raise ValueError(
+                        f"the weight {weight!r} must hold one number per row of the acting "
+                        f"tensordict ([*B, 1]), got shape {list(factor.shape)} in a rollout "
+                        f"of {list(rollout.batch_size)}."
+                    )
+                value = factor.reshape(value.shape) * value
             total = value if total is None else total + value
         return total
 

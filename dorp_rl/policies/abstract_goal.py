@@ -12,8 +12,11 @@
    budget; if not, remove that edge for this task and replan; when no group has a path
    left the task ends as failed (``dorp_failed``), never in an endless loop;
 6. once every one-hot holds the goal's code, drive to the goal image with
-   :class:`~dorp_rl.planners.PixelDistanceCost`; a task that spends more than
-   ``goal_budget`` steps in this phase is given up too.
+   :class:`~dorp_rl.planners.PixelDistanceCost` while keeping the goal's codes; when
+   its plans stop getting closer for ``goal_patience`` steps (a learned code can cover
+   two places the planner cannot join without leaving it), the code term is dropped and
+   pixel distance alone drives the rest; a task that spends more than ``goal_budget``
+   steps in this phase (twice that once relaxed) is given up too.
 
 All plan state lives in the tensordict (keys below, ``[*B, ...]`` per env), declared by
 :meth:`AbstractGoalPolicy.make_tensordict_primer` and restarted on ``is_init``, so one
@@ -38,6 +41,11 @@ key                        dtype / shape       meaning
 ``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
 ``dorp_misses``            int64 ``[1]``       plans for this waypoint that reached it nowhere
 ``dorp_failed``            bool ``[1]``        no path left: the task is given up
+``dorp_goal_best``         float ``[1]``       lowest goal-plan cost so far (``inf``: none)
+``dorp_goal_stall``        int64 ``[1]``       goal-phase steps since that cost last fell
+``dorp_relaxed``           bool ``[1]``        the goal phase dropped its goal-code term
+``goal_code_weight``       float ``[1]``       weight of the goal-code term (read by the
+                                               goal planner's cost; 0 once relaxed)
 =========================  ==================  ===========================================
 """
 
@@ -70,6 +78,17 @@ _NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = range(5)
 _CEM_ONLY = frozenset(
     ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
 )
+#: Reset values of the state keys that do not start at 0.
+_FILLS = {
+    "dorp_removed": -1,
+    "dorp_edge": -1,
+    "subgoal_mask": False,
+    "dorp_failed": False,
+    "dorp_relaxed": False,
+    "dorp_goal_best": float("inf"),
+}
+_BOOL_KEYS = ("subgoal_mask", "dorp_failed", "dorp_relaxed")
+_FLOAT_KEYS = ("dorp_goal_best", "goal_code_weight")
 #: Orders in which groups are moved (besides an explicit sequence of group indices).
 ORDERS = ("index", "nearest")
 
@@ -103,6 +122,16 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             :class:`~dorp_rl.planners.CodeMatchCost`) after which the edge is removed
             without waiting for the budget (``None``: only the budget counts).
         miss_threshold: the plan cost from which a waypoint plan is a miss.
+        goal_code_weight: the weight the goal planner's cost gives the goal-code term,
+            written per row under ``goal_code_weight`` (its cost must read that key, as
+            :func:`make_dorp_policy` builds it); ``None``: the cost has no such term.
+        goal_patience: goal-phase steps without a lower goal-plan cost after which the
+            goal-code term is dropped for the task (``None``: never; needs
+            ``goal_code_weight``).
+        forget_blocked_edges: when a group reaches a waypoint, restore the edges removed
+            for the other groups (their hops may have failed only because an object
+            stood in the way, which has now moved); ``False`` keeps every removal for the
+            rest of the task, as the authors.
 
     Examples:
         >>> import torch
@@ -133,6 +162,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         goal_budget: int | None = 56,
         max_misses: int | None = 2,
         miss_threshold: float = 0.5,
+        forget_blocked_edges: bool = True,
+        goal_code_weight: float | None = None,
+        goal_patience: int | None = 14,
         pixels_key: str = "pixels",
         goal_pixels_key: str = "goal_pixels",
     ) -> None:
@@ -195,6 +227,28 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             raise ValueError(f"max_misses must be an integer >= 1 or None, got {max_misses}.")
         self.max_misses = None if max_misses is None else int(max_misses)
         self.miss_threshold = float(miss_threshold)
+        self.forget_blocked_edges = bool(forget_blocked_edges)
+        reads_weight = "goal_code_weight" in goal_planner.in_keys
+        if goal_code_weight is not None and not reads_weight:
+            raise ValueError(
+                "goal_code_weight is given but the goal planner's cost does not read "
+                "'goal_code_weight' (use WeightedCostSum({..., 'goal_code_cost': "
+                "'goal_code_weight'}) or leave goal_code_weight=None)."
+            )
+        if reads_weight and goal_code_weight is None:
+            raise ValueError(
+                "the goal planner's cost reads 'goal_code_weight': give goal_code_weight, "
+                "the weight the policy writes there."
+            )
+        if goal_patience is not None:
+            if int(goal_patience) != goal_patience or goal_patience < 1:
+                raise ValueError(
+                    f"goal_patience must be an integer >= 1 or None, got {goal_patience}."
+                )
+            if goal_code_weight is None:
+                goal_patience = None  # nothing to relax
+        self.goal_code_weight = None if goal_code_weight is None else float(goal_code_weight)
+        self.goal_patience = None if goal_patience is None else int(goal_patience)
         self.max_removed_edges = int(max_removed_edges)
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
@@ -215,7 +269,12 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_goal_steps",
             "dorp_misses",
             "dorp_failed",
+            "dorp_goal_best",
+            "dorp_goal_stall",
+            "dorp_relaxed",
         ]
+        if self.goal_code_weight is not None:
+            self.state_keys.append("goal_code_weight")
         planner_keys = [*waypoint_planner.in_keys, *goal_planner.in_keys]
         self.in_keys = list(
             dict.fromkeys(
@@ -260,9 +319,14 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_goal_steps=integer(1),
             dorp_misses=integer(1),
             dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
+            dorp_goal_best=Unbounded(shape=(1,), dtype=torch.float32),
+            dorp_goal_stall=integer(1),
+            dorp_relaxed=Binary(n=1, shape=(1,), dtype=torch.bool),
         )
+        if self.goal_code_weight is not None:
+            specs["goal_code_weight"] = Unbounded(shape=(1,), dtype=torch.float32)
         defaults = {key: 0 for key in specs.keys()}
-        defaults.update(dorp_removed=-1, dorp_edge=-1, subgoal_mask=False, dorp_failed=False)
+        defaults.update(_FILLS)
         return TensorDictPrimer(specs, default_value=defaults, expand_specs=True)
 
     def make_primer(self) -> Compose:
@@ -318,8 +382,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         running = self._read_planner(flat, goal_plan, goal_plan.cursor_key) < self._read_planner(
             flat, goal_plan, goal_plan.length_key
         )
+        relaxed = state["dorp_relaxed"].squeeze(-1)
         at_goal = active & (
-            (code == goal_code).all(-1) | ((mode == _GOAL) & running.squeeze(-1) & ~fresh)
+            (code == goal_code).all(-1)
+            | ((mode == _GOAL) & running.squeeze(-1) & ~fresh)
+            | (relaxed & ~fresh)
         )
 
         # Waypoint bookkeeping.
@@ -329,6 +396,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         budget = state["dorp_budget"].squeeze(-1)
         out_of_budget = in_waypoint & ~reached & (budget <= 0)
         state["dorp_waypoints"][reached] += 1
+        if self.forget_blocked_edges:
+            self._forget_blocked_edges(state, reached)
         for row in out_of_budget.nonzero().squeeze(-1).tolist():
             self._remove_edge(state, row)
         need = active & ~at_goal & ((mode != _WAYPOINT) | reached | out_of_budget)
@@ -337,7 +406,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         for row in need.nonzero().squeeze(-1).tolist():
             new_waypoint[row] = self._next_waypoint(state, row)
         if self.goal_budget is not None:
-            spent = state["dorp_goal_steps"].squeeze(-1) >= self.goal_budget
+            allowed = self.goal_budget * (1 + state["dorp_relaxed"].squeeze(-1).long())
+            spent = state["dorp_goal_steps"].squeeze(-1) >= allowed
             state["dorp_failed"][active & at_goal & spent] = True
             at_goal &= ~spent
         failed = state["dorp_failed"].squeeze(-1)
@@ -362,8 +432,15 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             index = rows_mask.nonzero().squeeze(-1)
             if index.numel():
                 sub = flat[index.to(flat.device)].clone(False)
-                for key in ("code", "goal_code", "subgoal_code", "subgoal_mask"):
-                    sub.set(key, state[key][index].to(flat.device))
+                for key in (
+                    "code",
+                    "goal_code",
+                    "subgoal_code",
+                    "subgoal_mask",
+                    "goal_code_weight",
+                ):
+                    if key in state:
+                        sub.set(key, state[key][index].to(flat.device))
                 for key, value in planner_state.items():
                     sub.set(key, value[index].to(flat.device))
                 planner(sub)
@@ -382,7 +459,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             gone = missed & (state["dorp_misses"].squeeze(-1) >= self.max_misses)
             state["dorp_budget"][gone] = 1  # 0 after the decrement below: removed next step
         state["dorp_budget"][mode == _WAYPOINT] -= 1
-        state["dorp_goal_steps"][(mode == _GOAL) & active] += 1
+        in_goal = (mode == _GOAL) & active
+        state["dorp_goal_steps"][in_goal] += 1
+        if self.goal_patience is not None:
+            self._watch_goal_progress(state, outputs, in_goal)
 
         out = {"action": action, **state, **outputs}
         for key, value in out.items():
@@ -394,8 +474,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
     # ------------------------------------------------------------------ #
     def _restart(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
         for key, value in state.items():
-            fill = -1 if key in ("dorp_removed", "dorp_edge") else 0
-            value[rows] = fill
+            value[rows] = _FILLS.get(key, 0)
+        if self.goal_code_weight is not None:
+            state["goal_code_weight"][rows] = self.goal_code_weight
         state["dorp_mode"][rows] = _NEW
 
     def _remove_edge(self, state: dict[str, torch.Tensor], row: int) -> None:
@@ -407,8 +488,45 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             state["dorp_failed"][row] = True
             return
         if edge >= 0:
-            removed[count % removed.shape[0]] = edge
+            free = (removed < 0).nonzero()
+            removed[int(free[0]) if free.numel() else count % removed.shape[0]] = edge
         state["dorp_replans"][row] += 1
+
+    def _forget_blocked_edges(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
+        """Rows whose group just reached a waypoint: restore the other groups' removed edges.
+
+        A hop often fails because another object stands in the way; once a group has moved,
+        that block may be gone, so edges removed for the other groups are free again. The
+        count of removals (``dorp_replans``) is kept, so ``max_removed_edges`` still ends
+        a task that keeps failing.
+        """
+        if not rows.any():
+            return
+        removed = state["dorp_removed"][rows]
+        moved = state["dorp_group"][rows]
+        other = (self.graph.group_of_edge(removed) != moved) & (removed >= 0)
+        state["dorp_removed"][rows] = removed.masked_fill(other, -1)
+
+    def _watch_goal_progress(
+        self, state: dict[str, torch.Tensor], outputs: dict[str, torch.Tensor], rows: torch.Tensor
+    ) -> None:
+        """Drops the goal-code term of rows whose goal plans stopped getting cheaper."""
+        gp = self.goal_planner
+        planned = rows & (outputs[gp.cursor_key].squeeze(-1) == 1)
+        cost = outputs[gp.plan_cost_key].squeeze(-1).float()
+        best = state["dorp_goal_best"].squeeze(-1)
+        better = planned & (cost < best - 1e-4 * best.abs().clamp(max=1e6))
+        state["dorp_goal_best"][better] = cost[better].unsqueeze(-1)
+        state["dorp_goal_stall"][better] = 0
+        state["dorp_goal_stall"][rows & ~better] += 1
+        relaxed = state["dorp_relaxed"].squeeze(-1)
+        give_up = rows & ~relaxed & (state["dorp_goal_stall"].squeeze(-1) >= self.goal_patience)
+        if give_up.any():
+            state["dorp_relaxed"][give_up] = True
+            state["goal_code_weight"][give_up] = 0.0
+            state["dorp_goal_stall"][give_up] = 0
+            state["dorp_goal_best"][give_up] = float("inf")
+            outputs[gp.length_key][give_up] = 0  # replan without the term next step
 
     def _group_order(self, code: torch.Tensor, goal: torch.Tensor, current: int) -> list[int]:
         differing = [
@@ -500,11 +618,16 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_removed": r,
         }
         width = shapes.get(key, 1)
-        dtype = torch.bool if key in ("subgoal_mask", "dorp_failed") else torch.int64
+        dtype = (
+            torch.bool
+            if key in _BOOL_KEYS
+            else torch.float32
+            if key in _FLOAT_KEYS
+            else torch.int64
+        )
         value = td.get(key, None)
         if value is None:
-            fill = -1 if key in ("dorp_removed", "dorp_edge") else 0
-            return torch.full((rows, width), fill, dtype=dtype)
+            return torch.full((rows, width), _FILLS.get(key, 0), dtype=dtype)
         if tuple(value.shape) != (rows, width):
             raise ValueError(
                 f"{key!r} must have shape [{rows}, {width}] for this policy, got "
@@ -545,7 +668,9 @@ def make_dorp_policy(
     max_removed_edges: int = 32,
     goal_budget: int | None = 56,
     max_misses: int | None = 2,
+    forget_blocked_edges: bool = True,
     goal_code_weight: float = 100.0,
+    goal_patience: int | None = 14,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     seed: int | None = None,
     **planner_kwargs: Any,
@@ -562,8 +687,8 @@ def make_dorp_policy(
         planner: ``"rs"`` (random shooting) or ``"cem"`` for the waypoint steps.
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
-        order, waypoint_budget, max_removed_edges, goal_budget, max_misses: see
-            :class:`AbstractGoalPolicy`.
+        order, waypoint_budget, max_removed_edges, goal_budget, max_misses,
+            forget_blocked_edges: see :class:`AbstractGoalPolicy`.
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
             paper). Without it the pixel cost can pull objects out of their goal codes,
@@ -571,6 +696,8 @@ def make_dorp_policy(
         goal_blur_sigmas: blurred terms of the goal-image pixel distance
             (:class:`~dorp_rl.planners.PixelDistanceCost`); ``()`` is the paper's plain
             L2, which is flat while a block does not overlap its goal place.
+        goal_patience: goal-phase steps without progress after which the goal-code
+            term is dropped for the task (see :class:`AbstractGoalPolicy`).
         seed: seeds the planners.
         **planner_kwargs: more arguments of the planners (e.g. ``optim_steps``, ``top_k``).
 
@@ -643,7 +770,7 @@ def make_dorp_policy(
             pixel_cost,
             CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost"),
             WeightedCostSum(
-                {"pixel_cost": 1.0, "goal_code_cost": float(goal_code_weight)},
+                {"pixel_cost": 1.0, "goal_code_cost": "goal_code_weight"},
                 step_aggregation="min",
             ),
         )
@@ -666,4 +793,7 @@ def make_dorp_policy(
         max_removed_edges=max_removed_edges,
         goal_budget=goal_budget,
         max_misses=max_misses,
+        forget_blocked_edges=forget_blocked_edges,
+        goal_code_weight=float(goal_code_weight) if goal_code_weight > 0 else None,
+        goal_patience=goal_patience,
     )
