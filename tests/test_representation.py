@@ -330,9 +330,9 @@ def test_collapse_detector_restarts_and_reports(tmp_path):
 
 
 def test_healthy_metrics_are_not_collapse(tmp_path):
-    trainer = RepresentationTrainer(_tiny_config(tmp_path))
-    assert trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 9.0, "loss_cpc": 2.0}, 10**6) is None
-    assert trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 2.0}, 0) is None
+    collapse = RepresentationTrainer(_tiny_config(tmp_path)).collapse_hook
+    assert collapse.collapse_reason({"min_codes_in_batch": 9.0, "loss_cpc": 2.0}, 10**6) is None
+    assert collapse.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 2.0}, 0) is None
 
 
 def test_one_noisy_batch_is_not_a_flat_loss(tmp_path):
