@@ -80,7 +80,15 @@ PAPER_METHOD_NAMES: dict[str, str] = {
 def paper_figures(setting: str, method: str, low_level: str = "gt") -> tuple[float | None, str]:
     """The paper's (success rate, steps) for ``method`` in ``setting`` (``(None, "")``:
     not reported). ``3obj-full``/``5obj-full`` with ``dorp`` are the full-graph rows;
-    key-wall through a video model is the paper's 9 of 10 with SV2P."""
+    key-wall through a video model is the paper's 9 of 10 with SV2P.
+
+    Examples:
+        >>> from dorp_rl.eval.results import paper_figures
+        >>> paper_figures("3obj", "dorp-identity"), paper_figures("5obj", "vf-cem")
+        ((0.48, '83 ± 23'), (0.1, 'max'))
+        >>> paper_figures("3obj-full", "dorp"), paper_figures("5obj", "dorp-identity")
+        ((1.0, '76 ± 26'), (None, ''))
+    """
     if setting.endswith("-full") and method == "dorp":
         setting, method = setting.removesuffix("-full"), "dorp-full"
     if (setting, method) == ("keywall", "dorp") and low_level not in ("gt", "none"):

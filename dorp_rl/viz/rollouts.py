@@ -118,6 +118,14 @@ def waypoint_panel(
         mode: ``dorp_mode`` (0 new, 1 waypoint, 2 goal image, 3 failed, 4 done).
         group: ``dorp_group``, shown in waypoint mode.
         code_maps: from :func:`code_maps_for_waypoints`.
+
+    Examples:
+        >>> import numpy as np
+        >>> from dorp_rl.viz import waypoint_panel
+        >>> code_map = np.array([[0, 0, 1], [1, 2, 2]])  # one-hot 0's codes over positions
+        >>> panel = waypoint_panel([0, 3], [1, 3], [True, False], 1, 0, [[code_map], None])
+        >>> panel.dtype, panel.shape[-1], bool((panel == (255, 210, 0)).all(-1).any())
+        (dtype('uint8'), 3, True)
     """
     subgoal = [int(v) for v in subgoal_code]
     mask = [bool(v) for v in subgoal_mask]
