@@ -262,6 +262,21 @@ def _flatten(values: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix[:-1]: values}
 
 
+def _upgrade_stored(values: Any) -> Any:
+    """A stored stage config in this version's terms: trainer configs of older versions
+    (flat ``code_size`` / ``encoder_preset``, ``model_preset`` fields) read into the nested
+    ones, so that an unchanged run is not re-run for the new layout alone."""
+    if not isinstance(values, dict):
+        return values
+    for flat, cls in (("encoder_preset", RepresentationConfig), ("model_preset", WorldModelConfig)):
+        if flat in values:
+            try:
+                return json.loads(json.dumps(_stage_config(cls.from_dict(values))))
+            except (ValueError, TypeError):
+                return values
+    return {key: _upgrade_stored(value) for key, value in values.items()}
+
+
 @contextmanager
 def quiet_torchrl(active: bool) -> Iterator[None]:
     """Raises the ``torchrl`` logger to WARNING while ``active``, so that its INFO lines
@@ -314,6 +329,8 @@ class Run:
         """
         config = json.loads(json.dumps(config))  # as stored: tuples become lists
         record = self.stages.get(name)
+        if record is not None and record["config"] not in (None, config):
+            record = {**record, "config": _upgrade_stored(record["config"])}
         if record is not None and record["config"] == config and all(p.exists() for p in outputs):
             self.say(f"{name}: done for this config, skipped{self._where(outputs)}")
             return load()

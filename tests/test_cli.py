@@ -123,6 +123,31 @@ def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, capsys) -
     assert "codes: running (changed: encoder.code_sizes [8] -> [4])" in out
 
 
+def test_stages_recorded_with_the_older_flat_configs_are_still_skipped(tmp_path, capsys) -> None:
+    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    stages_path = tmp_path / "run" / "stages.json"
+    stages = json.loads(stages_path.read_text())
+
+    def flat(config: dict) -> dict:  # what versions with flat configs stored
+        encoder = config.pop("encoder")
+        assert encoder["channels"] == 16 and encoder["mlp_sizes"] == [128, 128]  # "small"
+        return config | {
+            "code_size": encoder["code_sizes"][0],
+            "encoder_preset": "small",
+            "map_competition": encoder["map_competition"],
+            "extractor_kernel_size": encoder["kernel_size"],
+        }
+
+    stages["codes"]["config"] = flat(stages["codes"]["config"])
+    stages["graph"]["config"]["codes"] = flat(stages["graph"]["config"]["codes"])
+    stages_path.write_text(json.dumps(stages))
+    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    for stage in ("play", "codes", "graph"):
+        assert f"{stage}: done for this config, skipped" in out
+    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES, "--codes.encoder.code-sizes", "4")
+    assert "codes: running (changed: encoder.code_sizes [8] -> [4])" in out
+
+
 def test_a_stage_that_did_not_finish_runs_again(tmp_path, capsys) -> None:
     dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
     stages_path = tmp_path / "run" / "stages.json"
