@@ -21,6 +21,7 @@ from dorp_rl.modules import EncoderConfig, VideoModelConfig
 from dorp_rl.trainers import (
     RepresentationConfig,
     RepresentationTrainer,
+    TrainerConfig,
     WorldModelConfig,
     WorldModelTrainer,
 )
@@ -28,7 +29,7 @@ from dorp_rl.validation import Choice, Device, Flag, Float, Int, Ints, Seed, Tex
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-CONFIGS = [RepresentationConfig, WorldModelConfig, VideoModelConfig, EncoderConfig]
+CONFIGS = [TrainerConfig, RepresentationConfig, WorldModelConfig, VideoModelConfig, EncoderConfig]
 
 
 def bad_values(rule) -> list:
