@@ -30,16 +30,24 @@ T = TypeVar("T", bound="ConfigMixin")
 class Nested:
     """Rule of a field holding another config: an instance of ``cls`` or a dict of its fields.
 
-    The value is validated and copied (two configs never share one nested config); a
-    wrong nested value raises ``ValueError`` naming ``<field>.<nested field>``.
+    A dict changes the fields it names of ``default()`` (the field's default config, if
+    given) or of ``cls()``. The value is validated and copied (two configs never share
+    one nested config); a wrong nested value raises ``ValueError`` naming
+    ``<field>.<nested field>``.
     """
 
     cls: type
+    default: Any = None
 
     def __call__(self, name: str, value: Any) -> Any:
         try:
             if isinstance(value, dict):
-                return self.cls.from_dict(value)
+                fields = {f.name for f in dataclasses.fields(self.cls)}
+                unknown = sorted(set(value) - fields)
+                if unknown:
+                    raise ValueError(f"unknown {self.cls.__name__} fields {unknown}.")
+                base = self.default() if self.default is not None else self.cls()
+                return base.replace(**value)
             if not isinstance(value, self.cls):
                 raise ValueError(
                     f"must be a {self.cls.__name__} or a dict of its fields, "

@@ -158,6 +158,11 @@ def test_replace_merges_a_dict_into_the_nested_config(tiny_configs, tmp_path):
     assert cfg.model.channels == 16  # configs never share a nested config
     with pytest.raises(ValueError, match=r"^model\.channels must be >= 1"):
         cfg.replace(model={"channels": 0})
+    # a dict given to the constructor changes the field's default (the small encoder)
+    built = RepresentationConfig(encoder={"code_sizes": (8,)})
+    assert built.encoder == EncoderConfig.small((8,))
+    with pytest.raises(ValueError, match=r"^encoder: unknown EncoderConfig fields \['size'\]"):
+        RepresentationConfig(encoder={"size": 8})
 
 
 # ---------------------------------------------------------------- hooks

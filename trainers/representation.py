@@ -61,7 +61,7 @@ class RepresentationConfig(TrainerConfig):
         **TrainerConfig.FIELD_RULES,
         "min_offset": Int(low=1),
         "max_offset": Int(low=1),
-        "encoder": Nested(EncoderConfig),
+        "encoder": Nested(EncoderConfig, default=_default_encoder),
         "similarity": Choice(tuple(SIMILARITIES)),
         "dddp_sign": Choice(("paper", "authors")),
         "alpha": Float(low=1.0),

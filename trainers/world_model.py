@@ -53,7 +53,7 @@ class WorldModelConfig(TrainerConfig):
         "horizon": Int(low=1),
         "eval_frames": Int(low=1),
         "eval_sequences": Int(low=1),
-        "model": Nested(VideoModelConfig),
+        "model": Nested(VideoModelConfig, default=VideoModelConfig.default),
         "feedback": Choice(FEEDBACK_MODES),
         "kl_weight": Float(low=0.0),
         "free_bits": Float(low=0.0),
