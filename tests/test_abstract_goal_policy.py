@@ -269,3 +269,76 @@ def test_a_waypoint_no_plan_reaches_is_removed_before_its_budget():
         first_failure[misses] = int(failed.float().argmax())
     # One plan without a candidate at the waypoint removes the edge the next step.
     assert first_failure[1] == 1 and first_failure[None] == 8
+
+
+def _edge_of_group(graph, group):
+    lo, hi = graph.node_offsets[group], graph.node_offsets[group + 1]
+    return int(graph.indptr[lo]), int(graph.indptr[hi]) - 1
+
+
+@pytest.mark.parametrize("forget", [True, False])
+def test_reaching_a_waypoint_restores_the_other_groups_removed_edges(two_objects, forget):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, forget_blocked_edges=forget, **SMALL)
+    td = policy(fresh_batch(env, make_task_set(env, 4, seed=2)))
+    group = int(td["dorp_group"][0])
+    other = 1 - group
+    own_edge, other_edge = _edge_of_group(graph, group)[0], _edge_of_group(graph, other)[0]
+    assert graph.group_of_edge(torch.tensor([own_edge, other_edge, -1])).tolist() == [
+        group,
+        other,
+        -1,
+    ]
+    td["dorp_removed"][0, :2] = torch.tensor([own_edge, other_edge])
+    # The frame is unchanged, so a waypoint equal to the current code counts as reached.
+    td["subgoal_code"][0] = td["code"][0]
+    td = policy(td)
+    removed = set(td["dorp_removed"][0].tolist())
+    assert own_edge in removed  # the moving group's failures stand
+    assert (other_edge in removed) is not forget
+    for row in (1, 2, 3):
+        assert (td["dorp_removed"][row] == -1).all()
+
+
+class DiagonalCodes(torch.nn.Module):
+    """One object, two codes: quadrants top-left + bottom-right, and the other two.
+
+    Each code covers two places that only meet at a corner, as a learned code can."""
+
+    code_sizes = (2,)
+
+    def __init__(self, env):
+        super().__init__()
+        self.oracle = OracleCodeEncoder(env, cell_size=8)  # quadrants 0 1 / 2 3
+
+    def forward(self, pixels):
+        quadrant = self.oracle(pixels)[0]
+        code = (quadrant // 2 + quadrant % 2) % 2
+        return code, torch.nn.functional.one_hot(code, 2).float()
+
+
+@pytest.mark.parametrize("patience", [None, 5])
+def test_a_goal_phase_that_stops_improving_drops_its_code_term(patience):
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    encoder = DiagonalCodes(env)
+    graph = CodeGraph.from_transitions(torch.tensor([[0]]), torch.tensor([[1]]), (2,))
+    policy = make_dorp_policy(
+        env, encoder, graph, seed=0, goal_budget=40, goal_patience=patience, **SMALL
+    )
+    # Start and goal share code 0 but lie in opposite quadrants: keeping the code, no
+    # plan gets closer; without it, pixel distance leads across the other code.
+    start, goal = torch.tensor([[[2, 2]]]), torch.tensor([[[12, 12]]])
+    td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
+    rollout = env.rollout(90, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
+    solved = bool(rollout["next", "success"].any())
+    relaxed = bool(rollout["dorp_relaxed"].any())
+    weight = rollout["goal_code_weight"][0, :, 0]
+    assert relaxed is (patience is not None)
+    if patience is None:
+        assert (weight == 100.0).all()
+    else:
+        assert solved
+        first = int(rollout["dorp_relaxed"][0, :, 0].long().argmax())
+        assert (weight[:first] == 100.0).all() and weight[first] == 0.0
+        # Relaxed only after ``patience`` goal steps without a cheaper plan.
+        assert int(rollout["dorp_goal_steps"][0, first]) >= patience

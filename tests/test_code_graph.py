@@ -193,3 +193,16 @@ def test_buffers_can_be_shared_between_processes():
     params = TensorDict.from_module(graph)
     params.share_memory_()  # what torchrl's collectors do with a policy's tensors
     assert all(t.is_shared() for t in params.values(True, True))
+
+
+def test_group_of_edge_names_each_edges_group():
+    code = torch.tensor([[0, 0], [1, 0], [1, 1]])
+    nxt = torch.tensor([[1, 0], [1, 1], [2, 1]])
+    graph = CodeGraph.from_transitions(code, nxt, (3, 2))
+    groups = graph.group_of_edge(torch.arange(graph.indices.shape[0]))
+    sources = graph.edge_source[torch.arange(graph.indices.shape[0])]
+    expected = (sources >= graph.node_offsets[1]).long()
+    assert torch.equal(groups, expected) and set(groups.tolist()) == {0, 1}
+    assert graph.group_of_edge(-1).item() == -1
+    with pytest.raises(ValueError, match="edge ids"):
+        graph.group_of_edge(graph.indices.shape[0])

@@ -676,3 +676,21 @@ def test_blurred_pixel_distance_sees_blocks_that_do_not_overlap_their_goal():
     assert torch.equal(cost(many)["cost"], cost(as_float)["cost"])
     with pytest.raises(ValueError, match="blur_sigmas"):
         PixelDistanceCost(blur_sigmas=(0.0,))
+
+
+def test_blurred_pixel_distance_grows_all_the_way_to_the_corner():
+    """With zero padding a block in a corner lost blurred mass and looked closer."""
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    goal = env.render_state(torch.tensor([[[12, 12]]]))
+    states = torch.tensor([[[k, k]] for k in range(12, -1, -1)])
+    frames = env.render_state(states)
+    n = states.shape[0]
+    rollout = TensorDict(
+        {
+            ("next", "pixels"): frames.reshape(1, n, 1, 3, 16, 16),
+            "goal_pixels": goal.reshape(1, 1, 1, 3, 16, 16).expand(1, n, 1, 3, 16, 16),
+        },
+        batch_size=(1, n, 1),
+    )
+    cost = PixelDistanceCost(blur_sigmas=(1.0, 2.0, 4.0)).per_step_cost(rollout).flatten()
+    assert cost[0] == 0 and (cost.diff() > 0).all(), cost.tolist()

@@ -269,12 +269,28 @@ class PixelDistanceCost(RolloutCost):
 
 
 def _blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian blur of ``[n, c, h, w]`` images with zero padding."""
+    """Separable Gaussian blur of ``[n, c, h, w]`` images, mirrored at the borders.
+
+    Mirroring (each border cell repeated once, then the image backwards) keeps every
+    cell's mass inside the frame: with zero padding a block in a corner loses part of
+    its blurred mass, so its distance to any far goal shrinks and pixel-distance
+    planners drift into corners.
+    """
     c, radius = images.shape[1], taps.shape[0] // 2
     rows = taps.to(images.dtype).view(1, 1, -1, 1).expand(c, 1, -1, 1)
     cols = taps.to(images.dtype).view(1, 1, 1, -1).expand(c, 1, 1, -1)
-    images = torch.nn.functional.conv2d(images, rows, padding=(radius, 0), groups=c)
-    return torch.nn.functional.conv2d(images, cols, padding=(0, radius), groups=c)
+    images = torch.nn.functional.conv2d(_mirror(images, radius, -2), rows, groups=c)
+    return torch.nn.functional.conv2d(_mirror(images, radius, -1), cols, groups=c)
+
+
+def _mirror(images: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
+    """``images`` padded by ``radius`` mirrored cells on both sides of ``dim``."""
+    size = images.shape[dim]
+    if radius > size:
+        raise ValueError(f"a blur of radius {radius} needs frames of at least that size.")
+    head = images.narrow(dim, 0, radius).flip(dim)
+    tail = images.narrow(dim, size - radius, radius).flip(dim)
+    return torch.cat([head, images, tail], dim)
 
 
 class _EncodingCache:
