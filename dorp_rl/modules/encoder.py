@@ -54,23 +54,19 @@ class EncoderConfig(ConfigMixin):
     }
 
     code_sizes: tuple[int, ...] = (32,)
-    """codes of each one-hot, e.g. (32, 32) for two objects or (16, 2) for a key room
-    (agent one-hot plus a 2-way key bit)"""
+    """codes of each one-hot, e.g. (32, 32) for two objects, (16, 2) for agent and key bit"""
     channels: int = 32
     """width of the object extractor's convolutions"""
     conv_layers: int = 3
     """hidden conv + BatchNorm + ReLU layers of the object extractor"""
     kernel_size: int = 3
-    """the extractor's conv kernel size (odd); 1 makes it a per-pixel colour classifier,
-    so a map holds only the pixels of its own object"""
+    """the extractor's conv kernel size (odd; 1: each map sees only its own pixels)"""
     mlp_sizes: tuple[int, ...] = (512, 512)
-    """hidden widths of the per-map encoder shared by all maps (the last is followed by
-    LayerNorm and ReLU)"""
+    """hidden widths of the per-map encoder shared by all maps (the last gets a LayerNorm)"""
     input_scale: float = 10.0
     """pixels in [0, 1] are multiplied by this"""
     map_competition: str = "sigmoid"
-    """how object maps share a pixel: sigmoid (each map independent) or softmax (a
-    pixel's maps compete, plus one background map)"""
+    """how object maps share a pixel: sigmoid (independent) or softmax (they compete)"""
 
     @classmethod
     def authors(cls, code_sizes: Sequence[int] = (32,), **overrides: Any) -> EncoderConfig:

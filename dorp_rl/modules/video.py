@@ -133,8 +133,7 @@ class VideoModelConfig(ConfigMixin):
     channels: int = 32
     """width of the residual trunk (on the 8x8 grid)"""
     dilations: tuple[int, ...] = (1, 2, 4, 1)
-    """one residual block per entry, its 3x3 conv's dilation; with the stem, (1, 2, 4, 1)
-    sees 9 grid cells (18 pixels) around each cell"""
+    """one residual block per entry: its 3x3 conv's dilation ((1, 2, 4, 1) sees 9 cells)"""
     global_context: bool = True
     """add a global max-pool of each block's features to its FiLM"""
     latent_dim: int = 4
@@ -146,11 +145,9 @@ class VideoModelConfig(ConfigMixin):
     copy_init: float = 4.0
     """initial gain of the advection path (score added to the advected input colours)"""
     advection: bool = True
-    """move each colour's map by a predicted 3x3 kernel (CDNA-style) before the copy
-    path; off: copy the input frame unchanged"""
+    """move each colour's map by a predicted 3x3 kernel before the copy path (off: copy)"""
     collision_features: bool = True
-    """give the kernel head, for every colour and shift, how much of the colour would
-    overlap other colours or leave the frame"""
+    """tell the kernel head how much each colour would overlap others or leave, per shift"""
 
     @classmethod
     def small(cls, **overrides: Any) -> VideoModelConfig:
