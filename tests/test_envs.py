@@ -1,7 +1,7 @@
 """Tests of the batched, stateless pixel environments of ``dorp_rl.envs``.
 
 Dynamics, rendering and validity are checked against small reference implementations
-written here from the specification (issue 2, REFERENCE.md), not from the env code.
+written here from the environments' specification, not from the env code.
 """
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def docstring_map(cls) -> list[str]:
 
 
 def expected_key_wall_layout() -> dict[str, np.ndarray]:
-    """REFERENCE.md: wall at column 8 with a 3-cell door at rows 6-8; key at (0, 0)."""
+    """The key-wall map: wall at column 8 with a 3-cell door at rows 6-8; key at (0, 0)."""
     wall = np.zeros((G, G), dtype=bool)
     wall[:, 8] = True
     wall[6:9, 8] = False
@@ -116,7 +116,7 @@ def layout_of(lines: list[str]) -> dict[str, np.ndarray]:
 
 @functools.cache
 def key_layout(name: str) -> dict:
-    """Layout from the class docstring (checked against REFERENCE.md facts below)."""
+    """Layout from the class docstring (checked against the key-wall map below)."""
     lay = layout_of(docstring_map(KEY_ENVS[name]))
     # Cells reachable from the key without crossing the (closed) door: the unlocked rooms.
     key_cell = tuple(int(x) for x in np.argwhere(lay["key"])[0])
@@ -1035,7 +1035,7 @@ def test_colours_are_distinct_and_not_black():
     env = ObjectRearrangementEnv(num_objects=6, seed=0)
     colours = env.colours.tolist()
     assert len({tuple(c) for c in colours}) == 6 and [0, 0, 0] not in colours
-    # REFERENCE.md: the authors' colours start yellow, cyan, purple, red, green.
+    # The object colours start yellow, cyan, purple, red, green.
     assert colours[0] == [255, 255, 0] and colours[1] == [0, 255, 255]
     assert colours[3] == [255, 0, 0] and colours[4] == [0, 255, 0]
     key_room = [WALL_COLOUR, DOOR_COLOUR, KEY_COLOUR, AGENT_COLOUR]
