@@ -1,6 +1,6 @@
 """Trains DORP codes from scratch and prints their ground-truth quality and wall-clock.
 
-Settings (issue 3's acceptance):
+Settings, each with its goal:
 
 - ``1obj``: 1-object rearrangement, Z = 16, DDDP vs arbitrary (full) vs identity matrix
   (the paper's Figure 5);
@@ -8,7 +8,7 @@ Settings (issue 3's acceptance):
 - ``keywall``: key-wall, a 16-code agent one-hot plus a 2-way key bit.
 
 For every (setting, seed) it prints selectivity, purity, codes used, connectivity and the
-training time, then a verdict against the issue's goals, and optionally writes JSON.
+training time, then a verdict against the setting's goal, and optionally writes JSON.
 
     python benchmarks/representation_quality.py --settings 1obj 2obj --seeds 0 1 2 3 4
 """
@@ -86,7 +86,7 @@ def settings(steps_scale: float) -> dict[str, list[tuple[str, RepresentationConf
 
 
 def verdict(name: str, diag: dict[str, Any]) -> str:
-    """The issue's goal for this setting, and whether this run meets it."""
+    """The goal for this setting, and whether this run meets it."""
     if name.startswith("1obj-dddp"):
         ok = diag["min_codes_used"] >= 10 and diag["min_connected_fraction"] >= 0.95
         return f"goal >=10 codes, >=95% connected: {'met' if ok else 'NOT met'}"

@@ -1,6 +1,6 @@
 """Trains the video prediction model and prints its open-loop accuracy and wall-clock.
 
-Issue 4's acceptance: on 3-object rearrangement, 14-step open-loop rollouts from
+The goal: on 3-object rearrangement, 14-step open-loop rollouts from
 held-out play data (another seed) must match the true frame exactly in >= 95% of the
 sequences. Prints the exact-configuration accuracy and pixel MSE at every step 1..14
 (deterministic mode), the evaluations made during training, and the training time.
