@@ -9,9 +9,10 @@ start-able cell without the key and the same cell with it (the key events of
   the door's pixels;
 - the agent codes without and with the key, as in the paper's Figure 6(a, b).
 
-This is the measurement behind docs/RESULTS.md, "key-wall": in the runs we read the
-agent map held almost nothing on the agent (mean value < 0.001) and the key's removal
-changed it more than the agent's own signal did.
+This is the measurement behind docs/NOTES.md, "Key-wall codes": with the preset before
+the motion-coverage term the agent map held almost nothing on the agent (mean value
+< 0.001) and the key's removal changed it more than the agent's own signal did; with the
+current preset the map sits on the agent (docs/RESULTS.md, "Key-wall").
 
     python benchmarks/key_wall_maps.py outputs/representation_quality/keywall-dddp-seed1/checkpoints/last.pt
 """
