@@ -57,7 +57,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.eval.settings import SETTINGS
-from dorp_rl.eval.tasks import evaluate_policy, summarize
+from dorp_rl.eval.tasks import check_rollout_batch, evaluate_policy, summarize
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
 
 #: backends of :func:`evaluate_parallel`
@@ -412,13 +412,7 @@ def evaluate_parallel(
     # Check the env here, before any worker starts, and resolve the step limit.
     env = make_env()
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
-    locked = env.batch_locked and env.batch_size != torch.Size([])
-    if locked and env.batch_size != torch.Size([tasks_per_rollout]):
-        raise ValueError(
-            f"make_env() gives batch_size {tuple(env.batch_size)} but tasks_per_rollout is "
-            f"{tasks_per_rollout}: build the env with batch_size=({tasks_per_rollout},) or "
-            "batch_size=() and batch_locked=False."
-        )
+    check_rollout_batch(env, tasks_per_rollout, name="the env of make_env()")
     del env
     options = {
         "max_steps": limit,

@@ -82,6 +82,21 @@ def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDic
     )
 
 
+def check_rollout_batch(env: GridWorldEnv, tasks_per_rollout: int, name: str = "env") -> None:
+    """Refuses a batch-locked ``env`` whose batch is not ``(tasks_per_rollout,)``.
+
+    Raises:
+        ValueError: naming ``name``'s batch size, ``tasks_per_rollout`` and the envs that fit.
+    """
+    locked = env.batch_locked and env.batch_size != torch.Size([])
+    if locked and env.batch_size != torch.Size([tasks_per_rollout]):
+        raise ValueError(
+            f"{name} has batch_size {tuple(env.batch_size)} but tasks_per_rollout is "
+            f"{tasks_per_rollout}: give an env with batch_size=({tasks_per_rollout},) or "
+            "batch_size=() and batch_locked=False."
+        )
+
+
 def evaluate_policy(
     env: GridWorldEnv,
     policy: Callable[[TensorDictBase], TensorDictBase],
@@ -142,13 +157,8 @@ def evaluate_policy(
                 f"tasks must hold {key!r} (see make_task_set), got {list(tasks.keys())}."
             )
     n = tasks.shape[0]
+    check_rollout_batch(env, tasks_per_rollout)
     locked = env.batch_locked and env.batch_size != torch.Size([])
-    if locked and env.batch_size != torch.Size([tasks_per_rollout]):
-        raise ValueError(
-            f"env has batch_size {tuple(env.batch_size)} but tasks_per_rollout is "
-            f"{tasks_per_rollout}: give an env with batch_size=({tasks_per_rollout},) or "
-            "batch_size=() and batch_locked=False."
-        )
     bar = None
     if progress:
         from tqdm.auto import tqdm
