@@ -95,6 +95,8 @@ def test_flat_configs_are_read_into_the_nested_ones(tmp_path, tiny_configs):
     assert RepresentationConfig.from_dict(authors).encoder == EncoderConfig.authors((16,))
     with pytest.raises(ValueError, match="both 'encoder' and"):
         RepresentationConfig.from_dict(rep.to_dict() | {"code_size": 8})
+    with pytest.raises(ValueError, match=r"WorldModelConfig holds both 'model' and .*'latent_dim'"):
+        WorldModelConfig.from_dict(wm.to_dict() | {"latent_dim": 4})
 
 
 def test_a_flat_representation_checkpoint_loads_and_resumes(tmp_path, tiny_configs):

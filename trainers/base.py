@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -101,6 +101,23 @@ class TrainerConfig(ConfigMixin):
         if values.get("env", "rearrangement") != "rearrangement":
             values["num_objects"] = 1  # it never had an effect on key rooms
         return values
+
+    @classmethod
+    def pop_flat_fields(
+        cls, values: dict[str, Any], fields: Sequence[str], nested: str
+    ) -> dict[str, Any]:
+        """Removes the older flat ``fields`` from stored ``values`` and returns them.
+
+        Raises:
+            ValueError: ``values`` holds both flat fields and the ``nested`` config they became.
+        """
+        flat = {k: values.pop(k) for k in fields if k in values}
+        if flat and nested in values:
+            raise ValueError(
+                f"a {cls.__name__} holds both {nested!r} and the older flat fields "
+                f"{sorted(flat)} that it replaces; keep one."
+            )
+        return flat
 
     @property
     def play_trajectory_length(self) -> int:

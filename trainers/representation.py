@@ -204,13 +204,8 @@ class RepresentationConfig(TrainerConfig):
         """Older flat configs: ``code_size``, ``encoder_preset``, ``map_competition`` and
         ``extractor_kernel_size`` become the ``encoder`` field."""
         values = super().upgrade(values)
-        flat = {k: values.pop(k) for k in _FLAT_ENCODER_FIELDS if k in values}
+        flat = cls.pop_flat_fields(values, _FLAT_ENCODER_FIELDS, "encoder")
         if flat:
-            if "encoder" in values:
-                raise ValueError(
-                    f"a representation config holds both 'encoder' and the older flat "
-                    f"encoder fields {sorted(flat)}; keep one."
-                )
             preset = flat.get("encoder_preset", "small")
             if preset not in ("small", "authors"):
                 raise ValueError(f"encoder_preset must be 'small' or 'authors', got {preset!r}.")

@@ -132,13 +132,8 @@ class WorldModelConfig(TrainerConfig):
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
         """Older flat configs: ``model_preset``, ``latent_dim`` and ``prior`` become ``model``."""
         values = super().upgrade(values)
-        flat = {k: values.pop(k) for k in _FLAT_MODEL_FIELDS if k in values}
+        flat = cls.pop_flat_fields(values, _FLAT_MODEL_FIELDS, "model")
         if flat:
-            if "model" in values:
-                raise ValueError(
-                    f"a world-model config holds both 'model' and the older flat model "
-                    f"fields {sorted(flat)}; keep one."
-                )
             preset = flat.pop("model_preset", "default")
             values["model"] = VideoModelConfig.preset(preset, **flat).to_dict()
         return values
