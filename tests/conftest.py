@@ -1,4 +1,4 @@
-"""Fixtures shared by the reliability tests: tiny trainer configs and single-threaded torch."""
+"""Fixtures shared by the tests: tiny trainer configs, tiny ``dorp`` runs, single-threaded torch."""
 
 from __future__ import annotations
 
@@ -80,3 +80,43 @@ def representation_config(tmp_path) -> Callable[..., RepresentationConfig]:
 def world_model_config(tmp_path) -> Callable[..., WorldModelConfig]:
     """``make(name="wm", **overrides)``: a tiny world-model config under ``tmp_path``."""
     return lambda name="wm", **overrides: TinyConfigs.world_model(tmp_path / name, **overrides)
+
+
+class DorpCommand:
+    """Runs the ``dorp`` command in a test; ``CODES`` and ``EVAL`` are arguments of seconds."""
+
+    #: 1-object codes of a few steps on 256 play frames.
+    CODES = (
+        "--setting", "1obj",
+        "--codes.num-frames", "256",
+        "--codes.num-envs", "16",
+        "--codes.encoder.code-sizes", "8",
+        "--codes.batch-size", "32",
+        "--codes.num-steps", "5",
+        "--codes.diagnostics-samples", "64",
+    )  # fmt: skip
+    #: 2 tasks of at most 6 steps, small plans.
+    EVAL = (
+        "--tasks", "2",
+        "--tasks-per-rollout", "2",
+        "--candidates", "20",
+        "--planning-horizon", "3",
+        "--max-steps", "6",
+    )  # fmt: skip
+
+    def __init__(self, capsys: pytest.CaptureFixture[str]) -> None:
+        self.capsys = capsys
+
+    def __call__(self, root: Path, command: str, *args: str, name: str = "run") -> str:
+        """Runs ``dorp <command> <args>`` in ``root/name`` without progress bars; returns
+        what it printed."""
+        from dorp_rl.cli import main
+
+        main([command, "--root", str(root), "--name", name, "--no-progress", *args])
+        return self.capsys.readouterr().out
+
+
+@pytest.fixture
+def dorp(capsys) -> DorpCommand:
+    """``dorp(root, command, *args, name="run")``: the ``dorp`` command, printing captured."""
+    return DorpCommand(capsys)

@@ -15,16 +15,6 @@ import torch
 from dorp_rl.cli import main, quiet_torchrl
 from dorp_rl.eval import RESULT_COLUMNS
 
-# 1-object codes of a few steps on 256 play frames.
-TINY_CODES = [
-    "--setting", "1obj",
-    "--codes.num-frames", "256",
-    "--codes.num-envs", "16",
-    "--codes.encoder.code-sizes", "8",
-    "--codes.batch-size", "32",
-    "--codes.num-steps", "5",
-    "--codes.diagnostics-samples", "64",
-]  # fmt: skip
 TINY_WORLD_MODEL = [
     "--world-model.num-steps", "3",
     "--world-model.num-frames", "256",
@@ -37,25 +27,11 @@ TINY_WORLD_MODEL = [
     "--world-model.model.dilations", "1", "2", "4",
     "--world-model.batch-size", "8",
 ]  # fmt: skip
-TINY_EVAL = [
-    "--tasks", "2",
-    "--tasks-per-rollout", "2",
-    "--candidates", "20",
-    "--planning-horizon", "3",
-    "--max-steps", "6",
-]  # fmt: skip
 
 
 @pytest.fixture(autouse=True)
 def _one_thread(one_torch_thread) -> None:
     """Every test runs with one torch thread (and restores the count)."""
-
-
-def dorp(capsys, root: Path, *args: str, name: str = "run") -> str:
-    """Runs ``dorp <args>`` in ``root/name`` without progress bars; returns what it printed."""
-    command, rest = args[0], list(args[1:])
-    main([command, "--root", str(root), "--name", name, "--no-progress", *rest])
-    return capsys.readouterr().out
 
 
 def read_rows(run_dir: Path) -> list[dict[str, str]]:
@@ -65,21 +41,21 @@ def read_rows(run_dir: Path) -> list[dict[str, str]]:
         return list(reader)
 
 
-def test_collect_train_encoder_and_build_graph_write_their_stages(tmp_path, capsys) -> None:
+def test_collect_train_encoder_and_build_graph_write_their_stages(tmp_path, dorp) -> None:
     run = tmp_path / "run"
-    dorp(capsys, tmp_path, "collect", *TINY_CODES)
+    dorp(tmp_path, "collect", *dorp.CODES)
     assert (run / "play" / "play_data.json").is_file()
     assert not (run / "codes").exists()
     config = json.loads((run / "config.json").read_text())
     assert config["command"] == "collect" and config["codes"]["num_frames"] == 256
     assert config["codes"]["num_objects"] == 1  # the 1obj preset, not the 2obj default
 
-    out = dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
+    out = dorp(tmp_path, "train-encoder", *dorp.CODES)
     assert "play: done for this config, skipped" in out
     assert (run / "codes" / "checkpoints" / "last.pt").is_file()
     assert (run / "codes" / "logs").is_dir()
 
-    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    dorp(tmp_path, "build-graph", *dorp.CODES)
     assert (run / "graph.pt").is_file()
     stages = json.loads((run / "stages.json").read_text())
     assert set(stages) == {"play", "codes", "graph"}
@@ -87,11 +63,11 @@ def test_collect_train_encoder_and_build_graph_write_their_stages(tmp_path, caps
     assert "out_dir" not in stages["codes"]["config"]  # paths do not decide a rerun
 
 
-def test_rerunning_skips_finished_stages(tmp_path, capsys) -> None:
-    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+def test_rerunning_skips_finished_stages(tmp_path, dorp) -> None:
+    dorp(tmp_path, "build-graph", *dorp.CODES)
     checkpoint = tmp_path / "run" / "codes" / "checkpoints" / "last.pt"
     written = checkpoint.stat().st_mtime_ns, (tmp_path / "run" / "graph.pt").stat().st_mtime_ns
-    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    out = dorp(tmp_path, "build-graph", *dorp.CODES)
     for stage in ("play", "codes", "graph"):
         assert f"{stage}: done for this config, skipped" in out
     assert ": running (" not in out
@@ -99,11 +75,11 @@ def test_rerunning_skips_finished_stages(tmp_path, capsys) -> None:
     assert again == written
 
 
-def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, capsys) -> None:
-    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, dorp) -> None:
+    dorp(tmp_path, "build-graph", *dorp.CODES)
     graph = tmp_path / "run" / "graph.pt"
     before = graph.stat().st_mtime_ns
-    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES, "--codes.num-steps", "6")
+    out = dorp(tmp_path, "build-graph", *dorp.CODES, "--codes.num-steps", "6")
     assert "play: done for this config, skipped" in out  # num_steps does not change the data
     assert "codes: running (changed: num_steps 5 -> 6)" in out
     assert "graph: running (changed: codes.num_steps 5 -> 6)" in out
@@ -111,20 +87,20 @@ def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, capsys) -
     stages = json.loads((tmp_path / "run" / "stages.json").read_text())
     assert stages["codes"]["config"]["num_steps"] == 6
 
-    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES, "--codes.num-steps", "6",
+    out = dorp(tmp_path, "build-graph", *dorp.CODES, "--codes.num-steps", "6",
                "--codes.num-frames", "320")  # fmt: skip
     assert "play: running (changed: num_frames 256 -> 320)" in out
     assert "codes: running (changed: num_frames 256 -> 320)" in out
     assert "graph: running (changed: codes.num_frames 256 -> 320)" in out
 
-    out = dorp(capsys, tmp_path, "train-encoder", *TINY_CODES, "--codes.num-steps", "6",
+    out = dorp(tmp_path, "train-encoder", *dorp.CODES, "--codes.num-steps", "6",
                "--codes.num-frames", "320", "--codes.encoder.code-sizes", "4")  # fmt: skip
     assert "play: done for this config, skipped" in out  # the encoder does not change the data
     assert "codes: running (changed: encoder.code_sizes [8] -> [4])" in out
 
 
-def test_stages_recorded_with_the_older_flat_configs_are_still_skipped(tmp_path, capsys) -> None:
-    dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+def test_stages_recorded_with_the_older_flat_configs_are_still_skipped(tmp_path, dorp) -> None:
+    dorp(tmp_path, "build-graph", *dorp.CODES)
     stages_path = tmp_path / "run" / "stages.json"
     stages = json.loads(stages_path.read_text())
 
@@ -141,28 +117,28 @@ def test_stages_recorded_with_the_older_flat_configs_are_still_skipped(tmp_path,
     stages["codes"]["config"] = flat(stages["codes"]["config"])
     stages["graph"]["config"]["codes"] = flat(stages["graph"]["config"]["codes"])
     stages_path.write_text(json.dumps(stages))
-    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES)
+    out = dorp(tmp_path, "build-graph", *dorp.CODES)
     for stage in ("play", "codes", "graph"):
         assert f"{stage}: done for this config, skipped" in out
-    out = dorp(capsys, tmp_path, "build-graph", *TINY_CODES, "--codes.encoder.code-sizes", "4")
+    out = dorp(tmp_path, "build-graph", *dorp.CODES, "--codes.encoder.code-sizes", "4")
     assert "codes: running (changed: encoder.code_sizes [8] -> [4])" in out
 
 
-def test_a_stage_that_did_not_finish_runs_again(tmp_path, capsys) -> None:
-    dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
+def test_a_stage_that_did_not_finish_runs_again(tmp_path, dorp) -> None:
+    dorp(tmp_path, "train-encoder", *dorp.CODES)
     stages_path = tmp_path / "run" / "stages.json"
     stages = json.loads(stages_path.read_text())
     stages["codes"]["config"] = None  # what a crash during training leaves
     stages_path.write_text(json.dumps(stages))
-    out = dorp(capsys, tmp_path, "train-encoder", *TINY_CODES)
+    out = dorp(tmp_path, "train-encoder", *dorp.CODES)
     assert "play: done for this config, skipped" in out
     assert "codes: running (it did not finish last time)" in out
     assert json.loads(stages_path.read_text())["codes"]["config"]["num_steps"] == 5
 
 
-def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys) -> None:
+def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, dorp) -> None:
     run = tmp_path / "run"
-    out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL,
+    out = dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL,
                "--methods", "random", "vf-rs", "vf-cem")  # fmt: skip
     assert not (run / "codes").exists()  # no DORP, no codes
     rows = read_rows(run)
@@ -184,7 +160,7 @@ def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys
         assert f"]({figure})" in table
 
     # Another method adds a row; the finished ones are skipped, not re-run.
-    out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL, "--methods", "random",
+    out = dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "random",
                "vf-rs", "--seed", "1")  # fmt: skip
     assert "evaluate:random: running (changed: seed 0 -> 1)" in out
     assert "evaluate:vf-rs:gt: running (changed: seed 0 -> 1)" in out
@@ -192,12 +168,12 @@ def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, capsys
     assert [r["method"] for r in rows] == ["random", "vf-rs", "vf-cem"]  # rows keep their place
 
 
-def test_evaluate_through_a_world_model(tmp_path, capsys) -> None:
+def test_evaluate_through_a_world_model(tmp_path, dorp) -> None:
     run = tmp_path / "run"
-    dorp(capsys, tmp_path, "train-world-model", *TINY_WORLD_MODEL, "--setting", "1obj")
+    dorp(tmp_path, "train-world-model", *TINY_WORLD_MODEL, "--setting", "1obj")
     checkpoint = run / "world_model" / "checkpoints" / "last.pt"
     assert checkpoint.is_file()
-    out = dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_WORLD_MODEL, *TINY_EVAL,
+    out = dorp(tmp_path, "evaluate", *dorp.CODES, *TINY_WORLD_MODEL, *dorp.EVAL,
                "--methods", "vf-rs", "dorp", "--low-level", "world-model")  # fmt: skip
     assert "world_model: done for this config, skipped" in out
     assert [(r["method"], r["low_level"]) for r in read_rows(run)] == [
@@ -207,14 +183,14 @@ def test_evaluate_through_a_world_model(tmp_path, capsys) -> None:
     stages = json.loads((run / "stages.json").read_text())
     assert stages["evaluate:dorp:world-model"]["config"]["low_level"]["num_steps"] == 3
     # A checkpoint path works as well, in another run.
-    dorp(capsys, tmp_path, "evaluate", *TINY_CODES, *TINY_EVAL, "--methods", "vf-rs",
+    dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "vf-rs",
          "--low-level", str(checkpoint), name="other")  # fmt: skip
     assert read_rows(tmp_path / "other")[0]["low_level"] == "checkpoint"
 
 
-def test_reproduce_and_demo_run_dorp_and_vf_cem(tmp_path, capsys) -> None:
+def test_reproduce_and_demo_run_dorp_and_vf_cem(tmp_path, dorp) -> None:
     for command in ("reproduce", "demo"):
-        out = dorp(capsys, tmp_path, command, *TINY_CODES, *TINY_EVAL, name=command)
+        out = dorp(tmp_path, command, *dorp.CODES, *dorp.EVAL, name=command)
         rows = read_rows(tmp_path / command)
         assert [(r["method"], r["low_level"]) for r in rows] == [("dorp", "gt"), ("vf-cem", "gt")]
         assert f"files in {tmp_path / command}" in out
@@ -234,9 +210,9 @@ def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
     assert demo.codes.to_dict() | {"num_steps": preset.num_steps} == preset.to_dict()
 
 
-def test_threads_sets_torch_threads(tmp_path, capsys) -> None:
+def test_threads_sets_torch_threads(tmp_path, dorp) -> None:
     torch.set_num_threads(2)  # restored by the fixture
-    dorp(capsys, tmp_path, "collect", *TINY_CODES, "--threads", "1")
+    dorp(tmp_path, "collect", *dorp.CODES, "--threads", "1")
     assert torch.get_num_threads() == 1
 
 

@@ -19,32 +19,12 @@ from dorp_rl.eval.results import PAPER_COLUMNS, format_paper_table
 from dorp_rl.reproduce import paper_methods
 from dorp_rl.viz.rollouts import rollout_gif_frames, waypoint_panel
 
-# 1-object codes of a few steps on 256 play frames; 2 tasks of at most 6 steps.
-TINY = [
-    "--setting", "1obj",
-    "--codes.num-frames", "256",
-    "--codes.num-envs", "16",
-    "--codes.encoder.code-sizes", "8",
-    "--codes.batch-size", "32",
-    "--codes.num-steps", "5",
-    "--codes.diagnostics-samples", "64",
-    "--tasks", "2",
-    "--tasks-per-rollout", "2",
-    "--candidates", "20",
-    "--planning-horizon", "3",
-    "--max-steps", "6",
-    "--gifs", "1",
-]  # fmt: skip
+ONE_GIF = ("--gifs", "1")
 
 
 @pytest.fixture(autouse=True)
 def _one_thread(one_torch_thread) -> None:
     """Every test runs with one torch thread (and restores the count)."""
-
-
-def dorp(capsys, root: Path, *args: str) -> str:
-    main([args[0], "--root", str(root), "--name", "paper", "--no-progress", *args[1:]])
-    return capsys.readouterr().out
 
 
 def read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
@@ -53,10 +33,10 @@ def read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
         return list(reader.fieldnames or []), list(reader)
 
 
-def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path, capsys) -> None:
-    out = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj",
-               "--low-level", "ground-truth", *TINY)  # fmt: skip
-    run = tmp_path / "paper"
+def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path, dorp) -> None:
+    out = dorp(tmp_path, "reproduce", "--paper", "--settings", "1obj",
+               "--low-level", "ground-truth", *dorp.CODES, *dorp.EVAL, *ONE_GIF)  # fmt: skip
+    run = tmp_path / "run"
     columns, rows = read_csv(run / "results.csv")
     assert tuple(columns) == RESULT_COLUMNS + PAPER_COLUMNS
     assert [r["method"] for r in rows] == list(paper_methods("1obj"))
@@ -93,7 +73,9 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
     assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
 
     # Run again (with "gt"): every stage is reused, the table and timings are the same.
-    again = dorp(capsys, tmp_path, "reproduce", "--paper", "--settings", "1obj", *TINY)
+    again = dorp(
+        tmp_path, "reproduce", "--paper", "--settings", "1obj", *dorp.CODES, *dorp.EVAL, *ONE_GIF
+    )
     assert ": running (" not in again
     _, rows_again = read_csv(run / "results.csv")
     assert rows_again == rows
@@ -102,20 +84,24 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
     assert [t["seconds"] for t in timings_again] == [t["seconds"] for t in timings]
 
 
-def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, capsys) -> None:
-    out = dorp(capsys, tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *TINY)
-    pictures = tmp_path / "paper" / "pictures"
+def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, dorp) -> None:
+    out = dorp(
+        tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF
+    )
+    pictures = tmp_path / "run" / "pictures"
     assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
     assert Image.open(pictures / "rollout_0.gif").n_frames >= 2
     assert Image.open(pictures / "factorization_histogram.png").format == "PNG"
     written = (pictures / "rollout_0.gif").stat().st_mtime_ns
-    again = dorp(capsys, tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *TINY)
+    again = dorp(
+        tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF
+    )
     assert "pictures: done for this config, skipped" in again
     assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in again
     assert (pictures / "rollout_0.gif").stat().st_mtime_ns == written
     # Without DORP there are no codes to draw.
-    dorp(capsys, tmp_path / "vf", "evaluate", "--methods", "vf-rs", *TINY)
-    assert not (tmp_path / "vf" / "paper" / "pictures").exists()
+    dorp(tmp_path / "vf", "evaluate", "--methods", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF)
+    assert not (tmp_path / "vf" / "run" / "pictures").exists()
 
 
 @pytest.mark.parametrize(
