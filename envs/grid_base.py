@@ -245,6 +245,23 @@ class GridWorldEnv(EnvBase):
         """bool ``[*B]``: which configurations break the rules (overlap, wall, off-grid)."""
         raise NotImplementedError
 
+    def frame_parts(self, state: torch.Tensor) -> torch.Tensor | None:
+        """The pre-drawn parts whose sum is each frame: int64 ``[*B, P]``, or ``None``.
+
+        An env that draws a valid state as the sum of ``P`` rows of
+        :meth:`frame_part_table` whose non-black bytes never overlap (so that
+        ``render_state(state)`` equals their byte-wise sum, without carries) returns the
+        rows' indices. Whatever is linear in a frame's bytes (a hash of them, the dot
+        product with a goal image) then follows from ``P`` table entries, without drawing
+        the frame: planning through the true dynamics uses this. ``None`` (the default)
+        says the env draws its frames some other way.
+        """
+        return None
+
+    def frame_part_table(self) -> torch.Tensor | None:
+        """uint8 ``[T, 3, 16, 16]``: the parts :meth:`frame_parts` indexes (``None`` if unused)."""
+        return None
+
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """int64 ``[*B]``: a lower bound on the steps from ``state`` to ``goal_state``."""
         raise NotImplementedError

@@ -183,6 +183,14 @@ class KeyRoomEnv(GridWorldEnv):
             *state.shape[:-1], 3, GRID_SIZE, GRID_SIZE
         )
 
+    def frame_parts(self, state: torch.Tensor) -> torch.Tensor:
+        """int64 ``[*B, 1]``: each state's whole frame, a row of :meth:`frame_part_table`."""
+        return self._state_index(state.clamp(0, GRID_SIZE - 1)).unsqueeze(-1)
+
+    def frame_part_table(self) -> torch.Tensor:
+        """uint8 ``[512, 3, 16, 16]``: the frame of every (cell, has-key) state."""
+        return self._frame_table
+
     # ------------------------------------------------------------------ #
     def _state_index(self, state: torch.Tensor) -> torch.Tensor:
         return state[..., 2] * GRID_SIZE * GRID_SIZE + state[..., 0] * GRID_SIZE + state[..., 1]

@@ -37,6 +37,7 @@ from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
 from dorp_rl.validation import check_action, check_frames, check_int, check_state_layout
 
 _FRAME = (3, GRID_SIZE, GRID_SIZE)
+_FRAME_BYTES = 3 * GRID_SIZE * GRID_SIZE
 
 
 @runtime_checkable
@@ -216,6 +217,40 @@ class GroundTruthModelEnv(_PlanningEnvBase):
             state=next_state,
         )
 
+    def imagine(self, state: torch.Tensor, actions: torch.Tensor) -> ImaginedFrames:
+        """The states after each of ``H`` actions, their frames drawn only when needed.
+
+        The same states as ``H`` calls of :meth:`step` from ``state`` (its
+        ``("next", "state")`` at every step, whose ``("next", "pixels")`` are their
+        renders), without a tensordict per step and without drawing frames that nobody
+        looks at: planners use it to roll candidate sequences out.
+
+        Args:
+            state: int64 ``[*B, *state_shape]``, trusted as in ``step``; broadcast
+                against the leading dimensions of ``actions``.
+            actions: int ``[*L, H]`` in ``[0, num_actions)``.
+
+        Returns:
+            :class:`ImaginedFrames` over the states ``[*L, H, *state_shape]``.
+        """
+        env = self.true_env
+        check_state_layout(
+            state, env.state_shape, "state", owner=f"the planning model of {type(env).__name__}"
+        )
+        actions = check_planning_action(actions.unsqueeze(-1), self.num_actions).squeeze(-1)
+        lead = actions.shape[:-1]
+        current = state.expand(*lead, *env.state_shape)
+        steps = []
+        for t in range(actions.shape[-1]):
+            current = env.transition(current, actions[..., t])
+            steps.append(current)
+        states = torch.stack(steps, dim=len(lead))
+        # Frames add up from their parts only when no two blocks overlap; the dynamics
+        # keep a valid state valid, so the start states decide.
+        valid = not bool(env.invalid_states(state).any())
+        tables = self.__dict__.setdefault("_imagined_tables", {})
+        return ImaginedFrames(env, states, parts_valid=valid, tables=tables)
+
 
 _HASH_WEIGHTS: dict[tuple[torch.device, int], torch.Tensor] = {}
 
@@ -228,13 +263,22 @@ def row_hashes(rows: torch.Tensor) -> torch.Tensor:
     if pad:
         flat = torch.nn.functional.pad(flat, (0, pad))
     words = flat.contiguous().view(torch.int64)
-    key_id = (rows.device, words.shape[1])
+    return (words * _hash_weights(rows.device, words.shape[1])).sum(-1)
+
+
+def _hash_weights(device: torch.device, num_words: int) -> torch.Tensor:
+    """The odd int64 weights ``[num_words]`` of :func:`row_hashes` for rows of that many words.
+
+    The hash is linear in the words (modulo 2**64), which :class:`ImaginedFrames` uses to
+    hash frames from their parts without drawing them.
+    """
+    key_id = (device, num_words)
     weights = _HASH_WEIGHTS.get(key_id)
     if weights is None:
         gen = torch.Generator().manual_seed(0x5EED)
-        weights = torch.randint(-(2**62), 2**62, (words.shape[1],), generator=gen) | 1
-        weights = _HASH_WEIGHTS.setdefault(key_id, weights.to(rows.device))
-    return (words * weights).sum(-1)
+        weights = torch.randint(-(2**62), 2**62, (num_words,), generator=gen) | 1
+        weights = _HASH_WEIGHTS.setdefault(key_id, weights.to(device))
+    return weights
 
 
 def distinct_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -277,6 +321,186 @@ def _distinct_pairs(
     frames = unique[:, :-8].reshape(-1, *pixels.shape[1:])
     actions = unique[:, -8:].contiguous().view(torch.int64).to(action.dtype)
     return frames, actions.reshape(-1, *action.shape[1:]), inverse
+
+
+class ImaginedFrames:
+    """Imagined states ``[*L, *state_shape]`` and their frames, drawn only when needed.
+
+    :meth:`GroundTruthModelEnv.imagine` returns one: the states a batch of action
+    sequences leads to, i.e. the ``("next", "state")`` of every step, whose
+    ``("next", "pixels")`` are ``render_state(states)``. Costs that know this class ask it
+    for what they need instead of the frames themselves (see
+    :meth:`dorp_rl.planners.RolloutCost.per_step_cost_imagined`):
+
+    - :meth:`pixels`: all frames, uint8 ``[*L, 3, 16, 16]`` (drawn once, then kept);
+    - :meth:`distinct`: exactly what :func:`distinct_rows` gives on the frames (with
+      optional extra int64 columns), drawing only the distinct frames;
+    - :meth:`squared_distances`: the exact squared L2 distance of each frame to a goal
+      image, from the frame's parts, drawing no frame.
+
+    The last two need an env whose frames are sums of non-overlapping parts
+    (:meth:`~dorp_rl.envs.GridWorldEnv.frame_parts`) and valid start states (blocks that
+    overlap would not add up); otherwise they fall back to drawing every frame, with the
+    same results.
+
+    Args:
+        env: the environment whose renderer draws the states.
+        states: int64 ``[*L, *state_shape]``.
+        parts_valid: whether the states' frames are the sums of their parts (valid
+            states of an env with :meth:`~dorp_rl.envs.GridWorldEnv.frame_parts`).
+        tables: a dict the derived part tables are cached in (shared between calls).
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
+        >>> env = ObjectRearrangementEnv(num_objects=2, batch_size=(3,), seed=0)
+        >>> td = env.reset()
+        >>> frames = GroundTruthModelEnv(env).imagine(td["state"], torch.zeros(3, 5, 4, dtype=torch.long))
+        >>> frames.states.shape, frames.pixels().shape
+        (torch.Size([3, 5, 4, 2, 2]), torch.Size([3, 5, 4, 3, 16, 16]))
+        >>> goal = td["goal_pixels"].reshape(3, -1)
+        >>> owner = torch.arange(3).view(3, 1, 1).expand(3, 5, 4).reshape(-1)
+        >>> d2 = frames.squared_distances(goal, owner)
+        >>> plain = (frames.pixels().reshape(-1, 768).long() - goal[owner].long()).square().sum(-1)
+        >>> bool((d2 == plain).all())
+        True
+    """
+
+    def __init__(
+        self,
+        env: GridWorldEnv,
+        states: torch.Tensor,
+        *,
+        parts_valid: bool = True,
+        tables: dict | None = None,
+    ) -> None:
+        self.env = env
+        self.states = states
+        self.shape = states.shape[: states.dim() - len(env.state_shape)]
+        self.frame_shape = torch.Size(_FRAME)
+        self._tables = {} if tables is None else tables
+        self._pixels: torch.Tensor | None = None
+        self._parts: torch.Tensor | None = None
+        table = env.frame_part_table() if parts_valid else None
+        self._has_parts = table is not None and env.frame_parts(states[:0]) is not None
+
+    @property
+    def numel(self) -> int:
+        return int(self.shape.numel())
+
+    def pixels(self) -> torch.Tensor:
+        """uint8 ``[*L, 3, 16, 16]``: every frame (``env.render_state(states)``)."""
+        if self._pixels is None:
+            self._pixels = self.env.render_state(self.states)
+        return self._pixels
+
+    def _flat_states(self) -> torch.Tensor:
+        return self.states.reshape(self.numel, *self.env.state_shape)
+
+    def _flat_parts(self) -> torch.Tensor:
+        if self._parts is None:
+            self._parts = self.env.frame_parts(self._flat_states())
+        return self._parts
+
+    def _table(self, name: str) -> torch.Tensor:
+        """Derived part tables, computed once per env and device."""
+        key = (name, self.states.device)
+        if key not in self._tables:
+            parts = self.env.frame_part_table().to(self.states.device).reshape(-1, _FRAME_BYTES)
+            if name == "float64":
+                value = parts.to(torch.float64)
+            elif name == "norms":
+                value = parts.to(torch.int64).square().sum(-1)
+            else:  # part hashes for rows of `name` words
+                words = parts.view(torch.int64)
+                value = (words * _hash_weights(self.states.device, name)[: words.shape[1]]).sum(-1)
+            self._tables[key] = value
+        return self._tables[key]
+
+    def distinct(
+        self, extra: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+        """:func:`distinct_rows` of the frames (joined with ``extra`` columns), drawing distinct ones.
+
+        Args:
+            extra: int64 ``[n, e]`` joined to each flat frame (``n = prod(L)``), as its
+                bytes; ``None`` for the frames alone.
+
+        Returns:
+            ``(frames, extra, inverse, keys)``: the rows ``distinct_rows`` returns on
+            ``cat(frames.reshape(n, -1), extra.view(uint8))``, split into uint8 frames
+            ``[m, 3, 16, 16]`` and int64 extras ``[m, e]`` (``None`` without ``extra``);
+            its ``inverse`` (``None``: no deduplication, all ``n`` rows returned); and
+            :func:`row_hashes` of the returned rows (``None`` when not known).
+        """
+        n = self.numel
+        if not self._has_parts:
+            return self._distinct_drawn(extra)
+        parts = self._flat_parts()
+        num_words = _FRAME_BYTES // 8 + (0 if extra is None else extra.shape[1])
+        key = self._table(num_words)[parts].sum(-1)  # the hash is linear in the words
+        if extra is not None:
+            key = key + (extra * _hash_weights(key.device, num_words)[-extra.shape[1] :]).sum(-1)
+        unique, inverse = torch.unique(key, return_inverse=True)
+        first = torch.full((unique.shape[0],), n, dtype=torch.long, device=key.device)
+        first.scatter_reduce_(0, inverse, torch.arange(n, device=key.device), reduce="amin")
+        # distinct_rows checks that every row equals its group's first row: equal parts
+        # (and extras) mean equal bytes; rows that differ there are compared as frames.
+        owner = first[inverse]
+        differ = (parts[owner] != parts).any(-1)
+        if extra is not None:
+            differ |= (extra[owner] != extra).any(-1)
+        if bool(differ.any()):
+            rows = differ.nonzero().squeeze(-1)
+            states = self._flat_states()
+            same = torch.equal(
+                self.env.render_state(states[rows]), self.env.render_state(states[owner[rows]])
+            )
+            if extra is not None:
+                same = same and torch.equal(extra[rows], extra[owner[rows]])
+            if not same:  # a hash collision: distinct_rows gives up deduplication
+                return self._distinct_drawn(extra)
+        frames = self.env.render_state(self._flat_states()[first])
+        return frames, None if extra is None else extra[first], inverse, unique
+
+    def _distinct_drawn(self, extra: torch.Tensor | None):
+        """:meth:`distinct` by drawing every frame and calling :func:`distinct_rows`."""
+        n = self.numel
+        flat = self.pixels().reshape(n, *_FRAME)
+        if extra is None:
+            rows, inverse = distinct_rows(flat)
+            return rows, None, inverse, None
+        rows, inverse = distinct_rows(
+            torch.cat([flat.reshape(n, -1), extra.contiguous().view(torch.uint8)], -1)
+        )
+        frames = rows[:, :_FRAME_BYTES].reshape(-1, *_FRAME)
+        return frames, rows[:, _FRAME_BYTES:].contiguous().view(torch.int64), inverse, None
+
+    def squared_distances(self, goals: torch.Tensor, owner: torch.Tensor) -> torch.Tensor | None:
+        """Exact squared L2 distances int64 ``[n]`` of the frames to their goal images.
+
+        Frame ``i`` (flat index over ``L``) is compared with ``goals[owner[i]]``, in
+        integer arithmetic on the 0..255 values. Computed from the frames' parts:
+        ``|f - g|^2 = |g|^2 + sum_p (|part_p|^2 - 2 <part_p, g>)`` (parts do not overlap).
+
+        Args:
+            goals: uint8 ``[G, 768]`` goal frames (flat).
+            owner: int64 ``[n]``, the goal of each frame.
+
+        Returns:
+            int64 ``[n]``, or ``None`` when the frames are not sums of parts (draw them).
+        """
+        if not self._has_parts or goals.dtype != torch.uint8:
+            return None
+        table = self._table("float64")  # [T, 768]
+        g = goals.reshape(goals.shape[0], -1).to(table.device, torch.float64)
+        # Integers below 2**53 throughout (768 * 255**2 at most): the products are exact.
+        dots = (table @ g.T).to(torch.int64)  # [T, G]
+        per_part = (self._table("norms").unsqueeze(-1) - 2 * dots).T.contiguous()  # [G, T]
+        goal_norms = g.square().sum(-1).to(torch.int64)  # [G]
+        parts = self._flat_parts()
+        index = owner.unsqueeze(-1) * per_part.shape[1] + parts
+        return goal_norms[owner] + per_part.reshape(-1)[index].sum(-1)
 
 
 class WorldModelEnv(_PlanningEnvBase):

@@ -102,9 +102,10 @@ class ObjectRearrangementEnv(GridWorldEnv):
         self._object_ids = torch.arange(num_objects, device=self.device)
         self.block_shapes = self.block_shapes.to(self.device)
         self.colours = colours.to(self.device)
+        self._frame_table = self._build_frame_table()
         # Each frame's 768 bytes seen as 96 int64 words: see render_state.
-        self._frame_words = (
-            self._build_frame_table().reshape(-1, 3 * GRID_SIZE * GRID_SIZE).view(torch.int64)
+        self._frame_words = self._frame_table.reshape(-1, 3 * GRID_SIZE * GRID_SIZE).view(
+            torch.int64
         )
 
     def _check_placeable(self, attempts: int = 4096) -> None:
@@ -245,17 +246,24 @@ class ObjectRearrangementEnv(GridWorldEnv):
         )  # [k, 256, 3, H, W]
         return frames.reshape(self.num_objects * GRID_SIZE * GRID_SIZE, 3, GRID_SIZE, GRID_SIZE)
 
+    def frame_parts(self, state: torch.Tensor) -> torch.Tensor:
+        """int64 ``[*B, k]``: block ``o`` alone at its cell, a row of :meth:`frame_part_table`."""
+        cell = state[..., 0].clamp(0, GRID_SIZE - 1) * GRID_SIZE + state[..., 1].clamp(
+            0, GRID_SIZE - 1
+        )
+        return cell + self._object_ids * (GRID_SIZE * GRID_SIZE)
+
+    def frame_part_table(self) -> torch.Tensor:
+        """uint8 ``[k * 256, 3, 16, 16]``: every block alone at every cell."""
+        return self._frame_table
+
     def render_state(self, state: torch.Tensor) -> torch.Tensor:
         """Draws valid states ``[*B, k, 2]`` as uint8 ``[*B, 3, 16, 16]`` (black background).
 
         Frames are gathered and summed as int64 words (8 pixels' bytes each): blocks never
         overlap, so every byte has at most one non-zero term and no carry crosses bytes.
         """
-        cell = state[..., 0].clamp(0, GRID_SIZE - 1) * GRID_SIZE + state[..., 1].clamp(
-            0, GRID_SIZE - 1
-        )
-        offset = self._object_ids * (GRID_SIZE * GRID_SIZE)
-        index = (cell + offset).reshape(-1)
+        index = self.frame_parts(state).reshape(-1)
         words = self._frame_words.index_select(0, index)
         words = words.view(-1, self.num_objects, words.shape[-1])
         if self.num_objects > 1:

@@ -72,14 +72,18 @@ from __future__ import annotations
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
+from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, TensorDictPrimer
 from torchrl.modules.planners import MPCPlannerBase
 
+from dorp_rl.envs.planning import GroundTruthModelEnv, ImaginedFrames
 from dorp_rl.planners.costs import (
+    IMAGINED_PIXELS,
     STEP_AGGREGATIONS,
     MissingRolloutKeyError,
+    RolloutCost,
     check_step_aggregation,
 )
 from dorp_rl.validation import check_int, check_seed
@@ -373,8 +377,12 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         self, td: TensorDictBase, decisions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scores candidates ``[b, N, H / r]``: (score ``[b, N]``, best step ``[b, N]``)."""
-        rollout = self.imagine(td, decisions)
-        out = self.cost(rollout)
+        if self._imagines_states():
+            rollout, frames = self.imagine_states(td, decisions)
+            out = _run_cost_imagined(self.cost, rollout, frames)
+        else:
+            rollout = self.imagine(td, decisions)
+            out = self.cost(rollout)
         out = rollout if out is None else out
         name = type(self.cost).__name__
         if not isinstance(out, TensorDictBase):
@@ -436,6 +444,52 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         )
         rollout.update(root.exclude(self.action_key))
         return rollout
+
+    def imagine_states(
+        self, td: TensorDictBase, decisions: torch.Tensor
+    ) -> tuple[TensorDictBase, ImaginedFrames]:
+        """:meth:`imagine` through the true dynamics, frames left undrawn.
+
+        For a :class:`~dorp_rl.envs.GroundTruthModelEnv` whose predictions the cost reads
+        are ``("next", "pixels")`` and ``("next", "state")``: the candidates' states come
+        from :meth:`~dorp_rl.envs.GroundTruthModelEnv.imagine` (no tensordict per step),
+        and the rollout ``[b, N, H]`` holds ``action``, ``("next", "state")`` if the cost
+        reads it and the root keys, but not ``("next", "pixels")``: the cost gets the
+        :class:`~dorp_rl.envs.planning.ImaginedFrames` instead
+        (:meth:`~dorp_rl.planners.RolloutCost.per_step_cost_imagined`), and frames are
+        drawn only for costs that need them. The scores are the same as through
+        :meth:`imagine`.
+        """
+        rows, n = decisions.shape[:2]
+        actions = decisions.repeat_interleave(self.action_repeat, dim=-1).to(td.device)
+        state = td.get("state", None)
+        if state is None:
+            raise KeyError(
+                "GroundTruthModelEnv.step needs 'state' (the true configuration) in the "
+                "tensordict; the acting env's tensordict holds it."
+            )
+        frames = self.env.imagine(state.unsqueeze(1), actions)  # states [b, N, H, ...]
+        horizon_shape = torch.Size([rows, n, self.planning_horizon])
+        rollout = TensorDict(
+            {self.action_key: actions.unsqueeze(-1) if self._action_shape == (1,) else actions},
+            batch_size=horizon_shape,
+            device=td.device,
+        )
+        if ("next", "state") in self._next_keys:
+            rollout.set(("next", "state"), frames.states)
+        root = td.select(*self._root_keys, strict=False)
+        rollout.update(root.reshape(rows, 1, 1).expand(horizon_shape).exclude(self.action_key))
+        return rollout, frames
+
+    def _imagines_states(self) -> bool:
+        """Whether :meth:`imagine_states` gives the rollout (see there)."""
+        env = self.env
+        return (
+            isinstance(env, GroundTruthModelEnv)
+            and type(env)._step is GroundTruthModelEnv._step
+            and bool(self._cost_keys)
+            and all(key in (IMAGINED_PIXELS, ("next", "state")) for key in self._next_keys)
+        )
 
     # ------------------------------------------------------------------ #
     # Internals
@@ -506,6 +560,32 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             f"action_repeat={self.action_repeat}, execution={self.execution!r}, "
             f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}"
         )
+
+
+def _run_cost_imagined(
+    cost: nn.Module, rollout: TensorDictBase, frames: ImaginedFrames
+) -> TensorDictBase:
+    """Runs ``cost`` on a rollout whose ``("next", "pixels")`` are ``frames``.
+
+    :class:`~dorp_rl.planners.RolloutCost` modules (alone or in a
+    :class:`~tensordict.nn.TensorDictSequential`) that keep the base ``forward`` get the
+    frames through ``forward_imagined``; any other module gets them drawn into the
+    rollout and is called as usual.
+    """
+    if isinstance(cost, RolloutCost) and type(cost).forward is RolloutCost.forward:
+        return cost.forward_imagined(rollout, frames)
+    if (
+        isinstance(cost, TensorDictSequential)
+        and not cost.partial_tolerant
+        and isinstance(cost.module, nn.ModuleList)
+    ):
+        for module in cost.module:
+            rollout = _run_cost_imagined(module, rollout, frames)
+        return rollout
+    if IMAGINED_PIXELS not in rollout.keys(True, True):
+        rollout.set(IMAGINED_PIXELS, frames.pixels())
+    out = cost(rollout)
+    return rollout if out is None else out
 
 
 def finished_rows(td: TensorDictBase) -> torch.Tensor:

@@ -50,7 +50,7 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from dorp_rl.envs.planning import distinct_rows, row_hashes
+from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
 
 __all__ = [
     "STEP_AGGREGATIONS",
@@ -65,6 +65,9 @@ __all__ = [
 
 #: How a planner folds a candidate's per-step costs ``[H]`` into its score.
 STEP_AGGREGATIONS = ("min", "sum", "final")
+
+#: The rollout key an :class:`~dorp_rl.envs.planning.ImaginedFrames` stands for.
+IMAGINED_PIXELS = ("next", "pixels")
 
 
 class MissingRolloutKeyError(KeyError, ValueError):
@@ -157,6 +160,38 @@ class RolloutCost(TensorDictModuleBase):
         rollout.set(self.out_key, self.per_step_cost(rollout))
         return rollout
 
+    def per_step_cost_imagined(
+        self, rollout: TensorDictBase, frames: ImaginedFrames
+    ) -> torch.Tensor:
+        """:meth:`per_step_cost` of a rollout whose ``("next", "pixels")`` are ``frames``.
+
+        Planning through the true dynamics (:class:`~dorp_rl.envs.GroundTruthModelEnv`)
+        hands the cost the imagined states instead of drawn frames. This default draws
+        them into the rollout when the cost reads ``("next", "pixels")`` and calls
+        :meth:`per_step_cost`; a cost overrides it to ask ``frames`` for less (distinct
+        frames only, distances from the states) with exactly the same result.
+        """
+        if IMAGINED_PIXELS in self.in_keys and IMAGINED_PIXELS not in rollout.keys(True, True):
+            rollout.set(IMAGINED_PIXELS, frames.pixels())
+        return self.per_step_cost(rollout)
+
+    def forward_imagined(self, rollout: TensorDictBase, frames: ImaginedFrames) -> TensorDictBase:
+        """:meth:`forward` through :meth:`per_step_cost_imagined`."""
+        rollout.set(self.out_key, self.per_step_cost_imagined(rollout, frames))
+        return rollout
+
+    def _reads_imagined(self, rollout: TensorDictBase, key: NestedKey, cls: type) -> bool:
+        """Whether ``key`` is the undrawn imagined frames and ``cls.per_step_cost`` is in use.
+
+        A subclass that overrides :meth:`per_step_cost` gets the frames drawn (through
+        the default :meth:`per_step_cost_imagined`), so that its override is what runs.
+        """
+        return (
+            type(self).per_step_cost is cls.per_step_cost
+            and key == IMAGINED_PIXELS
+            and IMAGINED_PIXELS not in rollout.keys(True, True)
+        )
+
     def extra_repr(self) -> str:
         return f"out_key={self.out_key!r}, step_aggregation={self.step_aggregation!r}"
 
@@ -222,31 +257,69 @@ class PixelDistanceCost(RolloutCost):
         self.in_keys = [self.pixels_key, self.goal_key]
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        return self._per_step_cost(rollout, None)
+
+    def per_step_cost_imagined(
+        self, rollout: TensorDictBase, frames: ImaginedFrames
+    ) -> torch.Tensor:
+        """The same costs from imagined states: exact distances without drawing frames.
+
+        Without ``blur_sigmas``, each squared distance is an integer below ``2**24``
+        (checked), which float32 holds exactly whatever the summation order, so it is
+        computed in integers from the frames' parts; the blurred terms are computed on
+        the distinct (frame, goal) pairs, of which only the distinct frames are drawn.
+        """
+        if not self._reads_imagined(rollout, self.pixels_key, PixelDistanceCost):
+            return super().per_step_cost_imagined(rollout, frames)
+        return self._per_step_cost(rollout, frames)
+
+    def _per_step_cost(
+        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
+    ) -> torch.Tensor:
         name = type(self).__name__
-        pixels = get_rollout_key(rollout, self.pixels_key, name)
+        if imagined is None:
+            pixels = get_rollout_key(rollout, self.pixels_key, name)
+            frame_shape, lead = pixels.shape[-3:], pixels.shape[:-3]
+        else:
+            frame_shape, lead = imagined.frame_shape, imagined.shape
         goal = get_rollout_key(rollout, self.goal_key, name)
-        if tuple(pixels.shape[-3:]) != tuple(goal.shape[-3:]):
+        if tuple(frame_shape) != tuple(goal.shape[-3:]):
             raise ValueError(
                 f"{self.goal_key!r} must have the frame shape of {self.pixels_key!r} "
-                f"({list(pixels.shape[-3:])}), got {list(goal.shape)}."
+                f"({list(frame_shape)}), got {list(goal.shape)}."
             )
-        lead = pixels.shape[:-3]
-        frames = pixels.reshape(-1, pixels.shape[-3:].numel())
         # The goal is a broadcast view: keep one copy per distinct goal and an index from
         # each frame to its goal, instead of materialising it N * H times.
         goal = compact_broadcast(goal.expand(*lead, *goal.shape[-3:]), keep_last=3)
-        goals = goal.reshape(-1, frames.shape[-1]).to(torch.float32)
+        goal_rows = goal.reshape(-1, frame_shape.numel())
+        goals = goal_rows.to(torch.float32)
         owner = torch.arange(goals.shape[0], device=goals.device).reshape(goal.shape[:-3])
         owner = owner.expand(lead).reshape(-1)
         inverse = None
-        if self.blur_sigmas and frames.dtype == torch.uint8 and frames.shape[0] > 1:
-            # Blurring costs ~50x the plain distance; imagined frames repeat a lot, so
-            # score each distinct (frame, goal) pair once.
-            owner_bytes = owner.unsqueeze(-1).contiguous().view(torch.uint8)
-            pairs, inverse = distinct_rows(torch.cat([frames, owner_bytes], -1))
-            if inverse is not None:
-                frames = pairs[:, : frames.shape[1]]
-                owner = pairs[:, frames.shape[1] :].contiguous().view(torch.int64).squeeze(-1)
+        if imagined is None:
+            frames = pixels.reshape(-1, frame_shape.numel())
+            if self.blur_sigmas and frames.dtype == torch.uint8 and frames.shape[0] > 1:
+                # Blurring costs ~50x the plain distance; imagined frames repeat a lot, so
+                # score each distinct (frame, goal) pair once.
+                owner_bytes = owner.unsqueeze(-1).contiguous().view(torch.uint8)
+                pairs, inverse = distinct_rows(torch.cat([frames, owner_bytes], -1))
+                if inverse is not None:
+                    frames = pairs[:, : frames.shape[1]]
+                    owner = pairs[:, frames.shape[1] :].contiguous().view(torch.int64).squeeze(-1)
+        elif not self.blur_sigmas:
+            squared = imagined.squared_distances(goal_rows, owner)
+            if squared is not None and (squared.numel() == 0 or int(squared.max()) < 2**24):
+                # Exactly what the float loop below gives: every partial sum of the
+                # squared differences is an integer below 2**24, which float32 holds.
+                return squared.to(torch.float32).sqrt_().div_(255.0).reshape(lead)
+            frames = imagined.pixels().reshape(-1, frame_shape.numel())
+        elif imagined.numel > 1:
+            # The same distinct (frame, goal) pairs as above, drawing only distinct frames.
+            distinct, goal_index, inverse, _ = imagined.distinct(owner.unsqueeze(-1))
+            frames = distinct.reshape(distinct.shape[0], -1)
+            owner = goal_index.squeeze(-1)
+        else:
+            frames = imagined.pixels().reshape(-1, frame_shape.numel())
         out = torch.empty(frames.shape[0], dtype=torch.float32, device=frames.device)
         # Chunks of a few hundred frames stay in cache: ~10x faster than one pass.
         for start in range(0, frames.shape[0], self.chunk_size):
@@ -256,7 +329,7 @@ class PixelDistanceCost(RolloutCost):
             total = diff.square().sum(-1).sqrt_()
             for i in range(len(self.blur_sigmas)):
                 # Blurring is linear: the blurred frames differ by the blurred difference.
-                blurred = _blur(diff.view(-1, *pixels.shape[-3:]), getattr(self, f"_blur{i}"))
+                blurred = _blur(diff.view(-1, *frame_shape), getattr(self, f"_blur{i}"))
                 total += blurred.flatten(1).square().sum(-1).sqrt_()
             out[start:stop] = total
         if inverse is not None:
@@ -310,14 +383,15 @@ class _EncodingCache:
         self.keys = self.codes = self.probs = None
         self.version: tuple | None = None
 
-    def encode(self, frames, encode_frames, module: nn.Module | None):
+    def encode(self, frames, encode_frames, module: nn.Module | None, keys=None):
+        """Codes and probabilities of ``frames``; ``keys``: their row hashes if known."""
         if self.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0:
             return encode_frames(frames)
         version = (id(module), *(p._version for p in module.parameters())) if module else None
         if version != self.version or self.keys is None:
             self.keys = self.codes = self.probs = None
             self.version = version
-        keys = row_hashes(frames)
+        keys = row_hashes(frames) if keys is None else keys
         hit = torch.zeros(frames.shape[0], dtype=torch.bool, device=frames.device)
         pos = None
         if self.keys is not None and self.keys.device == keys.device:
@@ -447,26 +521,36 @@ class CodeMatchCost(RolloutCost):
         self.in_keys = in_keys
 
     @torch.no_grad()
-    def _encode(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Codes ``[*S, C]`` and probabilities ``[*S, C, Z]`` of frames ``[*S, 3, 16, 16]``."""
+    def _encode(
+        self, pixels: torch.Tensor | None, imagined: ImaginedFrames | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Codes ``[*S, C]`` and probabilities ``[*S, C, Z]`` of frames ``[*S, 3, 16, 16]``.
+
+        The frames are ``pixels``, or ``imagined`` (of which only distinct ones are drawn).
+        """
         module = self.encoder if isinstance(self.encoder, nn.Module) else None
         was_training = module.training if module is not None else False
         if module is not None:
             module.eval()
         try:
-            flat = pixels.reshape(-1, *pixels.shape[-3:])
-            inverse = None
-            if flat.dtype == torch.uint8 and flat.shape[0] > 1:
-                # Imagined frames repeat a lot, within a call and across calls: encode
-                # each distinct frame once, and frames seen in earlier calls not at all.
-                flat, inverse = distinct_rows(flat)
-            code, prob = self.cache.encode(flat, self._encode_frames, module)
+            inverse = keys = None
+            if imagined is not None and imagined.numel > 1:
+                flat, _, inverse, keys = imagined.distinct()
+            else:
+                if imagined is not None:
+                    pixels = imagined.pixels()
+                flat = pixels.reshape(-1, *pixels.shape[-3:])
+                if flat.dtype == torch.uint8 and flat.shape[0] > 1:
+                    # Imagined frames repeat a lot, within a call and across calls: encode
+                    # each distinct frame once, and frames seen in earlier calls not at all.
+                    flat, inverse = distinct_rows(flat)
+            code, prob = self.cache.encode(flat, self._encode_frames, module, keys=keys)
         finally:
             if module is not None:
                 module.train(was_training)
         if inverse is not None:
             code, prob = code[inverse], prob[inverse]
-        lead = pixels.shape[:-3]
+        lead = pixels.shape[:-3] if imagined is None else imagined.shape
         return code.reshape(*lead, code.shape[-1]), prob.reshape(*lead, *prob.shape[-2:])
 
     def _encode_frames(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -478,19 +562,34 @@ class CodeMatchCost(RolloutCost):
         return torch.cat(codes), torch.cat(probs)
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        return self._per_step_cost(rollout, None)
+
+    def per_step_cost_imagined(
+        self, rollout: TensorDictBase, frames: ImaginedFrames
+    ) -> torch.Tensor:
+        """The same costs from imagined states, drawing and encoding distinct frames only."""
+        if not self._reads_imagined(rollout, self.pixels_key, CodeMatchCost):
+            return super().per_step_cost_imagined(rollout, frames)
+        return self._per_step_cost(rollout, frames)
+
+    def _per_step_cost(
+        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
+    ) -> torch.Tensor:
         name = type(self).__name__
         if rollout.batch_dims < 2:
             raise ValueError(
                 f"{name} needs a rollout of batch shape [*B, N, H], got {list(rollout.batch_size)}."
             )
-        predicted = get_rollout_key(rollout, self.pixels_key, name)
+        predicted = (
+            None if imagined is not None else get_rollout_key(rollout, self.pixels_key, name)
+        )
         start = get_rollout_key(rollout, self.start_pixels_key, name)
         target = get_rollout_key(rollout, self.target_key, name)
         if target.dtype.is_floating_point or target.dtype == torch.bool:
             raise ValueError(f"{self.target_key!r} must hold integer codes, got {target.dtype}.")
         # All candidates and steps share the start frame: encode it once per row.
         start_code = self._encode(start[..., :1, :1, :, :, :])[0]  # [*B, 1, 1, C]
-        code, probs = self._encode(predicted)  # [*B, N, H, C], [*B, N, H, C, Z]
+        code, probs = self._encode(predicted, imagined)  # [*B, N, H, C], [*B, N, H, C, Z]
         num_onehots = code.shape[-1]
         if target.shape[-1] != num_onehots:
             raise ValueError(
