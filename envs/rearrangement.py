@@ -248,6 +248,9 @@ class ObjectRearrangementEnv(GridWorldEnv):
 
     def frame_parts(self, state: torch.Tensor) -> torch.Tensor:
         """int64 ``[*B, k]``: block ``o`` alone at its cell, a row of :meth:`frame_part_table`."""
+        return self._part_index(state)
+
+    def _part_index(self, state: torch.Tensor) -> torch.Tensor:
         cell = state[..., 0].clamp(0, GRID_SIZE - 1) * GRID_SIZE + state[..., 1].clamp(
             0, GRID_SIZE - 1
         )
@@ -263,7 +266,7 @@ class ObjectRearrangementEnv(GridWorldEnv):
         Frames are gathered and summed as int64 words (8 pixels' bytes each): blocks never
         overlap, so every byte has at most one non-zero term and no carry crosses bytes.
         """
-        index = self.frame_parts(state).reshape(-1)
+        index = self._part_index(state).reshape(-1)
         words = self._frame_words.index_select(0, index)
         words = words.view(-1, self.num_objects, words.shape[-1])
         if self.num_objects > 1:

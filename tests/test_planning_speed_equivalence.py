@@ -1,0 +1,276 @@
+"""The fast path of planning through the true dynamics gives exactly the generic path's results.
+
+With a :class:`~dorp_rl.envs.GroundTruthModelEnv`, planners roll candidates out on raw
+states (:meth:`GroundTruthModelEnv.imagine`) and costs read
+:class:`~dorp_rl.envs.planning.ImaginedFrames` instead of drawn frames. The reference is
+the generic TorchRL path (``env.step`` / ``step_mdp`` one step at a time, frames stacked,
+the cost's ``per_step_cost``), which the planners still take for any other planning env.
+Every comparison is exact (``torch.equal``), not approximate.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
+
+import dorp_rl.envs.planning as planning
+from dorp_rl.envs import GroundTruthModelEnv, KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
+from dorp_rl.modules import OracleCodeEncoder
+from dorp_rl.planners import (
+    CategoricalCEMPlanner,
+    CodeMatchCost,
+    PixelDistanceCost,
+    RandomShootingPlanner,
+    RolloutCost,
+    WeightedCostSum,
+)
+from dorp_rl.planners.base import _run_cost_imagined
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def make_env(kind: str, batch: int = 3, **kwargs):
+    if kind == "keys":
+        return KeyWallEnv(batch_size=(batch,), seed=1)
+    return ObjectRearrangementEnv(num_objects=3, batch_size=(batch,), seed=1, **kwargs)
+
+
+def with_codes(env, td: TensorDict) -> TensorDict:
+    """Adds the oracle's codes of the goal and a per-row one-hot mask."""
+    code = OracleCodeEncoder(env).encode(td["goal_pixels"])
+    td["subgoal_code"] = code
+    mask = torch.zeros(code.shape, dtype=torch.bool)
+    mask[torch.arange(code.shape[0]), torch.arange(code.shape[0]) % code.shape[1]] = True
+    td["subgoal_mask"] = mask
+    return td
+
+
+class StateCost(RolloutCost):
+    """Reads the imagined ``("next", "state")``: the sum of its coordinates."""
+
+    def __init__(self) -> None:
+        super().__init__(step_aggregation="final")
+        self.in_keys = [("next", "state")]
+
+    def per_step_cost(self, rollout):
+        return rollout["next", "state"].flatten(3).sum(-1).float()
+
+
+class HalfPixelCost(PixelDistanceCost):
+    """Overrides per_step_cost: the fast path must run the override on drawn frames."""
+
+    def per_step_cost(self, rollout):
+        return super().per_step_cost(rollout) / 2
+
+
+def make_cost(name: str, env):
+    oracle = OracleCodeEncoder(env)
+    if name == "pixel":
+        return PixelDistanceCost()
+    if name == "blur":
+        return PixelDistanceCost(blur_sigmas=(1.0, 3.0), chunk_size=100)
+    if name == "code":
+        return CodeMatchCost(oracle, onehots=[0], cache_size=0)
+    if name == "code_mask_cached":
+        return CodeMatchCost(oracle, onehots="subgoal_mask")
+    if name == "state":
+        return StateCost()
+    if name == "override":
+        return HalfPixelCost()
+    return TensorDictSequential(
+        PixelDistanceCost(out_key="pixel_cost", blur_sigmas=(2.0,)),
+        CodeMatchCost(oracle, onehots="subgoal_mask", out_key="code_cost"),
+        WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),
+    )
+
+
+def both_paths(planner, td, decisions):
+    """Per-step costs ``[b, N, H]`` through the generic path and the fast path."""
+    generic = planner.cost(planner.imagine(td, decisions))[planner.cost_key]
+    rollout, frames = planner.imagine_states(td, decisions)
+    assert "pixels" not in rollout.get("next", TensorDict()).keys()  # nothing drawn up front
+    fast = _run_cost_imagined(planner.cost, rollout, frames)[planner.cost_key]
+    return generic, fast
+
+
+def test_imagine_gives_the_states_and_frames_of_stepping_one_step_at_a_time():
+    for kind in ("rearrangement", "keys"):
+        env = make_env(kind)
+        model = GroundTruthModelEnv(env)
+        td = env.reset()
+        actions = torch.randint(
+            0, env.num_actions, (3, 5, 6), generator=torch.Generator().manual_seed(0)
+        )
+        frames = model.imagine(td["state"].unsqueeze(1), actions)
+        current = td.select("state", "pixels", "goal_pixels").unsqueeze(1).expand(3, 5).clone()
+        for t in range(6):
+            current["action"] = actions[..., t : t + 1]
+            current = model.step(current)
+            assert torch.equal(frames.states[:, :, t], current["next", "state"])
+            assert torch.equal(frames.pixels()[:, :, t], current["next", "pixels"])
+            current = model.step_mdp(current)
+    with pytest.raises(ValueError, match="action out of range"):
+        model.imagine(td["state"], torch.full((3, 2), env.num_actions))
+
+
+def test_frame_parts_add_up_to_the_frame_without_overlap():
+    for kind in ("rearrangement", "keys"):
+        env = make_env(kind, batch=64)
+        state = env.reset()["state"]
+        parts = env.frame_part_table()[env.frame_parts(state)].to(torch.int64)  # [64, P, 3, 16, 16]
+        assert torch.equal(parts.sum(1), env.render_state(state).to(torch.int64))
+        assert int((parts.amax(2) > 0).sum(1).max()) == 1  # one part per lit pixel at most
+
+
+def test_imagined_frames_distinct_is_distinct_rows_of_the_drawn_frames():
+    env = make_env("rearrangement", batch=4)
+    td = env.reset()
+    actions = torch.randint(0, 3, (4, 40, 5), generator=torch.Generator().manual_seed(1))
+    frames = GroundTruthModelEnv(env).imagine(td["state"].unsqueeze(1), actions)
+    flat = frames.pixels().reshape(-1, 3, 16, 16)
+    # Without extra columns.
+    unique, _, inverse, keys = frames.distinct()
+    expected, expected_inverse = distinct_rows(flat)
+    assert unique.shape[0] < flat.shape[0]  # few actions: many repeated frames
+    assert torch.equal(unique, expected) and torch.equal(inverse, expected_inverse)
+    assert torch.equal(keys, row_hashes(unique))
+    # With an owner column (one goal per row), as the blurred pixel cost asks.
+    owner = torch.arange(4).view(4, 1, 1).expand(4, 40, 5).reshape(-1, 1)
+    unique, extra, inverse, keys = frames.distinct(owner)
+    rows = torch.cat([flat.reshape(flat.shape[0], -1), owner.view(torch.uint8)], -1)
+    expected, expected_inverse = distinct_rows(rows)
+    assert torch.equal(unique.reshape(unique.shape[0], -1), expected[:, :768])
+    assert torch.equal(extra.view(torch.uint8), expected[:, 768:])
+    assert torch.equal(inverse, expected_inverse)
+    assert torch.equal(keys, row_hashes(expected))
+
+
+def test_squared_distances_are_exact():
+    env = make_env("rearrangement", batch=4)
+    td = env.reset()
+    actions = torch.randint(
+        0, env.num_actions, (4, 30, 5), generator=torch.Generator().manual_seed(2)
+    )
+    frames = GroundTruthModelEnv(env).imagine(td["state"].unsqueeze(1), actions)
+    goals = td["goal_pixels"].reshape(4, -1)
+    owner = torch.arange(4).view(4, 1, 1).expand(4, 30, 5).reshape(-1)
+    expected = (frames.pixels().reshape(-1, 768).long() - goals[owner].long()).square().sum(-1)
+    assert torch.equal(frames.squared_distances(goals, owner), expected)
+
+
+@pytest.mark.parametrize("kind", ["rearrangement", "keys"])
+@pytest.mark.parametrize(
+    "cost_name", ["pixel", "blur", "code", "code_mask_cached", "state", "override", "composed"]
+)
+def test_fast_path_costs_equal_the_generic_path(kind, cost_name):
+    env = make_env(kind)
+    td = with_codes(env, env.reset())
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env), make_cost(cost_name, env), planning_horizon=4, num_candidates=48
+    )
+    assert planner._imagines_states()
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(2):  # the second call hits CodeMatchCost's cache
+        decisions = torch.randint(0, env.num_actions, (3, 48, 4), generator=gen)
+        generic, fast = both_paths(planner, td, decisions)
+        assert torch.equal(generic, fast)
+
+
+@pytest.mark.parametrize("variant", ["rs", "cem"])
+def test_planners_plan_the_same_through_both_paths(variant):
+    """Whole planning calls along a short episode: same actions, plans and plan costs."""
+
+    class GenericPath:
+        def _imagines_states(self) -> bool:
+            return False
+
+    kwargs = dict(planning_horizon=6, num_candidates=64, seed=5, action_repeat=2)
+    outputs = []
+    for generic in (False, True):
+        cls = RandomShootingPlanner if variant == "rs" else CategoricalCEMPlanner
+        if variant == "cem":
+            kwargs.update(top_k=6, optim_steps=2)
+        if generic:
+            cls = type("Generic", (GenericPath, cls), {})
+        env = make_env("rearrangement", batch=3)
+        planner = cls(GroundTruthModelEnv(env), make_cost("composed", env), **kwargs)
+        td = with_codes(env, env.reset())
+        steps = env.rollout(4, planner, auto_reset=False, tensordict=td)
+        outputs.append(steps.select("action", "planner_plan", "planner_cost", "planner_length"))
+    assert (outputs[0] == outputs[1]).all()
+
+
+def test_fallbacks_give_the_same_costs(monkeypatch):
+    # Squared distances of 2**24 and more (big white blocks): the float path decides.
+    env = ObjectRearrangementEnv(
+        num_objects=2,
+        block_shapes=(6, 8),
+        colours=torch.tensor([[255, 255, 255], [255, 255, 254]]),
+        batch_size=(2,),
+        seed=0,
+    )
+    td = env.reset(
+        TensorDict(
+            state=torch.tensor([[[0, 0], [0, 8]]] * 2),
+            goal_state=torch.tensor([[[10, 0], [10, 8]]] * 2),
+            batch_size=(2,),
+        ),
+        set_state=True,
+    )
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), planning_horizon=3, num_candidates=16
+    )
+    decisions = torch.randint(0, 8, (2, 16, 3), generator=torch.Generator().manual_seed(0))
+    generic, fast = both_paths(planner, td, decisions)
+    assert torch.equal(generic, fast) and float(generic.max()) ** 2 * 255**2 >= 2**24
+
+    # Overlapping start blocks (not a valid state): frames are not sums of parts.
+    env = make_env("rearrangement", batch=2)
+    td = with_codes(env, env.reset())
+    td["state"] = torch.tensor([[[0, 0], [0, 2], [8, 8]]] * 2)
+    for name in ("pixel", "blur", "code"):
+        planner = RandomShootingPlanner(
+            GroundTruthModelEnv(env), make_cost(name, env), planning_horizon=3, num_candidates=16
+        )
+        decisions = torch.randint(0, 12, (2, 16, 3), generator=torch.Generator().manual_seed(1))
+        generic, fast = both_paths(planner, td, decisions)
+        assert torch.equal(generic, fast)
+
+    # Every hash colliding: deduplication gives up on both paths alike.
+    monkeypatch.setattr(
+        planning, "_hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
+    )
+    env = make_env("rearrangement", batch=2)
+    td = with_codes(env, env.reset())
+    frames = GroundTruthModelEnv(env).imagine(td["state"], torch.zeros(2, 3, dtype=torch.long))
+    assert frames.distinct()[2] is None  # no deduplication
+    for name in ("blur", "code"):
+        planner = RandomShootingPlanner(
+            GroundTruthModelEnv(env), make_cost(name, env), planning_horizon=3, num_candidates=16
+        )
+        decisions = torch.randint(0, 12, (2, 16, 3), generator=torch.Generator().manual_seed(2))
+        generic, fast = both_paths(planner, td, decisions)
+        assert torch.equal(generic, fast)
+
+
+def test_imagined_frames_of_an_env_without_parts_draw_every_frame():
+    class NoParts(ObjectRearrangementEnv):
+        def frame_parts(self, state):
+            return None
+
+    env = NoParts(num_objects=2, batch_size=(2,), seed=0)
+    td = env.reset()
+    frames = GroundTruthModelEnv(env).imagine(td["state"], torch.zeros(2, 4, dtype=torch.long))
+    assert isinstance(frames, ImaginedFrames)
+    assert frames.squared_distances(td["goal_pixels"].reshape(2, -1), torch.zeros(8).long()) is None
+    unique, _, inverse, _ = frames.distinct()
+    assert torch.equal(unique[inverse], frames.pixels().reshape(-1, 3, 16, 16))
