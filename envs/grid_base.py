@@ -237,6 +237,25 @@ class GridWorldEnv(EnvBase):
         """Next configuration. ``state`` ``[*B, *state_shape]``, ``action`` ``[*B]``."""
         raise NotImplementedError
 
+    def transitions(self, state: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """The configurations after each of ``H`` actions: :meth:`transition` ``H`` times.
+
+        Args:
+            state: int64 ``[*B, *state_shape]``, broadcast against ``actions[..., 0]``.
+            actions: int64 ``[*L, H]``.
+
+        Returns:
+            int64 ``[*L, H, *state_shape]``. Subclasses may roll out faster, with the
+            same result.
+        """
+        lead = actions.shape[:-1]
+        current = state.expand(*lead, *self.state_shape)
+        steps = []
+        for t in range(actions.shape[-1]):
+            current = self.transition(current, actions[..., t])
+            steps.append(current)
+        return torch.stack(steps, dim=len(lead))
+
     def render_state(self, state: torch.Tensor) -> torch.Tensor:
         """Draws any batch of states: int64 ``[*B, *state_shape]`` -> uint8 ``[*B, 3, 16, 16]``."""
         raise NotImplementedError

@@ -238,13 +238,7 @@ class GroundTruthModelEnv(_PlanningEnvBase):
             state, env.state_shape, "state", owner=f"the planning model of {type(env).__name__}"
         )
         actions = check_planning_action(actions.unsqueeze(-1), self.num_actions).squeeze(-1)
-        lead = actions.shape[:-1]
-        current = state.expand(*lead, *env.state_shape)
-        steps = []
-        for t in range(actions.shape[-1]):
-            current = env.transition(current, actions[..., t])
-            steps.append(current)
-        states = torch.stack(steps, dim=len(lead))
+        states = env.transitions(state, actions)
         # Frames add up from their parts only when no two blocks overlap; the dynamics
         # keep a valid state valid, so the start states decide.
         valid = not bool(env.invalid_states(state).any())

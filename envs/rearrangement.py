@@ -225,6 +225,45 @@ class ObjectRearrangementEnv(GridWorldEnv):
         index = obj[..., None, None].expand(*obj.shape, 1, 2)
         return state.scatter(-2, index, new_corner.unsqueeze(-2))
 
+    def transitions(self, state: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """:meth:`transition` ``H`` times (``[*L, H, k, 2]``), about twice as fast.
+
+        The moves are decoded for all steps at once, and rows and columns are kept
+        apart in int16 (coordinates are below 16), so each step is a few small kernels.
+        A subclass that changes :meth:`transition` gets the step-by-step rollout.
+        """
+        if type(self).transition is not ObjectRearrangementEnv.transition:
+            return super().transitions(state, actions)
+        lead, horizon, k = actions.shape[:-1], actions.shape[-1], self.num_objects
+        small = torch.int16
+        obj = actions // 4  # [*L, H]
+        direction = DIRECTIONS.to(state.device, small)[actions % 4]  # [*L, H, 2]
+        shapes = self.block_shapes.to(small)
+        size = shapes[obj]  # [*L, H, 2]
+        heights, widths = shapes[:, 0].contiguous(), shapes[:, 1].contiguous()
+        mine = obj.unsqueeze(-1) == self._object_ids  # [*L, H, k]
+        rows = state[..., 0].to(small).expand(*lead, k).contiguous()
+        cols = state[..., 1].to(small).expand(*lead, k).contiguous()
+        all_rows, all_cols = [], []
+        for t in range(horizon):
+            moved = obj[..., t : t + 1]
+            top = rows.gather(-1, moved) + direction[..., t, :1]  # [*L, 1]
+            left = cols.gather(-1, moved) + direction[..., t, 1:]
+            height, width = size[..., t, :1], size[..., t, 1:]
+            inside = (top >= 0) & (top + height <= GRID_SIZE) & (left >= 0)
+            inside &= left + width <= GRID_SIZE
+            hits = (top < rows + heights) & (rows < top + height)
+            hits &= (left < cols + widths) & (cols < left + width)
+            hits &= ~mine[..., t, :]
+            move = mine[..., t, :] & (inside & ~hits.any(-1, keepdim=True))
+            rows = torch.where(move, top, rows)
+            cols = torch.where(move, left, cols)
+            all_rows.append(rows)
+            all_cols.append(cols)
+        step = len(lead)
+        out = torch.stack([torch.stack(all_rows, step), torch.stack(all_cols, step)], -1)
+        return out.to(torch.int64)
+
     def _build_frame_table(self) -> torch.Tensor:
         """uint8 ``[k * 256, 3, 16, 16]``: object ``o`` alone with its top-left at cell ``p``.
 

@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
 
 import dorp_rl.envs.planning as planning
-from dorp_rl.envs import GroundTruthModelEnv, KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
 from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import (
@@ -274,3 +274,37 @@ def test_imagined_frames_of_an_env_without_parts_draw_every_frame():
     assert frames.squared_distances(td["goal_pixels"].reshape(2, -1), torch.zeros(8).long()) is None
     unique, _, inverse, _ = frames.distinct()
     assert torch.equal(unique[inverse], frames.pixels().reshape(-1, 3, 16, 16))
+
+
+@pytest.mark.parametrize("shapes", [(2, 4), [(1, 1), (3, 2), (2, 5), (4, 4), (1, 7)]])
+def test_rearrangement_transitions_equal_transition_step_by_step(shapes):
+    """Crowded grids (many blocked moves, blocks at the borders) and mixed block shapes."""
+    env = ObjectRearrangementEnv(num_objects=5, block_shapes=shapes, batch_size=(6,), seed=4)
+    state = env.reset()["state"].unsqueeze(1)  # [6, 1, 5, 2]
+    actions = torch.randint(0, 20, (6, 50, 30), generator=torch.Generator().manual_seed(4))
+    fast = env.transitions(state, actions)
+    step_by_step = GridWorldEnv.transitions(env, state, actions)  # the generic loop
+    assert fast.dtype == torch.int64 and fast.shape == (6, 50, 30, 5, 2)
+    assert torch.equal(fast, step_by_step)
+    assert not env.invalid_states(fast).any()
+    moved = (fast[:, :, 1:] != fast[:, :, :-1]).flatten(3).any(-1)
+    assert 0.2 < moved.float().mean() < 0.95  # both moves and blocked moves happen
+
+
+def test_cem_sampling_by_binary_search_equals_counting_cdf_entries():
+    env = make_env("rearrangement")
+    planner = CategoricalCEMPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), planning_horizon=6, num_candidates=500
+    )
+    gen = torch.Generator().manual_seed(6)
+    probs = torch.rand(3, 6, env.num_actions, generator=gen)
+    probs[0] = 0.0
+    probs[0, :, 4] = 1.0  # a one-hot: zero-width bins on both sides
+    probs[1, :, ::2] = 0.0  # empty bins between full ones
+    probs = probs / probs.sum(-1, keepdim=True)
+    u = torch.rand(3, 500, 6, generator=gen)
+    u[2, :10] = probs[2].cumsum(-1)[:, 3]  # uniforms exactly on a bin edge
+    counted = (u.unsqueeze(-1) >= probs.cumsum(-1).unsqueeze(1)).sum(-1)
+    expected = counted.clamp_max(env.num_actions - 1)
+    assert torch.equal(planner._sample(probs, u), expected)
+    assert bool((expected[0] == 4).all())

@@ -139,9 +139,10 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
 
     def _sample(self, probs: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Inverse-CDF samples ``[b, N, D]`` from ``probs [b, D, A]`` and uniforms ``[b, N, D]``."""
-        cdf = probs.cumsum(-1).unsqueeze(1)  # [b, 1, D, A]
-        index = (u.unsqueeze(-1) >= cdf).sum(-1)
-        return index.clamp_max(self.num_actions - 1)
+        cdf = probs.cumsum(-1)  # [b, D, A], non-decreasing
+        # The number of CDF entries <= u, found by binary search per (row, decision).
+        index = torch.searchsorted(cdf, u.transpose(1, 2).contiguous(), right=True)
+        return index.transpose(1, 2).clamp_max(self.num_actions - 1).contiguous()
 
     def _refit(self, probs: torch.Tensor, elites: torch.Tensor) -> torch.Tensor:
         """Distributions ``[b, D, A]`` refitted to elites ``[b, top_k, D]``."""
