@@ -349,7 +349,8 @@ class ImaginedFrames:
         >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
         >>> env = ObjectRearrangementEnv(num_objects=2, batch_size=(3,), seed=0)
         >>> td = env.reset()
-        >>> frames = GroundTruthModelEnv(env).imagine(td["state"], torch.zeros(3, 5, 4, dtype=torch.long))
+        >>> actions = torch.randint(0, 8, (3, 5, 4))  # 5 sequences of 4 actions per row
+        >>> frames = GroundTruthModelEnv(env).imagine(td["state"].unsqueeze(1), actions)
         >>> frames.states.shape, frames.pixels().shape
         (torch.Size([3, 5, 4, 2, 2]), torch.Size([3, 5, 4, 3, 16, 16]))
         >>> goal = td["goal_pixels"].reshape(3, -1)
