@@ -25,6 +25,11 @@ load on a shared machine hits both alike. ``--costs`` adds DORP's costs: ``blur`
 distance with blurred terms of widths 1, 2, 4) and ``code`` (``CodeMatchCost`` with the
 oracle encoder on one one-hot, its cache emptied before each call).
 
+``--rollout-steps T`` also times whole episodes the way the evaluation runs the
+baselines: ``env.rollout(T, VisualForesightPolicy(...))`` (open-loop execution, so rows
+replan only when their plan runs out) on both paths, reported per env step of the batch,
+after checking that both paths executed the same actions.
+
 Usage::
 
     .venv/bin/python benchmarks/true_dynamics_planning.py                 # 1 thread
@@ -49,6 +54,7 @@ from dorp_rl.planners import (
     PixelDistanceCost,
     RandomShootingPlanner,
 )
+from dorp_rl.policies import VisualForesightPolicy
 
 
 class _GenericPath:
@@ -104,6 +110,33 @@ def time_pair(fast, reference, td, repeats: int) -> tuple[float, float]:
     return statistics.median(times["fast"]), statistics.median(times["reference"])
 
 
+def time_rollouts(k: int, variant: str, args) -> tuple[float, float]:
+    """Seconds per env step of a VF episode of ``args.rollout_steps`` steps: (fast, reference)."""
+    seconds, actions = [], []
+    for reference in (False, True):
+        env = ObjectRearrangementEnv(num_objects=k, batch_size=(args.batch,), seed=0)
+        policy = VisualForesightPolicy(
+            GroundTruthModelEnv(env),
+            variant,
+            planning_horizon=args.planning_horizon,
+            num_candidates=args.candidates,
+            seed=0,
+        )
+        if reference:
+            policy.planner.__class__ = type(
+                f"Reference{type(policy.planner).__name__}",
+                (_GenericPath, type(policy.planner)),
+                {},
+            )
+        start = time.perf_counter()
+        steps = env.rollout(args.rollout_steps, policy, break_when_any_done=False)
+        seconds.append((time.perf_counter() - start) / args.rollout_steps)
+        actions.append(steps["action"])
+    if not torch.equal(actions[0], actions[1]):
+        raise AssertionError("the fast and reference paths executed different actions")
+    return seconds[0], seconds[1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
@@ -114,6 +147,9 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", choices=("rs", "cem"), default=["rs", "cem"])
     parser.add_argument("--costs", nargs="+", choices=("pixel", "blur", "code"), default=["pixel"])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--rollout-steps", type=int, default=0, help="also time VF episodes of this many steps"
+    )
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
@@ -136,6 +172,19 @@ def main() -> None:
                 fast_s, ref_s = time_pair(fast, reference, td, args.repeats)
                 print(
                     f"{k:7d} {variant:>7s} {cost:>6s} {fast_s * 1e3:9.1f} {ref_s * 1e3:9.1f} "
+                    f"{ref_s / fast_s:6.1f}x"
+                )
+    if args.rollout_steps:
+        print(
+            f"\nVF episodes, {args.rollout_steps} steps of a batch of {args.batch} "
+            "(ms per env step)"
+        )
+        print(f"{'objects':>7s} {'planner':>7s} {'fast ms':>9s} {'ref. ms':>9s} {'ratio':>7s}")
+        for k in args.objects:
+            for variant in args.variants:
+                fast_s, ref_s = time_rollouts(k, variant, args)
+                print(
+                    f"{k:7d} {variant:>7s} {fast_s * 1e3:9.1f} {ref_s * 1e3:9.1f} "
                     f"{ref_s / fast_s:6.1f}x"
                 )
 
