@@ -269,11 +269,11 @@ def test_loss_falls_on_a_tiny_dataset():
     first = None
     for _ in range(150):
         out = loss(td)
-        first = float(out["loss_cpc"]) if first is None else first
+        first = float(out["loss_cpc"].detach()) if first is None else first
         opt.zero_grad()
         out["loss_cpc"].backward()
         opt.step()
-    assert float(out["loss_cpc"]) < first - 1.0
+    assert float(out["loss_cpc"].detach()) < first - 1.0
 
 
 # ---------------------------------------------------------------- trainer
@@ -308,7 +308,8 @@ def test_resume_equals_uninterrupted_run(tmp_path):
     interrupted = RepresentationTrainer(_tiny_config(tmp_path / "b", num_steps=5))
     interrupted.train()  # stops at step 5 with a checkpoint
     resumed = RepresentationTrainer(_tiny_config(tmp_path / "b"))
-    resumed.train(resume=True)
+    with pytest.warns(UserWarning, match=r"num_steps=12 \(checkpoint 5\)"):
+        resumed.train(resume=True)
     assert resumed.step == 12
     for a, b in zip(
         full.encoder.state_dict().values(), resumed.encoder.state_dict().values(), strict=True
@@ -323,8 +324,12 @@ def test_collapse_detector_restarts_and_reports(tmp_path):
     trainer = RepresentationTrainer(cfg)
     reason = trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 0.1}, 10)
     assert reason is not None and "only 1 code" in reason
-    with pytest.warns(RuntimeWarning, match="collapsed"):
+    with pytest.warns(RuntimeWarning) as caught:
         result = trainer.train()
+    said = [str(w.message) for w in caught]
+    restarts = [m for m in said if "restarted at step" in m]
+    assert len(restarts) == 2 and "(restart 1/2)" in restarts[0] and "(restart 2/2)" in restarts[1]
+    assert any("still collapsed after 2 restart(s)" in m for m in said)
     assert result["attempt"] == 2 and len(result["restarts"]) == 2
     assert result["collapsed"] is True
 
