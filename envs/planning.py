@@ -26,6 +26,7 @@ Keys (leading shape ``*B`` arbitrary):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -413,20 +414,29 @@ class ImaginedFrames:
         return self._tables[key]
 
     def distinct(
-        self, extra: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+        self, extra: torch.Tensor | None = None, *, draw: bool = True
+    ) -> tuple[
+        torch.Tensor | Callable[[torch.Tensor | None], torch.Tensor],
+        torch.Tensor | None,
+        torch.Tensor | None,
+        torch.Tensor | None,
+    ]:
         """:func:`distinct_rows` of the frames (joined with ``extra`` columns), drawing distinct ones.
 
         Args:
             extra: int64 ``[n, e]`` joined to each flat frame (``n = prod(L)``), as its
                 bytes; ``None`` for the frames alone.
+            draw: ``False`` returns, instead of the distinct frames, a function drawing
+                those of given indices (``None``: all), when the rows were found without
+                drawing them (a cache keyed by ``keys`` may need only a few).
 
         Returns:
             ``(frames, extra, inverse, keys)``: the rows ``distinct_rows`` returns on
             ``cat(frames.reshape(n, -1), extra.view(uint8))``, split into uint8 frames
-            ``[m, 3, 16, 16]`` and int64 extras ``[m, e]`` (``None`` without ``extra``);
-            its ``inverse`` (``None``: no deduplication, all ``n`` rows returned); and
-            :func:`row_hashes` of the returned rows (``None`` when not known).
+            ``[m, 3, 16, 16]`` (or the function drawing them) and int64 extras ``[m, e]``
+            (``None`` without ``extra``); its ``inverse`` (``None``: no deduplication, all
+            ``n`` rows returned); and :func:`row_hashes` of the returned rows (``None``
+            when not known).
         """
         n = self.numel
         if not self._has_parts:
@@ -455,7 +465,12 @@ class ImaginedFrames:
                 same = same and torch.equal(extra[rows], extra[owner[rows]])
             if not same:  # a hash collision: distinct_rows gives up deduplication
                 return self._distinct_drawn(extra)
-        frames = self.env.render_state(self._flat_states()[first])
+        states = self._flat_states()[first]
+
+        def draw_frames(index: torch.Tensor | None = None) -> torch.Tensor:
+            return self.env.render_state(states if index is None else states[index])
+
+        frames = draw_frames() if draw else draw_frames
         return frames, None if extra is None else extra[first], inverse, unique
 
     def _distinct_drawn(self, extra: torch.Tensor | None):

@@ -308,3 +308,62 @@ def test_cem_sampling_by_binary_search_equals_counting_cdf_entries():
     expected = counted.clamp_max(env.num_actions - 1)
     assert torch.equal(planner._sample(probs, u), expected)
     assert bool((expected[0] == 4).all())
+
+
+def test_code_match_cost_draws_only_frames_its_cache_misses():
+    env = make_env("rearrangement")
+    td = with_codes(env, env.reset())
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env), make_cost("code_mask_cached", env), planning_horizon=4
+    )
+    drawn = []
+    render = env.render_state
+
+    def counting_render(state):
+        drawn.append(state.reshape(-1, 3, 2).shape[0])
+        return render(state)
+
+    env.render_state = counting_render
+    decisions = torch.randint(0, 12, (3, 100, 4), generator=torch.Generator().manual_seed(7))
+    rollout, frames = planner.imagine_states(td, decisions)
+    first = _run_cost_imagined(planner.cost, rollout, frames)["cost"]
+    drawn_first = sum(drawn)
+    distinct = frames.distinct()[2].max() + 1
+    # An empty cache: every distinct frame once, but for the 3 start frames, encoded first.
+    assert distinct - 3 <= drawn_first <= distinct < 3 * 100 * 4
+    drawn.clear()
+    rollout, frames = planner.imagine_states(td, decisions)
+    again = _run_cost_imagined(planner.cost, rollout, frames)["cost"]
+    assert sum(drawn) == 0 and torch.equal(first, again)  # all in the cache: none drawn
+    generic = planner.cost(planner.imagine(td, decisions))["cost"]
+    assert torch.equal(first, generic)
+
+
+def test_code_match_cost_refuses_out_of_range_codes_on_both_paths():
+    """An encoder claiming more codes than its probabilities have: gather refuses both ways."""
+
+    class Wide(torch.nn.Module):
+        code_sizes = (100, 100, 100)
+
+        def __init__(self, env):
+            super().__init__()
+            self.oracle = OracleCodeEncoder(env)
+
+        def forward(self, pixels):
+            return self.oracle(pixels)
+
+    env = make_env("rearrangement")
+    td = with_codes(env, env.reset())
+    td["subgoal_code"] = torch.full((3, 3), 50)
+    planner = RandomShootingPlanner(
+        GroundTruthModelEnv(env),
+        CodeMatchCost(Wide(env), onehots=[0]),
+        planning_horizon=3,
+        num_candidates=8,
+    )
+    decisions = torch.zeros(3, 8, 3, dtype=torch.long)
+    with pytest.raises(RuntimeError, match="out of bounds"):
+        planner.cost(planner.imagine(td, decisions))
+    rollout, frames = planner.imagine_states(td, decisions)
+    with pytest.raises(RuntimeError, match="out of bounds"):
+        _run_cost_imagined(planner.cost, rollout, frames)

@@ -384,24 +384,34 @@ class _EncodingCache:
         self.version: tuple | None = None
 
     def encode(self, frames, encode_frames, module: nn.Module | None, keys=None):
-        """Codes and probabilities of ``frames``; ``keys``: their row hashes if known."""
-        if self.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0:
+        """Codes and probabilities of ``frames``; ``keys``: their row hashes if known.
+
+        ``frames`` may also be a function drawing the uint8 frames of given indices
+        (``None``: all), with ``keys`` given: only the frames the cache misses are drawn.
+        """
+        lazy = not isinstance(frames, torch.Tensor)
+        if lazy and (keys is None or self.size == 0):
+            frames, lazy = frames(None), False
+        if not lazy and (self.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0):
             return encode_frames(frames)
+        count = keys.shape[0] if lazy else frames.shape[0]
         version = (id(module), *(p._version for p in module.parameters())) if module else None
         if version != self.version or self.keys is None:
             self.keys = self.codes = self.probs = None
             self.version = version
         keys = row_hashes(frames) if keys is None else keys
-        hit = torch.zeros(frames.shape[0], dtype=torch.bool, device=frames.device)
+        hit = torch.zeros(count, dtype=torch.bool, device=keys.device)
         pos = None
         if self.keys is not None and self.keys.device == keys.device:
             pos = torch.searchsorted(self.keys, keys).clamp_max(self.keys.shape[0] - 1)
             hit = self.keys[pos] == keys
         miss = (~hit).nonzero().squeeze(-1)
-        new_codes, new_probs = encode_frames(frames[miss]) if miss.numel() else (None, None)
+        new_codes = new_probs = None
+        if miss.numel():
+            new_codes, new_probs = encode_frames(frames(miss) if lazy else frames[miss])
         if self.keys is None:
-            code = torch.empty(frames.shape[0], *new_codes.shape[1:], dtype=new_codes.dtype)
-            prob = torch.empty(frames.shape[0], *new_probs.shape[1:], dtype=new_probs.dtype)
+            code = torch.empty(count, *new_codes.shape[1:], dtype=new_codes.dtype)
+            prob = torch.empty(count, *new_probs.shape[1:], dtype=new_probs.dtype)
             code, prob = code.to(new_codes.device), prob.to(new_probs.device)
         else:
             code = self.codes[pos.clamp_min(0)].clone()
@@ -526,8 +536,21 @@ class CodeMatchCost(RolloutCost):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Codes ``[*S, C]`` and probabilities ``[*S, C, Z]`` of frames ``[*S, 3, 16, 16]``.
 
-        The frames are ``pixels``, or ``imagined`` (of which only distinct ones are drawn).
+        The frames are ``pixels``, or ``imagined`` (of which only distinct ones that the
+        cache does not hold are drawn).
         """
+        code, prob, inverse = self._encode_distinct(pixels, imagined)
+        if inverse is not None:
+            code, prob = code[inverse], prob[inverse]
+        lead = pixels.shape[:-3] if imagined is None else imagined.shape
+        return code.reshape(*lead, code.shape[-1]), prob.reshape(*lead, *prob.shape[-2:])
+
+    @torch.no_grad()
+    def _encode_distinct(
+        self, pixels: torch.Tensor | None, imagined: ImaginedFrames | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Codes ``[m, C]`` and probabilities ``[m, C, Z]`` of the distinct frames, and the
+        ``inverse [n]`` from every flat frame to its distinct one (``None``: ``m = n``)."""
         module = self.encoder if isinstance(self.encoder, nn.Module) else None
         was_training = module.training if module is not None else False
         if module is not None:
@@ -535,7 +558,7 @@ class CodeMatchCost(RolloutCost):
         try:
             inverse = keys = None
             if imagined is not None and imagined.numel > 1:
-                flat, _, inverse, keys = imagined.distinct()
+                flat, _, inverse, keys = imagined.distinct(draw=False)
             else:
                 if imagined is not None:
                     pixels = imagined.pixels()
@@ -548,10 +571,7 @@ class CodeMatchCost(RolloutCost):
         finally:
             if module is not None:
                 module.train(was_training)
-        if inverse is not None:
-            code, prob = code[inverse], prob[inverse]
-        lead = pixels.shape[:-3] if imagined is None else imagined.shape
-        return code.reshape(*lead, code.shape[-1]), prob.reshape(*lead, *prob.shape[-2:])
+        return code, prob, inverse
 
     def _encode_frames(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         codes, probs = [], []
@@ -589,7 +609,20 @@ class CodeMatchCost(RolloutCost):
             raise ValueError(f"{self.target_key!r} must hold integer codes, got {target.dtype}.")
         # All candidates and steps share the start frame: encode it once per row.
         start_code = self._encode(start[..., :1, :1, :, :, :])[0]  # [*B, 1, 1, C]
-        code, probs = self._encode(predicted, imagined)  # [*B, N, H, C], [*B, N, H, C, Z]
+        inverse = None
+        if imagined is None:
+            code, probs = self._encode(predicted)  # [*B, N, H, C], [*B, N, H, C, Z]
+        else:
+            # Codes and probabilities of the distinct frames, [m, C] and [m, C, Z]: the
+            # [*B, N, H, C, Z] probabilities are never materialised (see below).
+            code, probs, inverse = self._encode_distinct(None, imagined)
+            if inverse is None:
+                lead = imagined.shape
+                code = code.reshape(*lead, code.shape[-1])
+                probs = probs.reshape(*lead, *probs.shape[-2:])
+            else:
+                distinct_probs = probs
+                code = code[inverse].reshape(*imagined.shape, code.shape[-1])
         num_onehots = code.shape[-1]
         if target.shape[-1] != num_onehots:
             raise ValueError(
@@ -603,9 +636,22 @@ class CodeMatchCost(RolloutCost):
             chosen[self.onehots if self.onehots is not None else slice(None)] = True
         self._check_target(target, chosen, probs.shape[-1])
         wanted = torch.where(chosen, target.to(code.device), start_code)  # [*B, N, H, C]
+        num_codes = probs.shape[-1]
+        if inverse is not None and bool(((wanted < 0) | (wanted >= num_codes)).any()):
+            # Out-of-range codes: let gather refuse them as on the drawn path.
+            probs = distinct_probs[inverse].reshape(*code.shape, num_codes)
+            inverse = None
         wanted = wanted.expand_as(code)
         match = (code == wanted).all(-1)
-        confidence = probs.gather(-1, wanted.unsqueeze(-1)).squeeze(-1).mean(-1)
+        if inverse is None:
+            picked = probs.gather(-1, wanted.unsqueeze(-1)).squeeze(-1)
+        else:
+            # The same entries as gathering from distinct_probs[inverse], read in place.
+            flat_wanted = wanted.reshape(-1, num_onehots)
+            onehot = torch.arange(num_onehots, device=code.device)
+            index = (inverse.unsqueeze(-1) * num_onehots + onehot) * num_codes + flat_wanted
+            picked = distinct_probs.reshape(-1)[index].reshape(code.shape)
+        confidence = picked.mean(-1)
         return (~match).to(torch.float32) - self.tie_break * confidence.to(torch.float32)
 
     def _check_target(self, target: torch.Tensor, chosen: torch.Tensor, max_codes: int) -> None:
