@@ -162,7 +162,7 @@ def main() -> None:
     parser.add_argument("--candidates", type=int, default=1000)
     parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--waypoint-budget", type=int, default=28)
-    parser.add_argument("--max-removed-edges", type=int, default=32)
+    parser.add_argument("--max-removed-edges", type=int, default=128)
     parser.add_argument(
         "--keep-removed-edges",
         action="store_true",
