@@ -29,13 +29,8 @@ from dorp_rl.planners import (
 )
 from dorp_rl.planners.base import _run_cost_imagined
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# Tiny tensors on a busy 2-core machine: single-threaded (conftest's fixture).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def make_env(kind: str, batch: int = 3, **kwargs):
