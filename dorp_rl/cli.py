@@ -39,10 +39,11 @@ from typing import Annotated, Any, Literal
 import torch
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs import GridWorldEnv
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     SETTINGS,
+    EvalSpec,
     evaluate_parallel,
     format_table,
     make_task_set,
@@ -50,7 +51,6 @@ from dorp_rl.eval import (
     write_results,
 )
 from dorp_rl.planners import CodeGraph
-from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy
 from dorp_rl.trainers import (
     OfflineTrainer,
     RepresentationConfig,
@@ -58,7 +58,6 @@ from dorp_rl.trainers import (
     WorldModelConfig,
     WorldModelTrainer,
     load_encoder,
-    load_video_model,
 )
 from dorp_rl.viz import plot_results
 
@@ -527,33 +526,23 @@ def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
 
 
 def _policy(cmd: Evaluate, method: str, env: GridWorldEnv, low_level: Any, dorp: Any):
+    """The policy of ``method`` for ``env``, built by the same recipe as the workers'."""
     if method == "random":
         torch.manual_seed(cmd.seed)
-        return env.rand_action
-    if method in DORP_VARIANTS:
-        encoder, graph = dorp[:2]
-        return make_dorp_policy(
-            env,
-            encoder,
-            graph,
-            low_level="ground_truth" if low_level is None else str(low_level),
-            planner=cmd.dorp_planner,
-            planning_horizon=cmd.planning_horizon,
-            num_candidates=cmd.candidates,
-            waypoint_budget=cmd.waypoint_budget,
-            seed=cmd.seed,
-        )
-    if low_level is None:
-        planning_env = GroundTruthModelEnv(env)
-    else:
-        planning_env = WorldModelEnv(load_video_model(low_level, env), env.num_actions)
-    return VisualForesightPolicy(
-        planning_env,
-        method.removeprefix("vf-"),
+    dorp_method = method in DORP_VARIANTS
+    spec = EvalSpec(
+        cmd.setting,
+        "dorp" if dorp_method else method,
+        encoder=dorp[0] if dorp_method else None,
+        graph=dorp[1] if dorp_method else None,
+        low_level="gt" if low_level is None else str(low_level),
+        candidates=cmd.candidates,
         planning_horizon=cmd.planning_horizon,
-        num_candidates=cmd.candidates,
+        dorp_planner=cmd.dorp_planner,
+        waypoint_budget=cmd.waypoint_budget,
         seed=cmd.seed,
     )
+    return spec.make_policy(env)
 
 
 def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
