@@ -20,10 +20,13 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorStorag
 import dorp_rl.data.play as play_module
 from dorp_rl.data import (
     PLAY_KEYS,
+    EventWindowSampler,
     FuturePairSampler,
     SequenceSampler,
     UniformRandomPolicy,
+    changed_pixels,
     collect_play_data,
+    event_transitions,
     future_pairs,
     load_play_data,
     play_env,
@@ -718,6 +721,85 @@ def test_sequence_too_long_for_trajectories_raises(short_data, rearrangement_buf
 def test_sequence_bad_horizon_raises(horizon):
     with pytest.raises(ValueError, match="horizon"):
         SequenceSampler(horizon)
+
+
+# ---------------------------------------------------------------------- #
+# EventWindowSampler
+# ---------------------------------------------------------------------- #
+def walk_with_events(length: int, events: list[int]) -> TensorDict:
+    """One walk of ``length`` steps: each step moves one pixel (2 cells change), except the
+    ``events``, which also change 3 more cells (like a door opening)."""
+    pixels = torch.zeros(length + 1, 3, 16, 16, dtype=torch.uint8)
+    for t in range(length + 1):
+        pixels[t, 0, t % 16, (t // 16) % 16] = 255
+    nxt = pixels[1:].clone()
+    for t in events:
+        nxt[t, 1, 15, 13:] = 200
+    return TensorDict(
+        traj_id=torch.zeros(length, dtype=torch.int64),
+        step_count=torch.arange(length).unsqueeze(-1),
+        pixels=pixels[:-1],
+        next=TensorDict(pixels=nxt, batch_size=[length]),
+        batch_size=[length],
+    )
+
+
+def event_share_of(sample: TensorDict) -> float:
+    """Share of the ``[B, H]`` windows of ``sample`` holding a transition changing > 2 cells."""
+    cells = (sample["pixels"] != sample["next", "pixels"]).any(-3).flatten(-2).sum(-1)
+    return float((cells > 2).any(-1).float().mean())
+
+
+def test_event_transitions_are_the_key_pickups_of_key_wall_play(keywall_buffer):
+    data = stored(keywall_buffer)
+    events = event_transitions(changed_pixels(keywall_buffer.storage))
+    key_taken = data["next", "state"][:, 2] != data["state"][:, 2]
+    assert key_taken.sum() >= 1  # the seeded walks take the key twice
+    assert torch.equal(events, key_taken)
+
+
+def test_event_transitions_threshold():
+    changed = torch.tensor([0, 0, 4, 8, 4, 8, 8, 0])
+    assert event_transitions(changed).tolist() == [False] * 8  # 8 is the ordinary move
+    assert event_transitions(changed, min_changed=5).tolist() == [c >= 5 for c in changed]
+    assert not event_transitions(torch.zeros(5, dtype=torch.int64)).any()
+
+
+def test_event_window_sampler_draws_the_requested_share_of_event_windows():
+    horizon, data = 4, walk_with_events(400, [100, 300])
+    event_starts = set(range(97, 101)) | set(range(297, 301))  # 8 of 397 windows
+    generator = torch.Generator().manual_seed(0)
+    uniform = rebuffer(data, SequenceSampler(horizon), 4000, generator=generator).sample()
+    assert event_share_of(uniform) < 0.05
+    sampler = EventWindowSampler(horizon, event_share=0.5)
+    sample = rebuffer(data, sampler, 4000, generator=generator).sample()
+    assert 0.45 < event_share_of(sample) < 0.55
+    starts, has_event = sampler.window_events(rebuffer(data, sampler, 1).storage)
+    assert set(starts[has_event].tolist()) == event_starts
+    drawn = set(sample["index"][:, 0].tolist())
+    assert event_starts <= drawn and len(drawn - event_starts) > 300  # the others too
+    index = sample["index"]
+    assert torch.equal(index - index[:, :1], torch.arange(horizon).expand_as(index))
+    # A share below the natural one leaves sampling uniform.
+    natural = rebuffer(data, EventWindowSampler(horizon, 0.0), 4000, generator=generator)
+    assert event_share_of(natural.sample()) < 0.05
+    # Seeded by the buffer's generator.
+    again = rebuffer(data, EventWindowSampler(horizon, 0.5), 64, torch.Generator().manual_seed(3))
+    other = rebuffer(data, EventWindowSampler(horizon, 0.5), 64, torch.Generator().manual_seed(3))
+    assert torch.equal(again.sample()["index"], other.sample()["index"])
+
+
+def test_event_window_sampler_without_events_is_uniform_and_says_so():
+    data = walk_with_events(50, [])
+    buffer = rebuffer(data, EventWindowSampler(4, event_share=0.5), 32)
+    with pytest.warns(UserWarning, match="none of the 47 windows holds an event"):
+        assert buffer.sample().shape == (32, 4)
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
+def test_event_window_sampler_bad_share_raises(share):
+    with pytest.raises(ValueError, match="event_share"):
+        EventWindowSampler(4, event_share=share)
 
 
 # ---------------------------------------------------------------------- #

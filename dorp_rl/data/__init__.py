@@ -9,11 +9,21 @@ from dorp_rl.data.play import (
     load_play_data,
     play_env,
 )
-from dorp_rl.data.samplers import FuturePairSampler, SequenceSampler, future_pairs
+from dorp_rl.data.samplers import (
+    EventWindowSampler,
+    FuturePairSampler,
+    SequenceSampler,
+    changed_pixels,
+    event_transitions,
+    future_pairs,
+)
 
 __all__ = [
+    "EventWindowSampler",
     "FuturePairSampler",
     "SequenceSampler",
+    "changed_pixels",
+    "event_transitions",
     "future_pairs",
     "MATCH_FIELDS",
     "PLAY_KEYS",

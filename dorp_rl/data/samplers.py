@@ -1,14 +1,17 @@
 """Samplers over play data: (o_t, o_{t+k}) pairs and H-step windows, within trajectories.
 
-Both are torchrl :class:`~torchrl.data.replay_buffers.samplers.Sampler` subclasses that
+All are torchrl :class:`~torchrl.data.replay_buffers.samplers.Sampler` subclasses that
 return a 2-D index ``[B, L]`` of consecutive transitions of one trajectory, so the buffer
 hands back a ``[B, L]`` tensordict. A window is valid when all its transitions share a
 ``traj_id`` and their ``step_count`` increases by one at each position, which holds
-whatever order the collector wrote trajectories in.
+whatever order the collector wrote trajectories in. :class:`EventWindowSampler` draws
+windows holding a rare event (the key taken and the door opened) more often than
+uniform sampling would.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +20,7 @@ from tensordict import TensorDictBase
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
-from dorp_rl.validation import MissingKeyError, check_int
+from dorp_rl.validation import MissingKeyError, check_float, check_int
 
 
 def _column(storage: Storage, key: str) -> torch.Tensor:
@@ -189,6 +192,148 @@ class SequenceSampler(_WindowSampler):
             )
         first = self._draw(starts, batch_size)
         return first.unsqueeze(-1) + torch.arange(self.horizon), {}
+
+
+def changed_pixels(
+    storage: Storage,
+    key: str = "pixels",
+    next_key: tuple[str, str] = ("next", "pixels"),
+    chunk_size: int = 8192,
+) -> torch.Tensor:
+    """int64 ``[N]``: per stored transition, the cells whose colour differs between ``key`` and ``next_key``.
+
+    Frames are ``[N, C, H, W]``; a cell counts once whatever number of channels changed.
+    Read in chunks of ``chunk_size`` transitions, so memory-mapped play data is never
+    loaded whole.
+    """
+    length = len(storage)
+    inner = getattr(storage, "_storage", None)
+    source = inner if isinstance(inner, TensorDictBase) else storage[:length]
+    for name in (key, next_key):
+        if name not in source.keys(include_nested=True):
+            raise MissingKeyError(
+                f"counting changed pixels needs the key {name!r} in the stored data "
+                "(collect_play_data writes 'pixels' and ('next', 'pixels'))."
+            )
+    out = torch.empty(length, dtype=torch.int64)
+    for start in range(0, length, chunk_size):
+        stop = min(length, start + chunk_size)
+        before = source.get(key)[start:stop]
+        after = source.get(next_key)[start:stop]
+        out[start:stop] = (before != after).any(-3).flatten(-2).sum(-1).cpu()
+    return out
+
+
+def event_transitions(changed: torch.Tensor, min_changed: int | None = None) -> torch.Tensor:
+    """bool ``[N]``: the transitions that change more than an ordinary step does.
+
+    ``changed`` holds the changed cells of each transition (:func:`changed_pixels`). With
+    ``min_changed=None`` the ordinary step is read off the data: the most common count
+    among the transitions that change anything (in the key rooms an agent move, 2 cells),
+    and an event changes more cells than that (the key taken and the door opened: 5).
+    Otherwise an event changes at least ``min_changed`` cells.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.data.samplers import event_transitions
+        >>> event_transitions(torch.tensor([2, 0, 2, 5, 2, 2])).tolist()
+        [False, False, False, True, False, False]
+    """
+    if min_changed is None:
+        moved = changed[changed > 0]
+        if moved.numel() == 0:
+            return torch.zeros_like(changed, dtype=torch.bool)
+        min_changed = int(torch.bincount(moved).argmax()) + 1
+    return changed >= min_changed
+
+
+class EventWindowSampler(SequenceSampler):
+    """A :class:`SequenceSampler` that draws windows holding a rare event more often.
+
+    Random play in the key rooms takes the key (and opens the door) in about 0.1% of its
+    transitions, so a world model trained on uniform windows rarely sees it and learns to
+    leave the door shut. This sampler finds the *event* transitions in the data alone
+    (:func:`event_transitions`: more cells change than in an ordinary step) and draws
+    windows that hold one with probability ``max(event_share, natural share)``, the
+    others with the rest, each uniformly within its group. Where events are already at
+    least ``event_share`` of the windows (in rearrangement, where every action moves a
+    block) sampling is uniform; with no event in the data it is uniform with a warning.
+    The flags are computed once per storage revision (one pass over the frames).
+
+    Args:
+        horizon: window length H (>= 1).
+        event_share: least share of drawn windows that hold an event, in [0, 1] (0:
+            uniform windows; 1: event windows only, e.g. to evaluate on them).
+        min_changed: changed cells that make an event (``None``: read off the data,
+            see :func:`event_transitions`).
+        traj_key, step_key: stored keys of trajectory ids and steps within a trajectory.
+
+    Examples:
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> from dorp_rl.data import EventWindowSampler, collect_play_data
+        >>> sampler = EventWindowSampler(5, event_share=0.5)
+        >>> buffer = collect_play_data(KeyWallEnv(batch_size=(4,)), 4000, seed=0,
+        ...                            sampler=sampler, batch_size=64)
+        >>> starts, has_event = sampler.window_events(buffer.storage)
+        >>> bool(has_event.float().mean() < 0.1), buffer.sample()["action"].shape
+        (True, torch.Size([64, 5, 1]))
+    """
+
+    def __init__(
+        self,
+        horizon: int,
+        event_share: float,
+        min_changed: int | None = None,
+        traj_key: str = "traj_id",
+        step_key: str = "step_count",
+    ) -> None:
+        super().__init__(horizon, traj_key, step_key)
+        self.event_share = check_float("event_share", event_share, low=0.0, high=1.0)
+        self.min_changed = check_int("min_changed", min_changed, low=1, optional=True)
+        self._events: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._events_tag: tuple | None = None
+        self._warned = False
+
+    def window_events(self, storage: Storage) -> tuple[torch.Tensor, torch.Tensor]:
+        """The valid window starts (int64 ``[M]``) and whether each window holds an event (bool ``[M]``)."""
+        starts = self.valid_starts(storage, self.horizon)
+        if self._events_tag != self._cache_tag or self._events is None:
+            events = event_transitions(changed_pixels(storage), self.min_changed)
+            # an event at transition i lies in the windows starting at i - H + 1 .. i
+            counts = torch.cat([torch.zeros(1, dtype=torch.int64), events.long().cumsum(0)])
+            has_event = (counts[starts + self.horizon] - counts[starts]) > 0
+            self._events, self._events_tag = (starts, has_event), self._cache_tag
+        return self._events
+
+    def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
+        if len(storage) == 0:
+            raise RuntimeError("Cannot sample from an empty storage.")
+        starts, has_event = self.window_events(storage)
+        num_events = int(has_event.sum())
+        if len(starts) == 0 or num_events in (0, len(starts)):
+            if num_events == 0 and len(starts) and self.event_share > 0 and not self._warned:
+                warnings.warn(
+                    f"EventWindowSampler: none of the {len(starts)} windows holds an event "
+                    "(a transition changing more cells than an ordinary step); sampling "
+                    "uniform windows.",
+                    UserWarning,
+                    stacklevel=2,
+                )
+                self._warned = True
+            return super().sample(storage, batch_size)
+        share = max(self.event_share, num_events / len(starts))
+        event_starts, other_starts = starts[has_event], starts[~has_event]
+        pick_event = torch.rand(batch_size, generator=self._rng) < share
+        first = torch.empty(batch_size, dtype=torch.int64)
+        for group, rows in ((event_starts, pick_event), (other_starts, ~pick_event)):
+            count = int(rows.sum())
+            if count:
+                first[rows] = self._draw(group, count)
+        return first.unsqueeze(-1) + torch.arange(self.horizon), {}
+
+    def _empty(self) -> None:
+        super()._empty()
+        self._events, self._events_tag = None, None
 
 
 def future_pairs(sample: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
