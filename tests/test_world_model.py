@@ -6,8 +6,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from dorp_rl.data import SequenceSampler, collect_play_data
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+from dorp_rl.data import EventWindowSampler, SequenceSampler, collect_play_data
+from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.eval import open_loop_accuracy
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives import VideoPredictionLoss
@@ -304,6 +305,71 @@ def test_config_validation_names_the_field(tmp_path) -> None:
         WorldModelConfig.from_dict({"num_stepz": 3})
     cfg = tiny_config(tmp_path)
     assert WorldModelConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_event_share_validation_names_the_field(tmp_path) -> None:
+    for bad in (-0.1, 1.0, 2, "some"):
+        with pytest.raises(ValueError, match=r"event_share .*\[0, 1\)|event_share"):
+            tiny_config(tmp_path, event_share=bad)
+    with pytest.raises(ValueError, match="event windows only"):
+        tiny_config(tmp_path, event_share=1.0)
+    assert tiny_config(tmp_path, event_share=0.25).event_share == 0.25
+    # key-wall trains with event windows, the other presets with uniform ones
+    assert WorldModelConfig.key_wall().event_share == 0.25
+    assert WorldModelConfig.rearrangement(3).event_share == 0.0
+    assert WorldModelConfig.key_corridor().event_share == 0.0
+
+
+def test_configs_and_checkpoints_without_event_share_load(tmp_path) -> None:
+    """Stored before the field existed: read as 0, the uniform windows they were trained on."""
+    old = tiny_config(tmp_path).to_dict()
+    del old["event_share"]
+    assert WorldModelConfig.from_dict(old).event_share == 0.0
+    flat = {k: v for k, v in WorldModelConfig.key_wall().to_dict().items() if k != "model"}
+    del flat["event_share"]
+    flat.update(model_preset="small", latent_dim=4, prior="fixed")  # an older flat config
+    assert WorldModelConfig.from_dict(flat).event_share == 0.0
+    trainer = WorldModelTrainer(tiny_config(tmp_path, num_steps=2))
+    trainer.train()
+    payload = load_checkpoint(trainer.checkpoint_path)
+    payload["config"].pop("event_share")
+    path = save_checkpoint(
+        tmp_path / "old.pt", **{k: payload[k] for k in ("kind", "config", "env_config", "state")},
+        step=payload["step"], rng=payload["rng"], extra=payload["extra"],
+    )  # fmt: skip
+    model = load_video_model(path, env=trainer.env)
+    frames, actions = trainer.eval_windows[:, 0]["pixels"], trainer.eval_windows[:, 0]["action"]
+    assert torch.equal(model.predict(frames, actions), trainer.model.predict(frames, actions))
+    resumed = WorldModelTrainer(tiny_config(tmp_path / "resumed", num_steps=2))
+    resumed.load(path)
+    assert resumed.step == 2
+
+
+def test_trainer_with_event_share_samples_and_evaluates_event_windows(tmp_path) -> None:
+    env = KeyWallEnv(batch_size=(4,), seed=0)
+    cfg = WorldModelConfig.key_wall(
+        num_steps=2, num_frames=4000, num_envs=4, horizon=4, eval_frames=2000,
+        eval_sequences=16, batch_size=64,
+        model=VideoModelConfig.small(), eval_every=10**6, progress=False,
+        out_dir=str(tmp_path / "wm"),
+    )  # fmt: skip
+    # seeded walks of 1000 steps that take the key 4 times (training) and 3 times (held out)
+    buffer = collect_play_data(env, 4000, seed=0)
+    held_out = collect_play_data(env, 2000, seed=2)
+    trainer = WorldModelTrainer(cfg, buffer=buffer, eval_buffer=held_out)
+    assert isinstance(trainer.buffer.sampler, EventWindowSampler)
+    assert not isinstance(held_out.sampler, EventWindowSampler)  # held-out windows stay uniform
+    batch = trainer.buffer.sample(64)
+    key_taken = (batch["next", "state"][..., 2] != batch["state"][..., 2]).any(-1)
+    assert key_taken.float().mean() >= 0.1  # about 0.25 (uniform: about 0.004)
+    windows = trainer.eval_event_windows
+    assert windows is not None and windows.shape == (12, 4)  # 3 events x 4 windows each
+    assert (windows["next", "state"][..., 2] != windows["state"][..., 2]).any(-1).all()
+    evaluation = trainer.train()["evaluation"]
+    assert evaluation["event_num_sequences"] == 12
+    assert 0.0 <= evaluation["event_exact_accuracy_step4"] <= 1.0
+    uniform = WorldModelTrainer(cfg.replace(event_share=0.0, out_dir=str(tmp_path / "u")))
+    assert type(uniform.buffer.sampler) is SequenceSampler and uniform.eval_event_windows is None
 
 
 def test_the_video_model_plugs_into_a_planning_env_and_planner(

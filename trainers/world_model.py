@@ -13,7 +13,12 @@ from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested
-from dorp_rl.data import SequenceSampler, check_play_buffer, collect_play_data
+from dorp_rl.data import (
+    EventWindowSampler,
+    SequenceSampler,
+    check_play_buffer,
+    collect_play_data,
+)
 from dorp_rl.envs import GridWorldEnv, make_env
 from dorp_rl.eval.world_model import open_loop_accuracy
 from dorp_rl.integrity import IntegrityError
@@ -39,7 +44,12 @@ class WorldModelConfig(TrainerConfig):
     windows of ``horizon`` steps. The open-loop length (steps the model feeds on its own
     predictions before restarting from the true frame) grows linearly from 1 to
     ``horizon`` over the first ``open_loop_ramp`` share of the steps: pure one-step
-    training first, full open-loop rollouts after.
+    training first, full open-loop rollouts after. With ``event_share > 0`` at least that
+    share of the windows holds an *event*, a transition that changes more cells than an
+    ordinary step (:class:`~dorp_rl.data.EventWindowSampler`): random play in key-wall
+    takes the key in about 0.1% of its transitions, and a model trained on uniform
+    windows leaves the door shut when it is taken. Configs stored before the field
+    existed read as 0 (uniform windows, as they were trained).
 
     Use :meth:`rearrangement`, :meth:`key_wall` or :meth:`key_corridor`, then override
     fields with :meth:`replace` (``cfg.replace(model=VideoModelConfig.small())`` or
@@ -51,6 +61,13 @@ class WorldModelConfig(TrainerConfig):
         **TrainerConfig.FIELD_RULES,
         "trajectory_length": Int(low=1),
         "horizon": Int(low=1),
+        "event_share": Float(
+            low=0.0,
+            high=1.0,
+            high_open=True,
+            hint="(a share of the training windows: 0 keeps them uniform, 1 would train on "
+            "event windows only)",
+        ),
         "eval_frames": Int(low=1),
         "eval_sequences": Int(low=1),
         "model": Nested(VideoModelConfig, default=VideoModelConfig.default),
@@ -81,6 +98,10 @@ class WorldModelConfig(TrainerConfig):
     # windows and evaluation
     horizon: int = 14
     """steps per training window"""
+    event_share: float = 0.0
+    """least share of training windows holding an event, in [0, 1): a transition that
+    changes more cells than an ordinary step (the key taken and the door opened), drawn
+    by EventWindowSampler; 0 keeps windows uniform (key-wall preset: 0.25)"""
     eval_frames: int = 8_000
     """held-out play transitions for evaluation"""
     eval_sequences: int = 512
@@ -120,8 +141,14 @@ class WorldModelConfig(TrainerConfig):
 
     @classmethod
     def key_wall(cls, **overrides: Any) -> WorldModelConfig:
-        """Key-wall: windows from the 1000-step random walks of the play data."""
-        return cls(env="key-wall", num_objects=1, trajectory_length=1000).replace(**overrides)
+        """Key-wall: windows from the 1000-step random walks, a quarter of them holding a key event.
+
+        Uniform windows hold the key pickup in about 1% of them and the model never learns
+        to open the door; ``event_share=0.25`` makes it see one in every fourth window.
+        """
+        return cls(env="key-wall", num_objects=1, trajectory_length=1000, event_share=0.25).replace(
+            **overrides
+        )
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> WorldModelConfig:
@@ -192,7 +219,9 @@ class WorldModelTrainer(OfflineTrainer):
         for name, given in (("buffer", buffer), ("eval_buffer", eval_buffer)):
             if given is not None:
                 check_play_buffer(given, self.env, min_trajectory_length=config.horizon, name=name)
-                given.set_sampler(SequenceSampler(config.horizon))
+                given.set_sampler(
+                    self.training_sampler() if name == "buffer" else SequenceSampler(config.horizon)
+                )
         if buffer is None:
             buffer = collect_play_data(
                 self.env,
@@ -200,7 +229,7 @@ class WorldModelTrainer(OfflineTrainer):
                 directory=config.data_dir,
                 seed=config.seed,
                 trajectory_length=config.trajectory_length,
-                sampler=SequenceSampler(config.horizon),
+                sampler=self.training_sampler(),
                 batch_size=config.batch_size,
                 progress=config.progress,
             )
@@ -217,6 +246,12 @@ class WorldModelTrainer(OfflineTrainer):
         eval_generator = torch.Generator().manual_seed(config.seed)
         eval_buffer.set_rng(eval_generator)
         self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
+        #: held-out windows holding an event (``event_share > 0`` only; ``None`` if none)
+        self.eval_event_windows: TensorDictBase | None = None
+        if config.event_share > 0:
+            self.eval_event_windows = event_windows(
+                eval_buffer, config.horizon, config.eval_sequences, eval_generator
+            )
         torch.manual_seed(config.seed)
         self.data_generator.manual_seed(derive_seed(config.seed, 1))
         palette = palette_from_frames(buffer[: min(len(buffer), 20_000)]["pixels"])
@@ -232,6 +267,13 @@ class WorldModelTrainer(OfflineTrainer):
             deterministic_fraction=config.deterministic_fraction,
         )
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+
+    def training_sampler(self) -> SequenceSampler:
+        """Training windows: uniform, or with ``event_share`` of them holding an event."""
+        cfg = self.config
+        if cfg.event_share > 0:
+            return EventWindowSampler(cfg.horizon, cfg.event_share)
+        return SequenceSampler(cfg.horizon)
 
     # ------------------------------------------------------------------ schedules
     def open_loop_length_at(self, step: int) -> int:
@@ -301,9 +343,37 @@ class WorldModelTrainer(OfflineTrainer):
     def evaluate(self) -> dict[str, Any]:
         """Open-loop accuracy on the held-out windows (deterministic mode)."""
         result = open_loop_accuracy(self.model, self.eval_windows)
-        for h in sorted({1, (result["horizon"] + 1) // 2, result["horizon"]}):
+        steps = sorted({1, (result["horizon"] + 1) // 2, result["horizon"]})
+        for h in steps:
             result[f"exact_accuracy_step{h}"] = result["exact_accuracy"][h - 1]
+        if self.eval_event_windows is not None:
+            events = open_loop_accuracy(self.model, self.eval_event_windows)
+            result["event_num_sequences"] = events["num_sequences"]
+            for h in steps:
+                result[f"event_exact_accuracy_step{h}"] = events["exact_accuracy"][h - 1]
         return result
+
+
+def event_windows(
+    buffer: TensorDictReplayBuffer,
+    horizon: int,
+    max_windows: int,
+    generator: torch.Generator | None = None,
+) -> TensorDictBase | None:
+    """Up to ``max_windows`` distinct ``[N, horizon]`` windows of ``buffer`` holding an event.
+
+    Events as in :class:`~dorp_rl.data.EventWindowSampler`; a random subset (from
+    ``generator``) when there are more. ``None`` when no window holds one. Used to
+    measure how a world model predicts the rare events (the door opening) that uniform
+    held-out windows hardly contain.
+    """
+    starts, has_event = EventWindowSampler(horizon, 1.0).window_events(buffer.storage)
+    starts = starts[has_event]
+    if len(starts) == 0:
+        return None
+    if len(starts) > max_windows:
+        starts = starts[torch.randperm(len(starts), generator=generator)[:max_windows]]
+    return buffer[starts.unsqueeze(-1) + torch.arange(horizon)]
 
 
 def load_video_model(
