@@ -99,9 +99,7 @@ class WorldModelConfig(TrainerConfig):
     horizon: int = 14
     """steps per training window"""
     event_share: float = 0.0
-    """least share of training windows holding an event, in [0, 1): a transition that
-    changes more cells than an ordinary step (the key taken and the door opened), drawn
-    by EventWindowSampler; 0 keeps windows uniform (key-wall preset: 0.25)"""
+    """least share of training windows holding a rare event, e.g. the key taken (0: uniform)"""
     eval_frames: int = 8_000
     """held-out play transitions for evaluation"""
     eval_sequences: int = 512
