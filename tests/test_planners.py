@@ -6,6 +6,8 @@ milliseconds on the ground-truth model.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -694,3 +696,55 @@ def test_blurred_pixel_distance_grows_all_the_way_to_the_corner():
     )
     cost = PixelDistanceCost(blur_sigmas=(1.0, 2.0, 4.0)).per_step_cost(rollout).flatten()
     assert cost[0] == 0 and (cost.diff() > 0).all(), cost.tolist()
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.0, 4.0])
+def test_blur_is_a_gaussian_with_symmetric_borders(sigma):
+    """The matrix blur equals a direct sum over taps of the symmetrically padded image."""
+    import numpy as np
+
+    from dorp_rl.planners.costs import _blur
+
+    radius = min(15, math.ceil(3 * sigma))
+    taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1) / sigma) ** 2)
+    taps = (taps / taps.sum()).to(torch.float64)
+    images = torch.rand(2, 3, 16, 16, generator=torch.Generator().manual_seed(0)).double()
+    padded = np.pad(
+        images.numpy(), ((0, 0), (0, 0), (radius, radius), (radius, radius)), "symmetric"
+    )
+    padded = torch.from_numpy(padded)
+    expected = torch.zeros_like(images)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            window = padded[..., dy : dy + 16, dx : dx + 16]
+            expected += taps[dy] * taps[dx] * window
+    assert torch.allclose(_blur(images, taps), expected, atol=1e-12)
+    assert torch.allclose(_blur(images, taps).sum((-2, -1)), images.sum((-2, -1)))  # mass kept
+
+
+def test_encoding_cache_returns_what_the_encoder_returns_across_inserts_and_resets():
+    from dorp_rl.planners.costs import _EncodingCache
+
+    generator = torch.Generator().manual_seed(0)
+    pool = torch.randint(0, 256, (12, 3, 4, 4), dtype=torch.uint8, generator=generator)
+    encoded: list[int] = []
+
+    def encode_frames(frames):
+        encoded.append(frames.shape[0])
+        flat = frames.flatten(1).to(torch.int64)
+        return flat[:, :2] % 7, flat[:, :6].float().reshape(-1, 2, 3) / 255
+
+    cache = _EncodingCache(size=8)
+    for picks in ([0, 1, 2], [2, 3, 1, 4], [5, 6, 0], [7, 8, 9, 3], [9, 10, 11, 11]):
+        frames = pool[torch.tensor(picks)]
+        code, prob = cache.encode(frames, encode_frames, None)
+        want_code, want_prob = encode_frames(frames)
+        encoded.pop()
+        assert torch.equal(code, want_code) and torch.equal(prob, want_prob)
+    # [0,1,2] 3 new; [2,3,1,4] 2 new; [5,6,0] 2 new (7 held); [7,8,9,3] 3 new: full,
+    # afresh; [9,10,11,11] hits 9 and encodes 10, 11 and 11 (a repeat within one call).
+    assert encoded == [3, 2, 2, 3, 3]
+    assert cache.count == 6
+    fresh = torch.randint(0, 256, (12, 3, 4, 4), dtype=torch.uint8, generator=generator)
+    code, _ = cache.encode(fresh, encode_frames, None)  # more misses than it holds
+    assert torch.equal(code, encode_frames(fresh)[0]) and cache.count == 6  # not kept

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import math
+import pickle
 import warnings
 
 import pytest
@@ -81,6 +83,61 @@ def test_encoder_presets_differ_in_size():
     small = sum(p.numel() for p in DiscreteCodeEncoder(EncoderConfig.small((32,))).parameters())
     big = sum(p.numel() for p in DiscreteCodeEncoder(EncoderConfig.authors((32,))).parameters())
     assert small < big / 3
+
+
+def _encoder_with_running_stats(competition: str = "softmax") -> DiscreteCodeEncoder:
+    torch.manual_seed(0)
+    encoder = DiscreteCodeEncoder(EncoderConfig.small((8, 8, 2), map_competition=competition))
+    for module in encoder.modules():
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.running_mean.uniform_(-1, 1)
+            module.running_var.uniform_(0.5, 2)
+            torch.nn.init.uniform_(module.weight, 0.5, 1.5)
+            torch.nn.init.uniform_(module.bias, -0.5, 0.5)
+    return encoder.eval()
+
+
+@pytest.mark.parametrize("competition", ["sigmoid", "softmax"])
+def test_inference_extractor_computes_what_the_extractor_computes(competition):
+    encoder = _encoder_with_running_stats(competition)
+    pixels = _pixels(64)
+    reference = encoder.logits(pixels).detach()  # gradients on: the plain extractor
+    with torch.no_grad():
+        fast = encoder.logits(pixels)
+    finite = torch.isfinite(reference)
+    assert torch.equal(finite, torch.isfinite(fast))
+    assert torch.allclose(fast[finite], reference[finite], atol=1e-4, rtol=1e-4)
+    with torch.no_grad():
+        assert torch.equal(encoder(pixels)[0], reference.argmax(-1))
+    # Folded BatchNorm is not the training-mode function: the fast path is eval-only.
+    encoder.train()
+    with torch.no_grad():
+        assert not torch.allclose(encoder.logits(pixels)[finite], fast[finite])
+
+
+def test_inference_extractor_follows_weight_changes_and_stays_out_of_the_state_dict():
+    encoder = _encoder_with_running_stats()
+    pixels = _pixels(16)
+    keys = set(encoder.state_dict())
+    with torch.no_grad():
+        before = encoder.logits(pixels)
+        first = encoder.inference_extractor()
+        assert encoder.inference_extractor() is first  # cached while nothing changes
+        encoder.extractor[0].weight.add_(0.5)  # an in-place update, as an optimiser's
+        after = encoder.logits(pixels)
+    assert encoder.inference_extractor() is not first
+    assert not torch.allclose(before, after)
+    assert torch.allclose(after, encoder.logits(pixels).detach(), atol=1e-4, rtol=1e-4)
+    other = _encoder_with_running_stats()
+    other.load_state_dict(encoder.state_dict())
+    with torch.no_grad():
+        assert torch.allclose(other.logits(pixels), after, atol=1e-5, rtol=1e-5)
+    assert set(encoder.state_dict()) == keys
+    clone = copy.deepcopy(encoder)
+    assert "_inference_extractor" not in clone.__dict__
+    assert "_inference_extractor" not in pickle.loads(pickle.dumps(encoder)).__dict__
+    with torch.no_grad():
+        assert torch.equal(clone(pixels)[0], encoder(pixels)[0])
 
 
 @pytest.mark.parametrize(

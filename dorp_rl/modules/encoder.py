@@ -128,6 +128,10 @@ class DiscreteCodeEncoder(nn.Module):
         True
     """
 
+    fast_inference: bool = True
+    """Run :meth:`inference_extractor` in eval mode without gradients (set ``False`` on
+    an instance to time or debug the plain extractor)."""
+
     def __init__(self, config: EncoderConfig) -> None:
         super().__init__()
         sizes = tuple(
@@ -185,15 +189,76 @@ class DiscreteCodeEncoder(nn.Module):
                 module.reset_parameters()
 
     def object_maps(self, pixels: torch.Tensor) -> torch.Tensor:
-        """The extractor's per-one-hot maps, float ``[*B, C, 16, 16]``."""
+        """The extractor's per-one-hot maps, float ``[*B, C, 16, 16]``.
+
+        In eval mode without gradients (planning, graph building) the extractor runs as
+        :meth:`inference_extractor`: the same function, 2-3x faster on a CPU.
+        """
         x = check_pixels(pixels) * self.config.input_scale
         batch = x.shape[:-3]
-        out = self.extractor(x.reshape(-1, 3, 16, 16))
+        x = x.reshape(-1, 3, 16, 16)
+        if self.training or torch.is_grad_enabled() or not self.fast_inference:
+            out = self.extractor(x)
+        else:
+            fast = self.inference_extractor()
+            out = fast(x.contiguous(memory_format=torch.channels_last)).contiguous()
         if self.config.map_competition == "softmax":
             out = out.softmax(dim=1)[:, : self.num_onehots]
         else:
             out = out.sigmoid()
         return out.reshape(*batch, self.num_onehots, 16, 16)
+
+    def inference_extractor(self) -> nn.Module:
+        """The extractor for inference: BatchNorm folded into the convolutions, channels-last.
+
+        Equal to the extractor in eval mode up to float rounding (about 1e-6 relative),
+        and 2-3x faster on a CPU, where oneDNN prefers channels-last inputs. Built on
+        first use and rebuilt whenever a weight or running statistic changes (training
+        steps, ``load_state_dict``, moving to another device); it is not a submodule, so
+        it never enters the state dict.
+        """
+        tensors = self.extractor.state_dict(keep_vars=True).values()
+        stamp = tuple((t.data_ptr(), t._version, t.device) for t in tensors)
+        cached = self.__dict__.get("_inference_extractor")
+        if cached is not None and cached[0] == stamp:
+            return cached[1]
+        layers: list[nn.Module] = []
+        modules = list(self.extractor)
+        with torch.no_grad():
+            for i, module in enumerate(modules):
+                if isinstance(module, nn.BatchNorm2d):
+                    continue
+                if isinstance(module, nn.Conv2d):
+                    conv = nn.Conv2d(
+                        module.in_channels,
+                        module.out_channels,
+                        module.kernel_size,
+                        padding=module.padding,
+                    ).to(module.weight.device)
+                    weight, bias = module.weight.detach(), module.bias.detach()
+                    following = modules[i + 1] if i + 1 < len(modules) else None
+                    if isinstance(following, nn.BatchNorm2d):
+                        scale = following.weight / torch.sqrt(following.running_var + following.eps)
+                        weight = weight * scale.view(-1, 1, 1, 1)
+                        bias = (bias - following.running_mean) * scale + following.bias
+                    conv.weight.copy_(weight)
+                    conv.bias.copy_(bias)
+                    layers.append(conv)
+                elif isinstance(module, nn.ReLU):
+                    layers.append(nn.ReLU(inplace=True))
+                else:
+                    raise TypeError(f"unexpected extractor layer {type(module).__name__}.")
+        fast = nn.Sequential(*layers).eval().to(memory_format=torch.channels_last)
+        for parameter in fast.parameters():
+            parameter.requires_grad_(False)
+        # A plain attribute (a tuple), not a submodule: no state dict entry, no `.to()`.
+        self.__dict__["_inference_extractor"] = (stamp, fast)
+        return fast
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(super().__getstate__())
+        state.pop("_inference_extractor", None)  # rebuilt on first use
+        return state
 
     def logits_and_maps(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, 16, 16]``."""

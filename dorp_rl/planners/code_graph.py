@@ -109,7 +109,7 @@ def resolve_groups(groups: str | Sequence[Sequence[int]], num_onehots: int) -> l
 
 
 def encode_transitions(
-    buffer: Any, encoder: nn.Module, *, chunk_size: int = 8192, progress: bool = False
+    buffer: Any, encoder: nn.Module, *, chunk_size: int = 1024, progress: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Codes int64 ``[N, C]`` of both frames of every transition of a play buffer.
 
@@ -368,7 +368,7 @@ class CodeGraph(nn.Module):
         encoder: nn.Module,
         groups: str | Sequence[Sequence[int]] = "onehot",
         *,
-        chunk_size: int = 8192,
+        chunk_size: int = 1024,
         progress: bool = False,
         dense_limit: int = DEFAULT_DENSE_LIMIT,
     ) -> CodeGraph:
