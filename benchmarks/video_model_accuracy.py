@@ -167,6 +167,13 @@ def main() -> None:
             key=lambda k: int(k.rsplit("step", 1)[1]),
         )
         accs = "  ".join(f"{k.rsplit('step', 1)[1]}: {row[k]:.3f}" for k in steps)
+        events = "  ".join(
+            f"{k.rsplit('step', 1)[1]}: {row[f'event_{k}']:.3f}"
+            for k in steps
+            if f"event_{k}" in row
+        )
+        if events:  # the trainer's held-out event windows (event_share > 0)
+            accs += f"; on {int(row['event_num_sequences'])} event windows {events}"
         print(f"  step {int(row['step']):6d}  exact accuracy at open-loop step {accs}")
     evaluation = result["evaluation"]
     print(f"final (step {result['step']}, {evaluation['num_sequences']} held-out sequences):")
