@@ -111,6 +111,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         waypoint_budget=args.waypoint_budget,
         max_removed_edges=args.max_removed_edges,
         forget_blocked_edges=not args.keep_removed_edges,
+        reenter=not args.no_reenter,
         order=args.order,
         goal_planner=args.goal_planner,
         seed=args.seed,
@@ -144,6 +145,8 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "seconds_per_task": result["seconds"] / args.tasks,
         "max_steps": result["max_steps"],
         "paper": setting.paper,
+        "reenter": not args.no_reenter,
+        "solved": [bool(x) for x in result["success"]],
         **timings,
     }
 
@@ -168,6 +171,12 @@ def main() -> None:
         action="store_true",
         help="never restore a removed edge (the authors); default: restore a group's removed "
         "edges when another group reaches a waypoint",
+    )
+    parser.add_argument(
+        "--no-reenter",
+        action="store_true",
+        help="remove a failed hop at once; default: first leave its code over the edge "
+        "that entered it and re-enter the code another way",
     )
     parser.add_argument("--order", choices=["index", "nearest"], default="index")
     parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)

@@ -342,3 +342,66 @@ def test_a_goal_phase_that_stops_improving_drops_its_code_term(patience):
         assert (weight[:first] == 100.0).all() and weight[first] == 0.0
         # Relaxed only after ``patience`` goal steps without a cheaper plan.
         assert int(rollout["dorp_goal_steps"][0, first]) >= patience
+
+
+@pytest.mark.parametrize("reenter", [True, False])
+def test_a_failed_bridge_hop_reenters_its_code_another_way_before_it_is_removed(reenter):
+    """Quadrant codes 0 1 / 2 3 and a graph 0-1, 0-2, 2-1, 1-3: the hop 1 -> 3 is the
+    only way to the goal. When it fails after entering 1 from 0, the group first leaves
+    back to 0, comes into 1 through 2, and tries the hop again; a second failure removes it.
+    """
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=8)
+    graph = CodeGraph.from_transitions(
+        torch.tensor([[0], [0], [2], [1]]), torch.tensor([[1], [2], [1], [3]]), (4,)
+    )
+    policy = make_dorp_policy(env, oracle, graph, seed=0, reenter=reenter, **SMALL)
+    cells = {0: [2, 2], 1: [2, 12], 2: [12, 2], 3: [12, 12]}
+    td = env.reset(
+        env.reset()
+        .set("state", torch.tensor([[cells[0]]]))
+        .set("goal_state", torch.tensor([[cells[3]]])),
+        set_state=True,
+    )
+
+    def at(quadrant, **overrides):
+        td.set("pixels", env.render_state(torch.tensor([[cells[quadrant]]])))
+        for key, value in overrides.items():
+            td[key][0] = value
+        return policy(td)
+
+    def edge(a, b):
+        return graph.edge_id(
+            int(graph.node_of(torch.tensor([a]), 0)), int(graph.node_of(torch.tensor([b]), 0))
+        )
+
+    assert int(at(0)["subgoal_code"][0, 0]) == 1
+    assert int(at(1)["dorp_edge"][0]) == edge(1, 3)  # reached 1: now the bridge hop
+    td = at(1, dorp_budget=0)  # the hop 1 -> 3 failed
+    assert int(td["dorp_replans"][0]) == 1
+    if not reenter:
+        assert edge(1, 3) in td["dorp_removed"][0].tolist() and bool(td["dorp_failed"][0])
+        return
+    assert (td["dorp_removed"][0] == -1).all() and not bool(td["dorp_failed"][0])
+    assert int(td["dorp_via"][0]) >= 0 and int(td["subgoal_code"][0, 0]) == 0  # back out
+    assert int(td["dorp_edge"][0]) == edge(1, 0)
+    assert int(at(0)["subgoal_code"][0, 0]) == 2  # into 1 again, not over 0 -> 1
+    assert int(at(2)["subgoal_code"][0, 0]) == 1
+    td = at(1)
+    assert int(td["dorp_via"][0]) == -1 and int(td["dorp_edge"][0]) == edge(1, 3)
+    td = at(1, dorp_budget=0)  # the same hop fails again: now it is removed
+    assert edge(1, 3) in td["dorp_removed"][0].tolist() and bool(td["dorp_failed"][0])
+    assert int(td["dorp_replans"][0]) == 2
+
+
+def test_a_failed_hop_with_another_path_left_is_removed_without_reentry(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    td = policy(fresh_batch(env, make_task_set(env, 4, seed=2)))
+    # As if each row had entered its code by a hop (from the waypoint's node).
+    td["dorp_entry_edge"][:] = graph.edge_reverse[td["dorp_edge"]]
+    old_edge = td["dorp_edge"].clone()
+    td["dorp_budget"][:] = 0
+    td = policy(td)
+    assert (td["dorp_via"] == -1).all()
+    assert (td["dorp_removed"][:, 0] == old_edge[:, 0]).all()

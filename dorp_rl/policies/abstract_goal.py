@@ -10,7 +10,11 @@
    :class:`~dorp_rl.planners.CodeMatchCost` (the other one-hots keep their codes);
 5. from the real frames reached, check whether the waypoint was reached within its step
    budget; if not, remove that edge for this task and replan; when no group has a path
-   left the task ends as failed (``dorp_failed``), never in an endless loop;
+   left the task ends as failed (``dorp_failed``), never in an endless loop. A learned
+   code may cover separate places (two rooms), and a hop may start from only one of
+   them: before removing a failed hop that no other path can replace, the group goes
+   back out over the edge by which it entered the code, re-enters the code another way
+   and tries the hop once more (``reenter``);
 6. once every one-hot holds the goal's code, drive to the goal image with
    :class:`~dorp_rl.planners.PixelDistanceCost` while keeping the goal's codes; when
    its plans stop getting closer for ``goal_patience`` steps (a learned code can cover
@@ -40,6 +44,11 @@ key                        dtype / shape       meaning
 ``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
 ``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
 ``dorp_misses``            int64 ``[1]``       plans for this waypoint that reached it nowhere
+``dorp_entry_edge``        int64 ``[1]``       edge of the last hop reached (-1: none)
+``dorp_via``               int64 ``[1]``       node being re-entered another way (-1: none)
+``dorp_via_ban``           int64 ``[1]``       the entry edge the re-entry must not use
+``dorp_via_left``          bool ``[1]``        the group has left ``dorp_via`` on the way
+``dorp_reentered``         int64 ``[1]``       edge whose failure started the last re-entry
 ``dorp_failed``            bool ``[1]``        no path left: the task is given up
 ``dorp_goal_best``         float ``[1]``       lowest goal-plan cost so far (``inf``: none)
 ``dorp_goal_stall``        int64 ``[1]``       goal-phase steps since that cost last fell
@@ -82,12 +91,16 @@ _CEM_ONLY = frozenset(
 _FILLS = {
     "dorp_removed": -1,
     "dorp_edge": -1,
+    "dorp_entry_edge": -1,
+    "dorp_via": -1,
+    "dorp_via_ban": -1,
+    "dorp_reentered": -1,
     "subgoal_mask": False,
     "dorp_failed": False,
     "dorp_relaxed": False,
     "dorp_goal_best": float("inf"),
 }
-_BOOL_KEYS = ("subgoal_mask", "dorp_failed", "dorp_relaxed")
+_BOOL_KEYS = ("subgoal_mask", "dorp_failed", "dorp_relaxed", "dorp_via_left")
 _FLOAT_KEYS = ("dorp_goal_best", "goal_code_weight")
 #: Orders in which groups are moved (besides an explicit sequence of group indices).
 ORDERS = ("index", "nearest")
@@ -134,6 +147,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             for the other groups (their hops may have failed only because an object
             stood in the way, which has now moved); ``False`` keeps every removal for the
             rest of the task, as the authors.
+        reenter: when removing a failed hop would leave its group no path to the goal
+            code, and the group entered the hop's code by a hop: first go back out over
+            that entry edge, re-enter the code another way and try the hop once more (a
+            code covering two rooms may join the next code from one of them only). Once
+            per failed edge; it counts as a removal towards ``max_removed_edges``.
 
     Examples:
         >>> import torch
@@ -165,6 +183,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         max_misses: int | None = 2,
         miss_threshold: float = 0.5,
         forget_blocked_edges: bool = True,
+        reenter: bool = True,
         goal_code_weight: float | None = None,
         goal_patience: int | None = 14,
         pixels_key: str = "pixels",
@@ -230,6 +249,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.max_misses = None if max_misses is None else int(max_misses)
         self.miss_threshold = float(miss_threshold)
         self.forget_blocked_edges = bool(forget_blocked_edges)
+        self.reenter = bool(reenter)
         reads_weight = "goal_code_weight" in goal_planner.in_keys
         if goal_code_weight is not None and not reads_weight:
             raise ValueError(
@@ -270,6 +290,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_waypoints",
             "dorp_goal_steps",
             "dorp_misses",
+            "dorp_entry_edge",
+            "dorp_via",
+            "dorp_via_ban",
+            "dorp_via_left",
+            "dorp_reentered",
             "dorp_failed",
             "dorp_goal_best",
             "dorp_goal_stall",
@@ -320,6 +345,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_waypoints=integer(1),
             dorp_goal_steps=integer(1),
             dorp_misses=integer(1),
+            dorp_entry_edge=integer(1),
+            dorp_via=integer(1),
+            dorp_via_ban=integer(1),
+            dorp_via_left=Binary(n=1, shape=(1,), dtype=torch.bool),
+            dorp_reentered=integer(1),
             dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
             dorp_goal_best=Unbounded(shape=(1,), dtype=torch.float32),
             dorp_goal_stall=integer(1),
@@ -398,6 +428,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         budget = state["dorp_budget"].squeeze(-1)
         out_of_budget = in_waypoint & ~reached & (budget <= 0)
         state["dorp_waypoints"][reached] += 1
+        state["dorp_entry_edge"][reached] = state["dorp_edge"][reached]
         if self.forget_blocked_edges:
             self._forget_blocked_edges(state, reached)
         for row in out_of_budget.nonzero().squeeze(-1).tolist():
@@ -489,10 +520,75 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         if count >= self.max_removed_edges:
             state["dorp_failed"][row] = True
             return
+        if self.reenter and self._start_reentry(state, row, edge):
+            state["dorp_replans"][row] += 1
+            return
         if edge >= 0:
             free = (removed < 0).nonzero()
             removed[int(free[0]) if free.numel() else count % removed.shape[0]] = edge
         state["dorp_replans"][row] += 1
+
+    def _start_reentry(self, state: dict[str, torch.Tensor], row: int, edge: int) -> bool:
+        """Whether the failed hop ``edge`` gets a re-entry instead of being removed.
+
+        Only when removing the edge would leave the group no path to its goal code, the
+        group still sits in the hop's source code, entered it by a hop
+        (``dorp_entry_edge``), is not already re-entering, and this edge has not had its
+        re-entry yet.
+        """
+        graph = self.graph
+        entry = int(state["dorp_entry_edge"][row])
+        if edge < 0 or entry < 0 or int(state["dorp_via"][row]) >= 0:
+            return False
+        if edge == int(state["dorp_reentered"][row]):
+            return False
+        source = int(graph.edge_source[edge])
+        if int(graph.indices[entry]) != source:
+            return False  # entered some other node: the entry edge says nothing here
+        group = int(graph.group_of_edge(edge))
+        if int(graph.node_of(state["code"][row], group)) != source:
+            return False  # the group has drifted out of the hop's source code
+        target = int(graph.node_of(state["goal_code"][row], group))
+        without = torch.cat([state["dorp_removed"][row], torch.tensor([edge])])
+        if graph.next_waypoint(source, target, without)[0] >= 0:
+            return False  # another path is left: removing the edge loses nothing
+        state["dorp_via"][row] = source
+        state["dorp_via_ban"][row] = entry
+        state["dorp_via_left"][row] = False
+        state["dorp_reentered"][row] = edge
+        return True
+
+    def _reentry_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
+        """Sets the next waypoint of a row that is re-entering ``dorp_via`` (if it still is).
+
+        At ``dorp_via`` before leaving: back over the entry edge. Elsewhere: a shortest
+        path back to ``dorp_via`` that does not use the entry edge. Back at ``dorp_via``
+        after leaving, or with no such path: the re-entry ends and the usual path follows.
+        """
+        graph = self.graph
+        via, ban = int(state["dorp_via"][row]), int(state["dorp_via_ban"][row])
+        group = int(graph.group_of_edge(ban))
+        node = int(graph.node_of(state["code"][row], group))
+        removed = state["dorp_removed"][row]
+        if node != via:
+            state["dorp_via_left"][row] = True
+        step = None
+        if node == via and not bool(state["dorp_via_left"][row]):
+            back = int(graph.edge_reverse[ban])
+            if not bool(((removed == ban) | (removed == back)).any()):
+                step = (int(graph.edge_source[ban]), back, 1)
+        elif node != via and node >= 0:
+            avoid = torch.cat([removed, torch.tensor([ban])])
+            nxt, edge, distance = graph.next_waypoint(node, via, avoid)
+            if nxt >= 0:
+                step = (nxt, edge, distance)
+        if step is None:
+            state["dorp_via"][row] = -1
+            state["dorp_via_ban"][row] = -1
+            state["dorp_via_left"][row] = False
+            return False
+        self._set_waypoint(state, row, group, *step)
+        return True
 
     def _forget_blocked_edges(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
         """Rows whose group just reached a waypoint: restore the other groups' removed edges.
@@ -549,6 +645,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
 
     def _next_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
         """Sets the next waypoint of ``row``; marks the row failed when no group has a path."""
+        if int(state["dorp_via"][row]) >= 0 and self._reentry_waypoint(state, row):
+            return True
         graph = self.graph
         code, goal = state["code"][row], state["goal_code"][row]
         removed = state["dorp_removed"][row]
@@ -571,7 +669,21 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         if best is None:
             state["dorp_failed"][row] = True
             return False
-        group, nxt, edge, distance = best
+        self._set_waypoint(state, row, *best)
+        return True
+
+    def _set_waypoint(
+        self,
+        state: dict[str, torch.Tensor],
+        row: int,
+        group: int,
+        nxt: int,
+        edge: int,
+        distance: int,
+    ) -> None:
+        """Makes node ``nxt`` of ``group`` (over ``edge``) the row's waypoint."""
+        graph = self.graph
+        code = state["code"][row]
         members = graph.groups[group]
         subgoal = code.clone()
         subgoal[members] = graph.node_code(nxt)
@@ -583,7 +695,6 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_distance"][row] = distance
         state["dorp_budget"][row] = self.waypoint_budget
         state["dorp_misses"][row] = 0
-        return True
 
     def _encode(self, frames: torch.Tensor) -> torch.Tensor:
         module = self.encoder
@@ -671,6 +782,7 @@ def make_dorp_policy(
     goal_budget: int | None = 56,
     max_misses: int | None = 2,
     forget_blocked_edges: bool = True,
+    reenter: bool = True,
     goal_code_weight: float = 100.0,
     goal_patience: int | None = 14,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
@@ -690,7 +802,7 @@ def make_dorp_policy(
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
         order, waypoint_budget, max_removed_edges, goal_budget, max_misses,
-            forget_blocked_edges: see :class:`AbstractGoalPolicy`.
+            forget_blocked_edges, reenter: see :class:`AbstractGoalPolicy`.
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
             paper). Without it the pixel cost can pull objects out of their goal codes,
@@ -796,6 +908,7 @@ def make_dorp_policy(
         goal_budget=goal_budget,
         max_misses=max_misses,
         forget_blocked_edges=forget_blocked_edges,
+        reenter=reenter,
         goal_code_weight=float(goal_code_weight) if goal_code_weight > 0 else None,
         goal_patience=goal_patience,
     )
