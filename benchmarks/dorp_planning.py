@@ -112,6 +112,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         max_removed_edges=args.max_removed_edges,
         forget_blocked_edges=not args.keep_removed_edges,
         reenter=not args.no_reenter,
+        replan_on_miss=not args.follow_misses,
         order=args.order,
         goal_planner=args.goal_planner,
         seed=args.seed,
@@ -146,6 +147,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "max_steps": result["max_steps"],
         "paper": setting.paper,
         "reenter": not args.no_reenter,
+        "replan_on_miss": not args.follow_misses,
         "solved": [bool(x) for x in result["success"]],
         **timings,
     }
@@ -177,6 +179,12 @@ def main() -> None:
         action="store_true",
         help="remove a failed hop at once; default: first leave its code over the edge "
         "that entered it and re-enter the code another way",
+    )
+    parser.add_argument(
+        "--follow-misses",
+        action="store_true",
+        help="follow a waypoint plan that reaches the waypoint nowhere to its end; default: "
+        "take its first step and plan again",
     )
     parser.add_argument("--order", choices=["index", "nearest"], default="index")
     parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)

@@ -405,3 +405,100 @@ def test_a_failed_hop_with_another_path_left_is_removed_without_reentry(two_obje
     td = policy(td)
     assert (td["dorp_via"] == -1).all()
     assert (td["dorp_removed"][:, 0] == old_edge[:, 0]).all()
+
+
+class SoftRegions(torch.nn.Module):
+    """Oracle regions (cell 4) whose probabilities fall with the distance between regions,
+    so that plans which miss a waypoint still prefer getting nearer to it."""
+
+    code_sizes = (16,)
+
+    def __init__(self, env):
+        super().__init__()
+        self.oracle = OracleCodeEncoder(env, cell_size=4)
+        grid = torch.stack(torch.meshgrid(torch.arange(4), torch.arange(4), indexing="ij"), -1)
+        self.register_buffer("centres", grid.reshape(16, 2))
+
+    def forward(self, pixels):
+        code = self.oracle(pixels)[0]
+        here = self.centres[code[..., 0]]  # [*B, 2]
+        distance = (here.unsqueeze(-2) - self.centres).abs().sum(-1).float()
+        return code, (-distance).softmax(-1).unsqueeze(-2)
+
+
+@pytest.mark.parametrize("replan", [True, False])
+def test_a_plan_that_misses_its_waypoint_is_not_followed(replan):
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    encoder = SoftRegions(env)
+    graph = unreachable_goal_graph(env, encoder.oracle, goal_region=15, start_region=0)
+    policy = make_dorp_policy(
+        env,
+        encoder,
+        graph,
+        seed=0,
+        waypoint_budget=8,
+        max_misses=None,
+        replan_on_miss=replan,
+        **SMALL,
+    )
+    start, goal = torch.tensor([[[0, 0]]]), torch.tensor([[[14, 12]]])
+    td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
+    rollout = env.rollout(6, policy, tensordict=td, auto_reset=False)
+    planner = policy.waypoint_planner
+    cursor = rollout[planner.cursor_key][0, :, 0]
+    length = rollout[planner.length_key][0, :, 0]
+    # Every plan misses (the waypoint is 26 moves away) but the best ones head for it over
+    # several steps; with replan_on_miss each is cut to its first step, so the policy
+    # plans again at every step, otherwise it follows the plan.
+    assert (rollout[planner.plan_cost_key] >= policy.miss_threshold).all()
+    if replan:
+        assert (cursor == 1).all() and (length == 1).all()
+    else:
+        assert (length > 1).any() and (cursor > 1).any()
+
+
+@pytest.mark.parametrize("reenter", [True, False])
+def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
+    """Quadrant codes and a graph 0-1, 0-2, 2-1, 1-3; the goal lies in quadrant 1, which
+    the group entered from 0. When the goal phase stalls, the group leaves back to 0,
+    comes into 1 through 2 and starts the goal phase again; without re-entry it relaxes."""
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=8)
+    graph = CodeGraph.from_transitions(
+        torch.tensor([[0], [0], [2], [1]]), torch.tensor([[1], [2], [1], [3]]), (4,)
+    )
+    policy = make_dorp_policy(env, oracle, graph, seed=0, reenter=reenter, **SMALL)
+    cells = {0: [2, 2], 1: [2, 9], 2: [12, 2]}
+    td = env.reset(
+        env.reset()
+        .set("state", torch.tensor([[cells[0]]]))
+        .set("goal_state", torch.tensor([[[2, 12]]])),
+        set_state=True,
+    )
+
+    def at(quadrant, **overrides):
+        td.set("pixels", env.render_state(torch.tensor([[cells[quadrant]]])))
+        for key, value in overrides.items():
+            td[key][0] = value
+        return policy(td)
+
+    assert int(at(0)["subgoal_code"][0, 0]) == 1
+    assert int(at(1)["dorp_mode"][0]) == MODES["goal"]
+    # The goal plans stop getting cheaper: the patience runs out on this step.
+    td = at(
+        1,
+        dorp_goal_best=float("-inf"),
+        dorp_goal_stall=policy.goal_patience - 1,
+        **{policy.goal_planner.length_key: 0},
+    )
+    assert bool(td["dorp_relaxed"][0]) is not reenter
+    if not reenter:
+        return
+    assert int(td["dorp_via"][0]) >= 0 and int(td["dorp_replans"][0]) == 1
+    td = at(1)
+    assert int(td["dorp_mode"][0]) == MODES["waypoint"] and int(td["subgoal_code"][0, 0]) == 0
+    assert int(at(0)["subgoal_code"][0, 0]) == 2
+    assert int(at(2)["subgoal_code"][0, 0]) == 1
+    td = at(1)
+    assert int(td["dorp_via"][0]) == -1 and int(td["dorp_mode"][0]) == MODES["goal"]
+    assert not bool(td["dorp_relaxed"][0]) and not bool(td["dorp_failed"][0])

@@ -18,8 +18,9 @@
 6. once every one-hot holds the goal's code, drive to the goal image with
    :class:`~dorp_rl.planners.PixelDistanceCost` while keeping the goal's codes; when
    its plans stop getting closer for ``goal_patience`` steps (a learned code can cover
-   two places the planner cannot join without leaving it), the code term is dropped and
-   pixel distance alone drives the rest; a task that spends more than ``goal_budget``
+   two places the planner cannot join without leaving it), the group whose hop entered
+   the goal code re-enters it another way if the graph has one (``reenter``), else the
+   code term is dropped and pixel distance alone drives the rest; a task that spends more than ``goal_budget``
    steps in this phase (twice that once relaxed) is given up too.
 
 All plan state lives in the tensordict (keys below, ``[*B, ...]`` per env), declared by
@@ -48,7 +49,7 @@ key                        dtype / shape       meaning
 ``dorp_via``               int64 ``[1]``       node being re-entered another way (-1: none)
 ``dorp_via_ban``           int64 ``[1]``       the entry edge the re-entry must not use
 ``dorp_via_left``          bool ``[1]``        the group has left ``dorp_via`` on the way
-``dorp_reentered``         int64 ``[1]``       edge whose failure started the last re-entry
+``dorp_reentered``         int64 ``[K]``       edges re-entered for this task (-1: free slot)
 ``dorp_failed``            bool ``[1]``        no path left: the task is given up
 ``dorp_goal_best``         float ``[1]``       lowest goal-plan cost so far (``inf``: none)
 ``dorp_goal_stall``        int64 ``[1]``       goal-phase steps since that cost last fell
@@ -137,6 +138,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             :class:`~dorp_rl.planners.CodeMatchCost`) after which the edge is removed
             without waiting for the budget (``None``: only the budget counts).
         miss_threshold: the plan cost from which a waypoint plan is a miss.
+        replan_on_miss: after a miss, take the plan's first step only and plan again
+            (``False``: follow the missing plan to its end, as any other plan).
         goal_code_weight: the weight the goal planner's cost gives the goal-code term,
             written per row under ``goal_code_weight`` (its cost must read that key, as
             :func:`make_dorp_policy` builds it); ``None``: the cost has no such term.
@@ -150,8 +153,12 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         reenter: when removing a failed hop would leave its group no path to the goal
             code, and the group entered the hop's code by a hop: first go back out over
             that entry edge, re-enter the code another way and try the hop once more (a
-            code covering two rooms may join the next code from one of them only). Once
-            per failed edge; it counts as a removal towards ``max_removed_edges``.
+            code covering two rooms may join the next code from one of them only). The
+            same when the goal phase stalls in a goal code entered by a hop, before the
+            code term is dropped. A failure on the way in starts its own re-entry in
+            place of the first. Once per edge; it counts as a removal towards
+            ``max_removed_edges``.
+        max_reentries: re-entries a task may start (then failed hops are removed at once).
 
     Examples:
         >>> import torch
@@ -184,6 +191,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         miss_threshold: float = 0.5,
         forget_blocked_edges: bool = True,
         reenter: bool = True,
+        max_reentries: int = 8,
+        replan_on_miss: bool = True,
         goal_code_weight: float | None = None,
         goal_patience: int | None = 14,
         pixels_key: str = "pixels",
@@ -250,6 +259,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.miss_threshold = float(miss_threshold)
         self.forget_blocked_edges = bool(forget_blocked_edges)
         self.reenter = bool(reenter)
+        if int(max_reentries) != max_reentries or int(max_reentries) < 0:
+            raise ValueError(f"max_reentries must be an integer >= 0, got {max_reentries}.")
+        self.max_reentries = int(max_reentries)
+        self.replan_on_miss = bool(replan_on_miss)
         reads_weight = "goal_code_weight" in goal_planner.in_keys
         if goal_code_weight is not None and not reads_weight:
             raise ValueError(
@@ -349,7 +362,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_via=integer(1),
             dorp_via_ban=integer(1),
             dorp_via_left=Binary(n=1, shape=(1,), dtype=torch.bool),
-            dorp_reentered=integer(1),
+            dorp_reentered=integer(max(1, self.max_reentries)),
             dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
             dorp_goal_best=Unbounded(shape=(1,), dtype=torch.float32),
             dorp_goal_stall=integer(1),
@@ -415,22 +428,33 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             flat, goal_plan, goal_plan.length_key
         )
         relaxed = state["dorp_relaxed"].squeeze(-1)
+        if self.reenter:
+            self._track_reentry(state, active)
         at_goal = active & (
             (code == goal_code).all(-1)
             | ((mode == _GOAL) & running.squeeze(-1) & ~fresh)
             | (relaxed & ~fresh)
         )
+        at_goal &= state["dorp_via"].squeeze(-1) < 0  # re-entering a code: not yet
 
         # Waypoint bookkeeping.
         mask = state["subgoal_mask"]
+        # A hop that lands in the goal's codes counts as reached too (its edge is how the
+        # group entered the goal code, which a stalled goal phase may re-enter).
+        hop_reached = (
+            active
+            & ~fresh
+            & (mode == _WAYPOINT)
+            & ((code == state["subgoal_code"]) | ~mask).all(-1)
+        )
         in_waypoint = active & ~at_goal & (mode == _WAYPOINT)
-        reached = in_waypoint & ((code == state["subgoal_code"]) | ~mask).all(-1)
+        reached = in_waypoint & hop_reached
         budget = state["dorp_budget"].squeeze(-1)
         out_of_budget = in_waypoint & ~reached & (budget <= 0)
-        state["dorp_waypoints"][reached] += 1
-        state["dorp_entry_edge"][reached] = state["dorp_edge"][reached]
+        state["dorp_waypoints"][hop_reached] += 1
+        state["dorp_entry_edge"][hop_reached] = state["dorp_edge"][hop_reached]
         if self.forget_blocked_edges:
-            self._forget_blocked_edges(state, reached)
+            self._forget_blocked_edges(state, hop_reached)
         for row in out_of_budget.nonzero().squeeze(-1).tolist():
             self._remove_edge(state, row)
         need = active & ~at_goal & ((mode != _WAYPOINT) | reached | out_of_budget)
@@ -488,6 +512,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         planned_now = (mode == _WAYPOINT) & (outputs[wp.cursor_key].squeeze(-1) == 1)
         missed = planned_now & (outputs[wp.plan_cost_key].squeeze(-1) >= self.miss_threshold)
         state["dorp_misses"][missed] += 1
+        if self.replan_on_miss:
+            # A plan that reaches the waypoint nowhere is not worth following: take its
+            # first step only and plan again, instead of wandering for a whole horizon.
+            outputs[wp.length_key][missed] = outputs[wp.cursor_key][missed]
         if self.max_misses is not None:
             gone = missed & (state["dorp_misses"].squeeze(-1) >= self.max_misses)
             state["dorp_budget"][gone] = 1  # 0 after the decrement below: removed next step
@@ -532,31 +560,89 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         """Whether the failed hop ``edge`` gets a re-entry instead of being removed.
 
         Only when removing the edge would leave the group no path to its goal code, the
-        group still sits in the hop's source code, entered it by a hop
-        (``dorp_entry_edge``), is not already re-entering, and this edge has not had its
-        re-entry yet.
+        group entered the hop's source code by a hop (``dorp_entry_edge``) and still sits
+        in it or has drifted back to the code it came from, and this edge has not had
+        its re-entry yet.
         """
         graph = self.graph
         entry = int(state["dorp_entry_edge"][row])
-        if edge < 0 or entry < 0 or int(state["dorp_via"][row]) >= 0:
-            return False
-        if edge == int(state["dorp_reentered"][row]):
+        if edge < 0 or entry < 0 or not self._may_reenter(state, row, edge):
             return False
         source = int(graph.edge_source[edge])
         if int(graph.indices[entry]) != source:
             return False  # entered some other node: the entry edge says nothing here
         group = int(graph.group_of_edge(edge))
-        if int(graph.node_of(state["code"][row], group)) != source:
-            return False  # the group has drifted out of the hop's source code
+        node = int(graph.node_of(state["code"][row], group))
+        if node not in (source, int(graph.edge_source[entry])):
+            return False  # drifted elsewhere than the hop's code or the one it came from
         target = int(graph.node_of(state["goal_code"][row], group))
-        without = torch.cat([state["dorp_removed"][row], torch.tensor([edge])])
+        # Edges that failed once and wait for their re-entry are no way round either.
+        doubtful = state["dorp_reentered"][row]
+        without = torch.cat([state["dorp_removed"][row], doubtful, torch.tensor([edge])])
         if graph.next_waypoint(source, target, without)[0] >= 0:
             return False  # another path is left: removing the edge loses nothing
         state["dorp_via"][row] = source
         state["dorp_via_ban"][row] = entry
-        state["dorp_via_left"][row] = False
-        state["dorp_reentered"][row] = edge
+        state["dorp_via_left"][row] = node != source  # already back where it came from
+        self._note_reentry(state, row, edge)
         return True
+
+    def _start_goal_reentry(self, state: dict[str, torch.Tensor], row: int) -> bool:
+        """Whether a stalled goal phase re-enters the goal code another way (before relaxing).
+
+        The goal image may lie in another part of the goal code than the one the last hop
+        entered (key-corridor: a code covering a room behind the door and part of another
+        room). Only when the group of the last hop entered its goal node by that hop,
+        another way into it exists, and this entry has not been re-entered already.
+        """
+        graph = self.graph
+        entry = int(state["dorp_entry_edge"][row])
+        if entry < 0 or int(state["dorp_via"][row]) >= 0:
+            return False
+        if not self._may_reenter(state, row, entry):
+            return False
+        if int(state["dorp_replans"][row]) >= self.max_removed_edges:
+            return False
+        node, source = int(graph.indices[entry]), int(graph.edge_source[entry])
+        group = int(graph.group_of_edge(entry))
+        if int(graph.node_of(state["code"][row], group)) != node:
+            return False
+        if int(graph.node_of(state["goal_code"][row], group)) != node:
+            return False
+        without = torch.cat([state["dorp_removed"][row], torch.tensor([entry])])
+        if graph.next_waypoint(source, node, without)[0] < 0:
+            return False  # no other way in
+        state["dorp_via"][row] = node
+        state["dorp_via_ban"][row] = entry
+        state["dorp_via_left"][row] = False
+        self._note_reentry(state, row, entry)
+        state["dorp_replans"][row] += 1
+        return True
+
+    def _may_reenter(self, state: dict[str, torch.Tensor], row: int, edge: int) -> bool:
+        """Whether ``edge`` has not had its re-entry yet and a slot is free for it."""
+        slots = state["dorp_reentered"][row]
+        return (
+            self.max_reentries > 0 and not bool((slots == edge).any()) and bool((slots < 0).any())
+        )
+
+    def _note_reentry(self, state: dict[str, torch.Tensor], row: int, edge: int) -> None:
+        slots = state["dorp_reentered"][row]
+        slots[int((slots < 0).nonzero()[0])] = edge
+
+    def _track_reentry(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
+        """Rows re-entering ``dorp_via``: note when they leave it, and end the re-entry
+        when they are back in it after leaving."""
+        via = state["dorp_via"].squeeze(-1)
+        for row in (rows & (via >= 0)).nonzero().squeeze(-1).tolist():
+            group = int(self.graph.group_of_edge(int(state["dorp_via_ban"][row])))
+            node = int(self.graph.node_of(state["code"][row], group))
+            if node != int(via[row]):
+                state["dorp_via_left"][row] = True
+            elif bool(state["dorp_via_left"][row]):
+                state["dorp_via"][row] = -1
+                state["dorp_via_ban"][row] = -1
+                state["dorp_via_left"][row] = False
 
     def _reentry_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
         """Sets the next waypoint of a row that is re-entering ``dorp_via`` (if it still is).
@@ -619,6 +705,12 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_goal_stall"][rows & ~better] += 1
         relaxed = state["dorp_relaxed"].squeeze(-1)
         give_up = rows & ~relaxed & (state["dorp_goal_stall"].squeeze(-1) >= self.goal_patience)
+        if self.reenter:
+            for row in give_up.nonzero().squeeze(-1).tolist():
+                if self._start_goal_reentry(state, row):
+                    give_up[row] = False
+                    state["dorp_goal_stall"][row] = 0
+                    state["dorp_goal_best"][row] = float("inf")
         if give_up.any():
             state["dorp_relaxed"][give_up] = True
             state["goal_code_weight"][give_up] = 0.0
@@ -729,6 +821,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "subgoal_code": c,
             "subgoal_mask": c,
             "dorp_removed": r,
+            "dorp_reentered": max(1, self.max_reentries),
         }
         width = shapes.get(key, 1)
         dtype = (
@@ -783,6 +876,8 @@ def make_dorp_policy(
     max_misses: int | None = 2,
     forget_blocked_edges: bool = True,
     reenter: bool = True,
+    max_reentries: int = 8,
+    replan_on_miss: bool = True,
     goal_code_weight: float = 100.0,
     goal_patience: int | None = 14,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
@@ -802,7 +897,8 @@ def make_dorp_policy(
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
         order, waypoint_budget, max_removed_edges, goal_budget, max_misses,
-            forget_blocked_edges, reenter: see :class:`AbstractGoalPolicy`.
+            forget_blocked_edges, reenter, max_reentries, replan_on_miss: see
+            :class:`AbstractGoalPolicy`.
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
             paper). Without it the pixel cost can pull objects out of their goal codes,
@@ -909,6 +1005,8 @@ def make_dorp_policy(
         max_misses=max_misses,
         forget_blocked_edges=forget_blocked_edges,
         reenter=reenter,
+        max_reentries=max_reentries,
+        replan_on_miss=replan_on_miss,
         goal_code_weight=float(goal_code_weight) if goal_code_weight > 0 else None,
         goal_patience=goal_patience,
     )
