@@ -50,6 +50,11 @@ def video_name(setting: Setting) -> str:
     return codes_name(setting) if setting.env == "rearrangement" else setting.env
 
 
+def _switch(value: str) -> bool | None:
+    """``auto`` / ``on`` / ``off`` as ``make_dorp_policy`` takes it."""
+    return {"auto": None, "on": True, "off": False}[value]
+
+
 def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[Any, CodeGraph, dict]:
     """The encoder (trained or oracle) and its code graph, from disk when already built."""
     name = f"{codes_name(setting)}-seed{args.code_seed}"
@@ -111,8 +116,8 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         waypoint_budget=args.waypoint_budget,
         max_removed_edges=args.max_removed_edges,
         forget_blocked_edges=not args.keep_removed_edges,
-        reenter=not args.no_reenter,
-        replan_on_miss=not args.follow_misses,
+        reenter=_switch(args.reenter),
+        replan_on_miss=_switch(args.replan_on_miss),
         order=args.order,
         goal_planner=args.goal_planner,
         seed=args.seed,
@@ -146,8 +151,8 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "seconds_per_task": result["seconds"] / args.tasks,
         "max_steps": result["max_steps"],
         "paper": setting.paper,
-        "reenter": not args.no_reenter,
-        "replan_on_miss": not args.follow_misses,
+        "reenter": policy.reenter,
+        "replan_on_miss": policy.replan_on_miss,
         "solved": [bool(x) for x in result["success"]],
         **timings,
     }
@@ -175,16 +180,18 @@ def main() -> None:
         "edges when another group reaches a waypoint",
     )
     parser.add_argument(
-        "--no-reenter",
-        action="store_true",
-        help="remove a failed hop at once; default: first leave its code over the edge "
-        "that entered it and re-enter the code another way",
+        "--reenter",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="before removing a hop no other path replaces, leave its code over the edge "
+        "that entered it and re-enter the code another way (auto: in the key rooms)",
     )
     parser.add_argument(
-        "--follow-misses",
-        action="store_true",
-        help="follow a waypoint plan that reaches the waypoint nowhere to its end; default: "
-        "take its first step and plan again",
+        "--replan-on-miss",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="cut a waypoint plan that reaches the waypoint nowhere to its first step "
+        "(auto: in the key rooms)",
     )
     parser.add_argument("--order", choices=["index", "nearest"], default="index")
     parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)

@@ -10,7 +10,7 @@ import torch
 from torchrl.collectors import Collector, MultiSyncCollector
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs import KeyCorridorEnv, ObjectRearrangementEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
@@ -396,7 +396,7 @@ def test_a_failed_bridge_hop_reenters_its_code_another_way_before_it_is_removed(
 
 def test_a_failed_hop_with_another_path_left_is_removed_without_reentry(two_objects):
     env, oracle, graph = two_objects
-    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    policy = make_dorp_policy(env, oracle, graph, seed=0, reenter=True, **SMALL)
     td = policy(fresh_batch(env, make_task_set(env, 4, seed=2)))
     # As if each row had entered its code by a hop (from the waypoint's node).
     td["dorp_entry_edge"][:] = graph.edge_reverse[td["dorp_edge"]]
@@ -502,3 +502,16 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
     td = at(1)
     assert int(td["dorp_via"][0]) == -1 and int(td["dorp_mode"][0]) == MODES["goal"]
     assert not bool(td["dorp_relaxed"][0]) and not bool(td["dorp_failed"][0])
+
+
+def test_reentry_and_replanning_on_misses_default_to_the_key_rooms(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    assert not policy.reenter and not policy.replan_on_miss
+    room = KeyCorridorEnv(batch_size=(1,), seed=0)
+    room_oracle = OracleCodeEncoder(room, cell_size=4)
+    room_graph = CodeGraph.from_play_data(collect_play_data(room, 500, seed=0), room_oracle)
+    policy = make_dorp_policy(room, room_oracle, room_graph, seed=0, **SMALL)
+    assert policy.reenter and policy.replan_on_miss
+    policy = make_dorp_policy(room, room_oracle, room_graph, seed=0, reenter=False, **SMALL)
+    assert not policy.reenter and policy.replan_on_miss
