@@ -163,15 +163,22 @@ def code_rollout(start: tuple[int, int], steps: list[tuple[int, int]], target, m
 def test_code_match_cost_on_chosen_onehots():
     # Start (0, 0); target code 2 on one-hot 0; one-hot 1 must stay at 0.
     rollout = code_rollout((0, 0), [(1, 0), (2, 1), (2, 0), (2, 0)], target=(2, 3))
-    cost = CodeMatchCost(CornerEncoder(), onehots=[0])(rollout)["cost"][0, 0]
+    cost = CodeMatchCost(CornerEncoder(), onehots=[0], step_penalty=0.0)(rollout)["cost"][0, 0]
     assert cost[0] > 0.99 and cost[1] > 0.99  # not there / other one-hot changed
     assert -1e-3 <= cost[2] <= 0 and torch.isclose(cost[2], cost[3])
+    # With a step penalty the earlier of two matching steps is the cheaper, by more
+    # than any confidence difference; misses are not penalised.
+    cost = CodeMatchCost(CornerEncoder(), onehots=[0], step_penalty=2e-3)(rollout)["cost"][0, 0]
+    assert cost[2] < cost[3] - 1e-3 and cost[3] < 0.1
+    assert cost[0] > 0.99 and torch.isclose(cost[0], cost[1])
+    with pytest.raises(ValueError, match="step_penalty"):
+        CodeMatchCost(CornerEncoder(), step_penalty=0.5)
     # All one-hots (onehots=None): (2, 3) is never reached.
     assert (CodeMatchCost(CornerEncoder())(rollout)["cost"] > 0.99).all()
     # Per-row choice through a mask key: one-hot 1 only.
     rollout = code_rollout((0, 0), [(0, 3), (1, 3)], target=(2, 3), mask=(False, True))
     cost = CodeMatchCost(CornerEncoder(), onehots="subgoal_onehots")(rollout)["cost"][0, 0]
-    assert cost[0] <= 0 and cost[1] > 0.99
+    assert cost[0] < 0.01 and cost[1] > 0.99
     with pytest.raises(MissingRolloutKeyError, match="subgoal_code"):
         CodeMatchCost(CornerEncoder())(rollout.exclude("subgoal_code"))
 
@@ -188,7 +195,7 @@ def test_code_match_cost_prefers_confident_matches():
 
     rollout = code_rollout((0, 0), [(1, 0), (1, 0)], target=(1, 0))
     rollout["next", "pixels"][0, 0, 1, 2, 0, 0] = 255
-    cost = CodeMatchCost(Confidence())(rollout)["cost"][0, 0]
+    cost = CodeMatchCost(Confidence(), step_penalty=0.0)(rollout)["cost"][0, 0]
     assert cost[1] < cost[0] <= 0
 
 
@@ -435,7 +442,7 @@ def test_code_match_cost_drives_a_planner_to_the_subgoal():
     )
     out = planner(td)
     assert out["action"].item() == 2  # left
-    assert out["planner_cost"].item() < 0 and out["planner_length"].item() == 1
+    assert out["planner_cost"].item() < 0.5 and out["planner_length"].item() == 1  # a match
 
 
 def test_code_match_cost_with_the_real_encoder_runs_in_a_planner():

@@ -469,11 +469,14 @@ class CodeMatchCost(RolloutCost):
     ``subgoal_code``) while every other one-hot keeps its code of the start frame (root
     ``pixels``: the frame the planner started from). Per-step cost::
 
-        (0 if match else 1) - tie_break * confidence
+        (step_penalty * t if match else 1) - tie_break * confidence
 
     where ``confidence`` is the mean over one-hots of the probability of the wanted code,
-    so that among matching sequences (and among failing ones) the more confident win.
-    The cost lies in ``[-tie_break, 1]``. ``step_aggregation="min"`` by default: a
+    so that among matching sequences (and among failing ones) the more confident win,
+    and ``t`` is the step (1..H): with ``step_penalty > tie_break`` a sequence that
+    reaches the target earlier wins over one that gets there later, whatever their
+    confidence (``"min"`` alone scores both alike, so plans took detours). The cost lies
+    in ``[-tie_break, 1]``. ``step_aggregation="min"`` by default: a
     sequence is good if it reaches the target at some step (and open-loop execution
     stops there).
 
@@ -489,6 +492,10 @@ class CodeMatchCost(RolloutCost):
         start_pixels_key: the start frame (a root key, shared by candidates and steps).
         out_key: where the per-step cost ``[*B, N, H]`` is written.
         tie_break: weight of the confidence term; small so it only breaks ties.
+        step_penalty: cost per step of a matching frame (e.g. ``2 * tie_break``), so
+            that earlier arrival wins; 0 (default) scores every matching step alike. In
+            DORP at 2 and 3 objects ``2e-3`` cut the steps from 2.24x / 3.05x the lower
+            bound to 1.90x / 2.53x, but 3-object success fell from 50 to 48 of 50.
         step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
         chunk_size: frames per encoder call (bounds memory).
         cache_size: frames whose codes are kept between calls (0: no cache). The
@@ -524,6 +531,7 @@ class CodeMatchCost(RolloutCost):
         start_pixels_key: NestedKey = "pixels",
         out_key: NestedKey = "cost",
         tie_break: float = 1e-3,
+        step_penalty: float = 0.0,
         step_aggregation: str = "min",
         chunk_size: int = 1024,
         cache_size: int = 2**18,
@@ -543,6 +551,13 @@ class CodeMatchCost(RolloutCost):
         self.pixels_key = unravel_key(pixels_key)
         self.start_pixels_key = unravel_key(start_pixels_key)
         self.tie_break = float(tie_break)
+        step_penalty = float(step_penalty)
+        if not 0.0 <= step_penalty < 0.02:
+            raise ValueError(
+                f"step_penalty must be in [0, 0.02) (so that a match at step 25 still costs "
+                f"less than 0.5), got {step_penalty}."
+            )
+        self.step_penalty = step_penalty
         self.chunk_size = int(chunk_size)
         self.onehots_key: NestedKey | None = None
         self.onehots: list[int] | None = None
@@ -681,7 +696,11 @@ class CodeMatchCost(RolloutCost):
             index = (inverse.unsqueeze(-1) * num_onehots + onehot) * num_codes + flat_wanted
             picked = distinct_probs.reshape(-1)[index].reshape(code.shape)
         confidence = picked.mean(-1)
-        return (~match).to(torch.float32) - self.tie_break * confidence.to(torch.float32)
+        cost = (~match).to(torch.float32) - self.tie_break * confidence.to(torch.float32)
+        if self.step_penalty:
+            steps = torch.arange(1, cost.shape[-1] + 1, device=cost.device, dtype=cost.dtype)
+            cost = cost + self.step_penalty * steps * match.to(cost.dtype)
+        return cost
 
     def _check_target(self, target: torch.Tensor, chosen: torch.Tensor, max_codes: int) -> None:
         """Refuses a target code outside its one-hot's codes (on the broadcast rows only)."""
