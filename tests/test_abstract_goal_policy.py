@@ -344,36 +344,44 @@ def test_a_goal_phase_that_stops_improving_drops_its_code_term(patience):
         assert int(rollout["dorp_goal_steps"][0, first]) >= patience
 
 
+class QuadrantWorld:
+    """One block, quadrant codes 0 1 / 2 3 and a graph 0-1, 0-2, 2-1, 1-3; ``at(q)`` shows
+    the policy the block at ``cells[q]`` (after setting any state keys given)."""
+
+    def __init__(self, reenter: bool, cells: dict, goal: list[int]):
+        self.env = env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+        oracle = OracleCodeEncoder(env, cell_size=8)
+        self.graph = CodeGraph.from_transitions(
+            torch.tensor([[0], [0], [2], [1]]), torch.tensor([[1], [2], [1], [3]]), (4,)
+        )
+        self.policy = make_dorp_policy(env, oracle, self.graph, seed=0, reenter=reenter, **SMALL)
+        self.cells = cells
+        self.td = env.reset(
+            env.reset()
+            .set("state", torch.tensor([[cells[0]]]))
+            .set("goal_state", torch.tensor([[goal]])),
+            set_state=True,
+        )
+
+    def at(self, quadrant, **overrides):
+        self.td.set("pixels", self.env.render_state(torch.tensor([[self.cells[quadrant]]])))
+        for key, value in overrides.items():
+            self.td[key][0] = value
+        return self.policy(self.td)
+
+    def edge(self, a, b):
+        node = self.graph.node_of
+        return self.graph.edge_id(int(node(torch.tensor([a]), 0)), int(node(torch.tensor([b]), 0)))
+
+
 @pytest.mark.parametrize("reenter", [True, False])
 def test_a_failed_bridge_hop_reenters_its_code_another_way_before_it_is_removed(reenter):
     """Quadrant codes 0 1 / 2 3 and a graph 0-1, 0-2, 2-1, 1-3: the hop 1 -> 3 is the
     only way to the goal. When it fails after entering 1 from 0, the group first leaves
     back to 0, comes into 1 through 2, and tries the hop again; a second failure removes it.
     """
-    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
-    oracle = OracleCodeEncoder(env, cell_size=8)
-    graph = CodeGraph.from_transitions(
-        torch.tensor([[0], [0], [2], [1]]), torch.tensor([[1], [2], [1], [3]]), (4,)
-    )
-    policy = make_dorp_policy(env, oracle, graph, seed=0, reenter=reenter, **SMALL)
-    cells = {0: [2, 2], 1: [2, 12], 2: [12, 2], 3: [12, 12]}
-    td = env.reset(
-        env.reset()
-        .set("state", torch.tensor([[cells[0]]]))
-        .set("goal_state", torch.tensor([[cells[3]]])),
-        set_state=True,
-    )
-
-    def at(quadrant, **overrides):
-        td.set("pixels", env.render_state(torch.tensor([[cells[quadrant]]])))
-        for key, value in overrides.items():
-            td[key][0] = value
-        return policy(td)
-
-    def edge(a, b):
-        return graph.edge_id(
-            int(graph.node_of(torch.tensor([a]), 0)), int(graph.node_of(torch.tensor([b]), 0))
-        )
+    world = QuadrantWorld(reenter, {0: [2, 2], 1: [2, 12], 2: [12, 2]}, goal=[12, 12])
+    at, edge = world.at, world.edge
 
     assert int(at(0)["subgoal_code"][0, 0]) == 1
     assert int(at(1)["dorp_edge"][0]) == edge(1, 3)  # reached 1: now the bridge hop
@@ -462,25 +470,8 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
     """Quadrant codes and a graph 0-1, 0-2, 2-1, 1-3; the goal lies in quadrant 1, which
     the group entered from 0. When the goal phase stalls, the group leaves back to 0,
     comes into 1 through 2 and starts the goal phase again; without re-entry it relaxes."""
-    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
-    oracle = OracleCodeEncoder(env, cell_size=8)
-    graph = CodeGraph.from_transitions(
-        torch.tensor([[0], [0], [2], [1]]), torch.tensor([[1], [2], [1], [3]]), (4,)
-    )
-    policy = make_dorp_policy(env, oracle, graph, seed=0, reenter=reenter, **SMALL)
-    cells = {0: [2, 2], 1: [2, 9], 2: [12, 2]}
-    td = env.reset(
-        env.reset()
-        .set("state", torch.tensor([[cells[0]]]))
-        .set("goal_state", torch.tensor([[[2, 12]]])),
-        set_state=True,
-    )
-
-    def at(quadrant, **overrides):
-        td.set("pixels", env.render_state(torch.tensor([[cells[quadrant]]])))
-        for key, value in overrides.items():
-            td[key][0] = value
-        return policy(td)
+    world = QuadrantWorld(reenter, {0: [2, 2], 1: [2, 9], 2: [12, 2]}, goal=[2, 12])
+    at, policy = world.at, world.policy
 
     assert int(at(0)["subgoal_code"][0, 0]) == 1
     assert int(at(1)["dorp_mode"][0]) == MODES["goal"]
