@@ -657,9 +657,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         group = int(graph.group_of_edge(ban))
         node = int(graph.node_of(state["code"][row], group))
         removed = state["dorp_removed"][row]
-        if node != via:
-            state["dorp_via_left"][row] = True
-        step = None
+        step = None  # dorp_via_left is kept by _track_reentry and _start_reentry
         if node == via and not bool(state["dorp_via_left"][row]):
             back = int(graph.edge_reverse[ban])
             if not bool(((removed == ban) | (removed == back)).any()):
