@@ -121,6 +121,12 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         order=args.order,
         goal_planner=args.goal_planner,
         seed=args.seed,
+        **(
+            {}
+            if args.waypoint_goal_weight is None
+            else {"waypoint_goal_weight": args.waypoint_goal_weight}
+        ),
+        **({} if args.top_k is None else {"top_k": args.top_k}),
     )
     tasks = make_task_set(env, args.tasks, seed=args.task_seed)
     result = evaluate_policy(
@@ -153,6 +159,8 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "paper": setting.paper,
         "reenter": policy.reenter,
         "replan_on_miss": policy.replan_on_miss,
+        "planner": args.planner,
+        "waypoint_goal_weight": args.waypoint_goal_weight,
         "solved": [bool(x) for x in result["success"]],
         **timings,
     }
@@ -195,6 +203,14 @@ def main() -> None:
     )
     parser.add_argument("--order", choices=["index", "nearest"], default="index")
     parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)
+    parser.add_argument("--top-k", type=int, default=None, help="CEM elites (default: CEM's)")
+    parser.add_argument(
+        "--waypoint-goal-weight",
+        type=float,
+        default=None,
+        help="weight of the goal image's pixel distance in the waypoint cost "
+        "(default: make_dorp_policy's)",
+    )
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
     parser.add_argument("--tasks-per-rollout", type=int, default=10)
     parser.add_argument("--threads", type=int, default=1, help="torch threads")

@@ -7,6 +7,7 @@ import functools
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.collectors import Collector, MultiSyncCollector
 
 from dorp_rl.data import collect_play_data
@@ -495,7 +496,7 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
     assert not bool(td["dorp_relaxed"][0]) and not bool(td["dorp_failed"][0])
 
 
-def test_reentry_and_replanning_on_misses_default_to_the_key_rooms(two_objects):
+def test_key_room_and_rearrangement_defaults(two_objects):
     env, oracle, graph = two_objects
     policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
     assert not policy.reenter and not policy.replan_on_miss
@@ -504,5 +505,47 @@ def test_reentry_and_replanning_on_misses_default_to_the_key_rooms(two_objects):
     room_graph = CodeGraph.from_play_data(collect_play_data(room, 500, seed=0), room_oracle)
     policy = make_dorp_policy(room, room_oracle, room_graph, seed=0, **SMALL)
     assert policy.reenter and policy.replan_on_miss
+    # The goal image's pixel distance ranks waypoint plans in rearrangement only.
+    assert "goal_pixels" not in policy.waypoint_planner.cost.in_keys
+    rearrange = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    assert "goal_pixels" in rearrange.waypoint_planner.cost.in_keys
     policy = make_dorp_policy(room, room_oracle, room_graph, seed=0, reenter=False, **SMALL)
     assert not policy.reenter and policy.replan_on_miss
+
+
+def test_the_goal_image_term_ranks_plans_that_reach_the_waypoint(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_goal_weight=0.01, **SMALL)
+    plain = make_dorp_policy(env, oracle, graph, seed=0, waypoint_goal_weight=0.0, **SMALL)
+    # Block 0 must reach region (0, 1) (cells 0-3 x 4-7); block 1 keeps its region.
+    start = torch.tensor([[0, 0], [12, 8]])
+    goal = torch.tensor([[0, 6], [12, 8]])
+    candidates = torch.stack(
+        [
+            torch.tensor([[0, 4], [12, 8]]),  # waypoint reached, 2 cells from the goal
+            torch.tensor([[0, 5], [12, 8]]),  # waypoint reached, 1 cell from the goal
+            torch.tensor([[0, 2], [12, 8]]),  # waypoint missed, 4 cells from the goal
+        ]
+    )
+    render = env.render_state
+    code = oracle.encode(render(goal[None]))[0]
+    mask = torch.tensor([True, False])
+    rollout = TensorDict(
+        {
+            "pixels": render(start[None]).expand(3, 1, 3, 16, 16),
+            "goal_pixels": render(goal[None]).expand(3, 1, 3, 16, 16),
+            "subgoal_code": code.expand(3, 1, 2),
+            "subgoal_mask": mask.expand(3, 1, 2),
+            ("next", "pixels"): render(candidates).unsqueeze(1),
+        },
+        batch_size=(3, 1),
+    )
+    with_goal = policy.waypoint_planner.cost(rollout.clone())
+    score = with_goal.get(policy.waypoint_planner.cost_key)[:, 0]
+    assert score[1] < score[0] < 0.5 <= score[2]  # closer wins; a miss stays a miss
+    assert "goal_pixels" in policy.waypoint_planner.cost.in_keys
+    without = plain.waypoint_planner.cost(rollout.clone())
+    alone = without.get(plain.waypoint_planner.cost_key)[:, 0]
+    assert abs(float(alone[1] - alone[0])) < 1e-2  # code match alone cannot tell them apart
+    with pytest.raises(ValueError, match="waypoint_goal_weight"):
+        make_dorp_policy(env, oracle, graph, waypoint_goal_weight=-1.0, **SMALL)

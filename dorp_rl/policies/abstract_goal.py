@@ -880,6 +880,7 @@ def make_dorp_policy(
     goal_code_weight: float = 100.0,
     goal_patience: int | None = 14,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
+    waypoint_goal_weight: float | None = None,
     seed: int | None = None,
     **planner_kwargs: Any,
 ) -> AbstractGoalPolicy:
@@ -913,6 +914,17 @@ def make_dorp_policy(
             L2, which is flat while a block does not overlap its goal place.
         goal_patience: goal-phase steps without progress after which the goal-code
             term is dropped for the task (see :class:`AbstractGoalPolicy`).
+        waypoint_goal_weight: weight of the goal image's pixel distance (the goal
+            phase's blurred :class:`~dorp_rl.planners.PixelDistanceCost`) added to the
+            waypoint cost. Small enough (at most 0.1 for a 16 x 16 frame at 0.003) that it
+            never turns a plan that misses the waypoint into one that reaches it: it only
+            ranks plans among themselves, so that of those reaching the waypoint the one
+            whose frame is closest to the goal image wins, and a plan that misses moves
+            blocks towards their goal places instead of anywhere. ``None`` (default):
+            0.003 in rearrangement, 0 (the code-match cost alone, as the paper) in the key
+            rooms, where pixel distance ignores the walls and pulled the agent into the
+            wrong part of a code (key-corridor, 50 tasks: 0.98 without, 0.88 with it; 3
+            objects: 3.25x -> 2.47x the lower bound, both 50 of 50).
         seed: seeds the planners.
         **planner_kwargs: more arguments of the planners (e.g. ``optim_steps``, ``top_k``).
 
@@ -926,6 +938,8 @@ def make_dorp_policy(
         reenter = isinstance(env, KeyRoomEnv)
     if replan_on_miss is None:
         replan_on_miss = isinstance(env, KeyRoomEnv)
+    if waypoint_goal_weight is None:
+        waypoint_goal_weight = 0.0 if isinstance(env, KeyRoomEnv) else 0.003
     if not isinstance(env, GridWorldEnv):
         raise ValueError(f"env must be a dorp_rl GridWorldEnv, got {type(env).__name__}.")
     if isinstance(encoder, (str, Path)):
@@ -970,9 +984,23 @@ def make_dorp_policy(
             f"{sorted(cem_only)} are CategoricalCEMPlanner arguments, but neither planner is "
             "CEM: pass planner='cem' (or goal_planner='cem') or drop them."
         )
+    if waypoint_goal_weight < 0:
+        raise ValueError(f"waypoint_goal_weight must be >= 0, got {waypoint_goal_weight}.")
+    waypoint_cost: nn.Module = CodeMatchCost(encoder, "subgoal_code", onehots="subgoal_mask")
+    if waypoint_goal_weight > 0:
+        waypoint_cost = TensorDictSequential(
+            CodeMatchCost(
+                encoder, "subgoal_code", onehots="subgoal_mask", out_key="waypoint_code_cost"
+            ),
+            PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
+            WeightedCostSum(
+                {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)},
+                step_aggregation="min",
+            ),
+        )
     waypoint = classes[planner](
         planning_env,
-        CodeMatchCost(encoder, "subgoal_code", onehots="subgoal_mask"),
+        waypoint_cost,
         **shape,
         seed=seed,
         key_prefix="waypoint_planner_",
