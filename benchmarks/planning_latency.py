@@ -25,9 +25,12 @@ rest (TorchRL ``step`` / ``step_mdp``, sampling, stacking), timed by wrappers in
 same call; ``--profile`` adds torch.profiler's top operators.
 
 With ``--encoder`` (a representation checkpoint) DORP's waypoint call is timed too:
-random shooting through the video model with
-:class:`~dorp_rl.planners.CodeMatchCost`, which encodes every distinct imagined frame,
-once without the cost's cache and once with the codes of an earlier call cached.
+random shooting through the video model with the waypoint cost of
+:func:`~dorp_rl.policies.make_waypoint_cost` as the DORP policy uses it in rearrangement
+(the :class:`~dorp_rl.planners.CodeMatchCost`, which encodes every distinct imagined
+frame, plus the goal image's blurred pixel distance at ``--waypoint-goal-weight``), once
+without the cost's cache and once with the codes of an earlier call cached, and with the
+code term alone.
 
 Goals: at most 1 s per pixel-cost call and 1.5 s per waypoint call through the video
 model on this 2-core CPU.
@@ -56,10 +59,10 @@ from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
-    CodeMatchCost,
     PixelDistanceCost,
     RandomShootingPlanner,
 )
+from dorp_rl.policies import make_waypoint_cost
 from dorp_rl.trainers import load_encoder, load_video_model
 
 GOAL_SECONDS = 1.0
@@ -138,7 +141,13 @@ def main() -> None:
         "--encoder",
         type=Path,
         default=None,
-        help="a representation checkpoint: also time a DORP waypoint call (CodeMatchCost)",
+        help="a representation checkpoint: also time a DORP waypoint call",
+    )
+    parser.add_argument(
+        "--waypoint-goal-weight",
+        type=float,
+        default=0.003,
+        help="the waypoint cost's goal-image weight (make_dorp_policy's in rearrangement)",
     )
     args = parser.parse_args()
 
@@ -221,16 +230,22 @@ def main() -> None:
         mask = torch.zeros_like(waypoint_td["subgoal_code"], dtype=torch.bool)
         mask[..., 0] = True
         waypoint_td["subgoal_mask"] = mask
-        for label, cache in (("no cache", 0), ("cache warm", 2**18)):
-            cost = CodeMatchCost(encoder, onehots="subgoal_mask", cache_size=cache)
+        variants = (
+            ("no cache", 0, args.waypoint_goal_weight),
+            ("cache warm", 2**18, args.waypoint_goal_weight),
+            ("code term alone", 0, 0.0),
+        )
+        for label, cache, weight in variants:
+            cost = make_waypoint_cost(encoder, waypoint_goal_weight=weight, cache_size=cache)
             call = planner(RandomShootingPlanner, wm_env, cost)
             seconds = median_seconds(lambda call=call: call(waypoint_td.clone()), args.repeats)
             rows.append((f"DORP waypoint call, world model, {label}", seconds))
 
     bare_s = rows[2][1]
-    print(f"\n{'':34s} {'ms':>9s} {'/ bare fwd':>11s}")
+    width = max(len(name) for name, _ in rows)
+    print(f"\n{'':{width}s} {'ms':>9s} {'/ bare fwd':>11s}")
     for name, seconds in rows:
-        print(f"{name:34s} {seconds * 1e3:9.1f} {seconds / bare_s:10.2f}x")
+        print(f"{name:{width}s} {seconds * 1e3:9.1f} {seconds / bare_s:10.2f}x")
     wm_s = rows[1][1]
     verdict = "meets" if wm_s <= GOAL_SECONDS else "misses"
     print(

@@ -1,6 +1,12 @@
 """Policies: DORP's hierarchical abstract-goal policy and the visual-foresight baselines."""
 
-from dorp_rl.policies.abstract_goal import MODES, ORDERS, AbstractGoalPolicy, make_dorp_policy
+from dorp_rl.policies.abstract_goal import (
+    MODES,
+    ORDERS,
+    AbstractGoalPolicy,
+    make_dorp_policy,
+    make_waypoint_cost,
+)
 from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightPolicy
 
 __all__ = [
@@ -10,4 +16,5 @@ __all__ = [
     "VARIANT_DEFAULTS",
     "VisualForesightPolicy",
     "make_dorp_policy",
+    "make_waypoint_cost",
 ]

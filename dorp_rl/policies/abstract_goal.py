@@ -857,6 +857,51 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         )
 
 
+def make_waypoint_cost(
+    encoder: nn.Module,
+    *,
+    waypoint_goal_weight: float = 0.0,
+    goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
+    cache_size: int = 2**18,
+) -> nn.Module:
+    """The cost DORP's waypoint planner ranks its plans by, writing ``cost [*B, N]``.
+
+    A :class:`~dorp_rl.planners.CodeMatchCost` on ``subgoal_code`` over the one-hots of
+    ``subgoal_mask``; with ``waypoint_goal_weight > 0``, plus that weight times the goal
+    image's blurred :class:`~dorp_rl.planners.PixelDistanceCost` (each folded over the
+    plan's steps with ``min``), so that among plans reaching the waypoint those leaving
+    the frame nearest the goal image win.
+
+    Examples:
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> env = ObjectRearrangementEnv(num_objects=2)
+        >>> cost = make_waypoint_cost(OracleCodeEncoder(env), waypoint_goal_weight=0.003)
+        >>> type(cost).__name__
+        'TensorDictSequential'
+    """
+    if waypoint_goal_weight < 0:
+        raise ValueError(f"waypoint_goal_weight must be >= 0, got {waypoint_goal_weight}.")
+    alone = waypoint_goal_weight == 0
+    code_cost = CodeMatchCost(
+        encoder,
+        "subgoal_code",
+        onehots="subgoal_mask",
+        out_key="cost" if alone else "waypoint_code_cost",
+        cache_size=cache_size,
+    )
+    if alone:
+        return code_cost
+    return TensorDictSequential(
+        code_cost,
+        PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
+        WeightedCostSum(
+            {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)},
+            step_aggregation="min",
+        ),
+    )
+
+
 def make_dorp_policy(
     env: GridWorldEnv,
     encoder: nn.Module | str | Path,
@@ -984,20 +1029,9 @@ def make_dorp_policy(
             f"{sorted(cem_only)} are CategoricalCEMPlanner arguments, but neither planner is "
             "CEM: pass planner='cem' (or goal_planner='cem') or drop them."
         )
-    if waypoint_goal_weight < 0:
-        raise ValueError(f"waypoint_goal_weight must be >= 0, got {waypoint_goal_weight}.")
-    waypoint_cost: nn.Module = CodeMatchCost(encoder, "subgoal_code", onehots="subgoal_mask")
-    if waypoint_goal_weight > 0:
-        waypoint_cost = TensorDictSequential(
-            CodeMatchCost(
-                encoder, "subgoal_code", onehots="subgoal_mask", out_key="waypoint_code_cost"
-            ),
-            PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
-            WeightedCostSum(
-                {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)},
-                step_aggregation="min",
-            ),
-        )
+    waypoint_cost = make_waypoint_cost(
+        encoder, waypoint_goal_weight=waypoint_goal_weight, goal_blur_sigmas=goal_blur_sigmas
+    )
     waypoint = classes[planner](
         planning_env,
         waypoint_cost,
