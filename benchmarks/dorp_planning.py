@@ -127,6 +127,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
             else {"waypoint_goal_weight": args.waypoint_goal_weight}
         ),
         **({} if args.top_k is None else {"top_k": args.top_k}),
+        waypoint_step_penalty=args.waypoint_step_penalty,
     )
     tasks = make_task_set(env, args.tasks, seed=args.task_seed)
     result = evaluate_policy(
@@ -161,6 +162,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "replan_on_miss": policy.replan_on_miss,
         "planner": args.planner,
         "waypoint_goal_weight": args.waypoint_goal_weight,
+        "waypoint_step_penalty": args.waypoint_step_penalty,
         "solved": [bool(x) for x in result["success"]],
         **timings,
     }
@@ -210,6 +212,12 @@ def main() -> None:
         default=None,
         help="weight of the goal image's pixel distance in the waypoint cost "
         "(default: make_dorp_policy's)",
+    )
+    parser.add_argument(
+        "--waypoint-step-penalty",
+        type=float,
+        default=0.0,
+        help="cost per step of a frame at the waypoint: earlier arrival wins",
     )
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
     parser.add_argument("--tasks-per-rollout", type=int, default=10)

@@ -14,7 +14,7 @@ from dorp_rl.data import collect_play_data
 from dorp_rl.envs import KeyCorridorEnv, ObjectRearrangementEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
-from dorp_rl.planners import CodeGraph
+from dorp_rl.planners import CodeGraph, CodeMatchCost
 from dorp_rl.policies import MODES, AbstractGoalPolicy, make_dorp_policy
 
 SMALL = {"num_candidates": 200, "planning_horizon": 10}
@@ -549,3 +549,12 @@ def test_the_goal_image_term_ranks_plans_that_reach_the_waypoint(two_objects):
     assert abs(float(alone[1] - alone[0])) < 1e-2  # code match alone cannot tell them apart
     with pytest.raises(ValueError, match="waypoint_goal_weight"):
         make_dorp_policy(env, oracle, graph, waypoint_goal_weight=-1.0, **SMALL)
+
+
+def test_waypoint_step_penalty_reaches_the_code_term(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_step_penalty=2e-3, **SMALL)
+    code_terms = [m for m in policy.waypoint_planner.cost.modules() if isinstance(m, CodeMatchCost)]
+    assert [m.step_penalty for m in code_terms] == [2e-3]
+    with pytest.raises(ValueError, match="step_penalty"):
+        make_dorp_policy(env, oracle, graph, waypoint_step_penalty=0.5, **SMALL)

@@ -861,6 +861,7 @@ def make_waypoint_cost(
     encoder: nn.Module,
     *,
     waypoint_goal_weight: float = 0.0,
+    step_penalty: float = 0.0,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     cache_size: int = 2**18,
 ) -> nn.Module:
@@ -870,7 +871,9 @@ def make_waypoint_cost(
     ``subgoal_mask``; with ``waypoint_goal_weight > 0``, plus that weight times the goal
     image's blurred :class:`~dorp_rl.planners.PixelDistanceCost` (each folded over the
     plan's steps with ``min``), so that among plans reaching the waypoint those leaving
-    the frame nearest the goal image win.
+    the frame nearest the goal image win. ``step_penalty`` is the code term's cost per
+    step of a matching frame (earlier arrival wins; see
+    :class:`~dorp_rl.planners.CodeMatchCost`).
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -888,6 +891,7 @@ def make_waypoint_cost(
         "subgoal_code",
         onehots="subgoal_mask",
         out_key="cost" if alone else "waypoint_code_cost",
+        step_penalty=step_penalty,
         cache_size=cache_size,
     )
     if alone:
@@ -926,6 +930,7 @@ def make_dorp_policy(
     goal_patience: int | None = 14,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     waypoint_goal_weight: float | None = None,
+    waypoint_step_penalty: float = 0.0,
     seed: int | None = None,
     **planner_kwargs: Any,
 ) -> AbstractGoalPolicy:
@@ -970,6 +975,9 @@ def make_dorp_policy(
             rooms, where pixel distance ignores the walls and pulled the agent into the
             wrong part of a code (key-corridor, 50 tasks: 0.98 without, 0.88 with it; 3
             objects: 3.25x -> 2.47x the lower bound, both 50 of 50).
+        waypoint_step_penalty: the waypoint cost's cost per step of a frame at the
+            waypoint (:func:`make_waypoint_cost`): earlier arrival wins; 0 (default)
+            scores every step at the waypoint alike.
         seed: seeds the planners.
         **planner_kwargs: more arguments of the planners (e.g. ``optim_steps``, ``top_k``).
 
@@ -1030,7 +1038,10 @@ def make_dorp_policy(
             "CEM: pass planner='cem' (or goal_planner='cem') or drop them."
         )
     waypoint_cost = make_waypoint_cost(
-        encoder, waypoint_goal_weight=waypoint_goal_weight, goal_blur_sigmas=goal_blur_sigmas
+        encoder,
+        waypoint_goal_weight=waypoint_goal_weight,
+        step_penalty=waypoint_step_penalty,
+        goal_blur_sigmas=goal_blur_sigmas,
     )
     waypoint = classes[planner](
         planning_env,
