@@ -50,9 +50,9 @@ def video_name(setting: Setting) -> str:
     return codes_name(setting) if setting.env == "rearrangement" else setting.env
 
 
-def _switch(value: str) -> bool | None:
-    """``auto`` / ``on`` / ``off`` as ``make_dorp_policy`` takes it."""
-    return {"auto": None, "on": True, "off": False}[value]
+def _switch(value: str) -> bool | str | None:
+    """``auto`` / ``on`` / ``off`` (/ ``goal``) as ``make_dorp_policy`` takes it."""
+    return {"auto": None, "on": True, "off": False, "goal": "goal"}[value]
 
 
 def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[Any, CodeGraph, dict]:
@@ -191,10 +191,11 @@ def main() -> None:
     )
     parser.add_argument(
         "--reenter",
-        choices=["auto", "on", "off"],
+        choices=["auto", "on", "off", "goal"],
         default="auto",
         help="before removing a hop no other path replaces, leave its code over the edge "
-        "that entered it and re-enter the code another way (auto: in the key rooms)",
+        "that entered it and re-enter the code another way (auto: in the key rooms; goal: "
+        "only when the goal phase stalls)",
     )
     parser.add_argument(
         "--replan-on-miss",

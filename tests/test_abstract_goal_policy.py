@@ -375,11 +375,12 @@ class QuadrantWorld:
         return self.graph.edge_id(int(node(torch.tensor([a]), 0)), int(node(torch.tensor([b]), 0)))
 
 
-@pytest.mark.parametrize("reenter", [True, False])
+@pytest.mark.parametrize("reenter", [True, False, "goal"])
 def test_a_failed_bridge_hop_reenters_its_code_another_way_before_it_is_removed(reenter):
     """Quadrant codes 0 1 / 2 3 and a graph 0-1, 0-2, 2-1, 1-3: the hop 1 -> 3 is the
     only way to the goal. When it fails after entering 1 from 0, the group first leaves
     back to 0, comes into 1 through 2, and tries the hop again; a second failure removes it.
+    With ``reenter="goal"`` (re-entry for a stalled goal phase only) it is removed at once.
     """
     world = QuadrantWorld(reenter, {0: [2, 2], 1: [2, 12], 2: [12, 2]}, goal=[12, 12])
     at, edge = world.at, world.edge
@@ -388,7 +389,7 @@ def test_a_failed_bridge_hop_reenters_its_code_another_way_before_it_is_removed(
     assert int(at(1)["dorp_edge"][0]) == edge(1, 3)  # reached 1: now the bridge hop
     td = at(1, dorp_budget=0)  # the hop 1 -> 3 failed
     assert int(td["dorp_replans"][0]) == 1
-    if not reenter:
+    if reenter is not True:
         assert edge(1, 3) in td["dorp_removed"][0].tolist() and bool(td["dorp_failed"][0])
         return
     assert (td["dorp_removed"][0] == -1).all() and not bool(td["dorp_failed"][0])
@@ -466,7 +467,7 @@ def test_a_plan_that_misses_its_waypoint_is_not_followed(replan):
         assert (length > 1).any() and (cursor > 1).any()
 
 
-@pytest.mark.parametrize("reenter", [True, False])
+@pytest.mark.parametrize("reenter", [True, False, "goal"])
 def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
     """Quadrant codes and a graph 0-1, 0-2, 2-1, 1-3; the goal lies in quadrant 1, which
     the group entered from 0. When the goal phase stalls, the group leaves back to 0,
@@ -483,7 +484,7 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
         dorp_goal_stall=policy.goal_patience - 1,
         **{policy.goal_planner.length_key: 0},
     )
-    assert bool(td["dorp_relaxed"][0]) is not reenter
+    assert bool(td["dorp_relaxed"][0]) is not bool(reenter)
     if not reenter:
         return
     assert int(td["dorp_via"][0]) >= 0 and int(td["dorp_replans"][0]) == 1
@@ -511,6 +512,8 @@ def test_key_room_and_rearrangement_defaults(two_objects):
     assert "goal_pixels" in rearrange.waypoint_planner.cost.in_keys
     policy = make_dorp_policy(room, room_oracle, room_graph, seed=0, reenter=False, **SMALL)
     assert not policy.reenter and policy.replan_on_miss
+    with pytest.raises(ValueError, match="reenter must be True, False or 'goal'"):
+        make_dorp_policy(room, room_oracle, room_graph, reenter="hops", **SMALL)
 
 
 def test_the_goal_image_term_ranks_plans_that_reach_the_waypoint(two_objects):

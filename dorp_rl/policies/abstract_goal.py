@@ -158,7 +158,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             same when the goal phase stalls in a goal code entered by a hop, before the
             code term is dropped. A failure on the way in starts its own re-entry in
             place of the first. Once per edge; it counts as a removal towards
-            ``max_removed_edges``.
+            ``max_removed_edges``. ``"goal"``: only the stalled goal phase re-enters
+            (failed hops are removed at once).
         max_reentries: re-entries a task may start (then failed hops are removed at once).
 
     Examples:
@@ -191,7 +192,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         max_misses: int | None = 2,
         miss_threshold: float = 0.5,
         forget_blocked_edges: bool = True,
-        reenter: bool = False,
+        reenter: bool | str = False,
         max_reentries: int = 8,
         replan_on_miss: bool = False,
         goal_code_weight: float | None = None,
@@ -259,7 +260,10 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.max_misses = None if max_misses is None else int(max_misses)
         self.miss_threshold = float(miss_threshold)
         self.forget_blocked_edges = bool(forget_blocked_edges)
-        self.reenter = bool(reenter)
+        if reenter not in (True, False, "goal"):
+            raise ValueError(f"reenter must be True, False or 'goal', got {reenter!r}.")
+        self.reenter = reenter
+        self._reenter_hops = reenter is True
         if int(max_reentries) != max_reentries or int(max_reentries) < 0:
             raise ValueError(f"max_reentries must be an integer >= 0, got {max_reentries}.")
         self.max_reentries = int(max_reentries)
@@ -549,7 +553,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         if count >= self.max_removed_edges:
             state["dorp_failed"][row] = True
             return
-        if self.reenter and self._start_reentry(state, row, edge):
+        if self._reenter_hops and self._start_reentry(state, row, edge):
             state["dorp_replans"][row] += 1
             return
         if edge >= 0:
@@ -923,7 +927,7 @@ def make_dorp_policy(
     goal_budget: int | None = 56,
     max_misses: int | None = 2,
     forget_blocked_edges: bool = True,
-    reenter: bool | None = None,
+    reenter: bool | str | None = None,
     max_reentries: int = 8,
     replan_on_miss: bool | None = None,
     goal_code_weight: float = 100.0,
