@@ -130,6 +130,10 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         waypoint_step_penalty=args.waypoint_step_penalty,
     )
     tasks = make_task_set(env, args.tasks, seed=args.task_seed)
+    if args.task_ids is not None:
+        if not all(0 <= i < args.tasks for i in args.task_ids):
+            raise SystemExit(f"--task-ids must lie in [0, {args.tasks}), got {args.task_ids}.")
+        tasks = tasks[torch.tensor(args.task_ids)]
     result = evaluate_policy(
         env,
         policy,
@@ -153,9 +157,9 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "mean_steps": result["mean_steps"],
         "mean_lower_bound": result["mean_lower_bound"],
         "steps_over_bound": ratio,
-        "replans_per_task": sum(result["dorp_replans"]) / args.tasks,
+        "replans_per_task": sum(result["dorp_replans"]) / len(tasks),
         "given_up": int(sum(result["dorp_failed"])),
-        "seconds_per_task": result["seconds"] / args.tasks,
+        "seconds_per_task": result["seconds"] / len(tasks),
         "max_steps": result["max_steps"],
         "paper": setting.paper,
         "reenter": policy.reenter,
@@ -163,6 +167,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "planner": args.planner,
         "waypoint_goal_weight": args.waypoint_goal_weight,
         "waypoint_step_penalty": args.waypoint_step_penalty,
+        "task_ids": args.task_ids,
         "solved": [bool(x) for x in result["success"]],
         **timings,
     }
@@ -177,6 +182,13 @@ def main() -> None:
     parser.add_argument("--code-seed", type=int, default=0, help="seed of the trained codes")
     parser.add_argument("--tasks", type=int, default=50)
     parser.add_argument("--task-seed", type=int, default=0)
+    parser.add_argument(
+        "--task-ids",
+        type=int,
+        nargs="+",
+        default=None,
+        help="run only these tasks of the --tasks task set (to look at chosen tasks again)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the planners")
     parser.add_argument("--planner", choices=["rs", "cem"], default="rs")
     parser.add_argument("--candidates", type=int, default=1000)
