@@ -206,8 +206,8 @@ def main() -> None:
         choices=["auto", "on", "off", "goal"],
         default="auto",
         help="before removing a hop no other path replaces, leave its code over the edge "
-        "that entered it and re-enter the code another way (auto: in the key rooms; goal: "
-        "only when the goal phase stalls)",
+        "that entered it and re-enter the code another way (goal: only when the goal phase "
+        "stalls; auto: on in the key rooms, goal in rearrangement)",
     )
     parser.add_argument(
         "--replan-on-miss",
