@@ -207,7 +207,7 @@ def main() -> None:
         default="auto",
         help="before removing a hop no other path replaces, leave its code over the edge "
         "that entered it and re-enter the code another way (goal: only when the goal phase "
-        "stalls; auto: on in the key rooms, goal in rearrangement)",
+        "stalls; auto: on in the key rooms, off in rearrangement)",
     )
     parser.add_argument(
         "--replan-on-miss",

@@ -500,7 +500,7 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
 def test_key_room_and_rearrangement_defaults(two_objects):
     env, oracle, graph = two_objects
     policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
-    assert policy.reenter == "goal" and not policy.replan_on_miss
+    assert not policy.reenter and not policy.replan_on_miss
     room = KeyCorridorEnv(batch_size=(1,), seed=0)
     room_oracle = OracleCodeEncoder(room, cell_size=4)
     room_graph = CodeGraph.from_play_data(collect_play_data(room, 500, seed=0), room_oracle)

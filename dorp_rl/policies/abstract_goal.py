@@ -953,15 +953,15 @@ def make_dorp_policy(
         order, waypoint_budget, max_removed_edges, goal_budget, max_misses,
             forget_blocked_edges, max_reentries: see :class:`AbstractGoalPolicy`.
         reenter, replan_on_miss: see :class:`AbstractGoalPolicy`; ``None`` (default):
-            both on in the key rooms; in rearrangement ``reenter="goal"`` and no
-            replanning on misses. A key room's learned codes often cover separate rooms,
-            where re-entering helps and a plan that misses its waypoint only wanders
-            (key-corridor, 50 tasks: 0.46 with neither, 0.92 with re-entry, 0.96 with
-            both); in rearrangement hops fail because blocks stand in the way, and
-            following a missing plan moves them (5 objects, 10 tasks: 0.90 with neither,
-            0.80 replanning on misses, 0.70 with both), but a goal phase stalled by two
-            blocks in each other's goal places gets out by re-entering a goal code (3
-            objects: 49 -> 50 of 50).
+            on in the key rooms, off in rearrangement. A key room's learned codes often
+            cover separate rooms, where re-entering helps and a plan that misses its
+            waypoint only wanders (key-corridor, 50 tasks: 0.46 with neither, 0.92 with
+            re-entry, 0.96 with both); in rearrangement hops fail because blocks stand in
+            the way, and following a missing plan moves them (5 objects, 10 tasks: 0.90
+            with neither, 0.80 replanning on misses, 0.70 with both). ``reenter="goal"``
+            gets a goal phase out of two blocks standing in each other's goal places (3
+            objects: 49 -> 50 of 50) but cost tasks at 5 objects, where a group's code
+            joins several blocks (50 tasks: 0.88 without, 0.76 with it).
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
             paper). Without it the pixel cost can pull objects out of their goal codes,
@@ -995,7 +995,7 @@ def make_dorp_policy(
     from dorp_rl.trainers import load_encoder, load_video_model
 
     if reenter is None:
-        reenter = True if isinstance(env, KeyRoomEnv) else "goal"
+        reenter = isinstance(env, KeyRoomEnv)
     if replan_on_miss is None:
         replan_on_miss = isinstance(env, KeyRoomEnv)
     if waypoint_goal_weight is None:
