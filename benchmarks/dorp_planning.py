@@ -114,6 +114,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         planning_horizon=args.planning_horizon,
         num_candidates=args.candidates,
         waypoint_budget=args.waypoint_budget,
+        max_misses=args.max_misses,
         max_removed_edges=args.max_removed_edges,
         forget_blocked_edges=not args.keep_removed_edges,
         reenter=_switch(args.reenter),
@@ -167,6 +168,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "planner": args.planner,
         "waypoint_goal_weight": args.waypoint_goal_weight,
         "waypoint_step_penalty": args.waypoint_step_penalty,
+        "max_misses": args.max_misses,
         "task_ids": args.task_ids,
         "solved": [bool(x) for x in result["success"]],
         **timings,
@@ -195,6 +197,12 @@ def main() -> None:
     parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--waypoint-budget", type=int, default=28)
     parser.add_argument("--max-removed-edges", type=int, default=128)
+    parser.add_argument(
+        "--max-misses",
+        type=int,
+        default=2,
+        help="waypoint plans in a row that reach the waypoint nowhere before its edge is removed",
+    )
     parser.add_argument(
         "--keep-removed-edges",
         action="store_true",
