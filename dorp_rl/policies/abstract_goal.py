@@ -869,7 +869,7 @@ def make_waypoint_cost(
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     cache_size: int = 2**18,
 ) -> nn.Module:
-    """The cost DORP's waypoint planner ranks its plans by, writing ``cost [*B, N]``.
+    """The cost DORP's waypoint planner ranks its plans by (written under ``cost``).
 
     A :class:`~dorp_rl.planners.CodeMatchCost` on ``subgoal_code`` over the one-hots of
     ``subgoal_mask``; with ``waypoint_goal_weight > 0``, plus that weight times the goal
