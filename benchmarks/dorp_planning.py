@@ -114,7 +114,6 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         planning_horizon=args.planning_horizon,
         num_candidates=args.candidates,
         waypoint_budget=args.waypoint_budget,
-        max_misses=args.max_misses,
         max_removed_edges=args.max_removed_edges,
         forget_blocked_edges=not args.keep_removed_edges,
         reenter=_switch(args.reenter),
@@ -128,7 +127,12 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
             else {"waypoint_goal_weight": args.waypoint_goal_weight}
         ),
         **({} if args.top_k is None else {"top_k": args.top_k}),
-        waypoint_step_penalty=args.waypoint_step_penalty,
+        **({} if args.max_misses is None else {"max_misses": args.max_misses}),
+        **(
+            {}
+            if args.waypoint_step_penalty is None
+            else {"waypoint_step_penalty": args.waypoint_step_penalty}
+        ),
     )
     tasks = make_task_set(env, args.tasks, seed=args.task_seed)
     if args.task_ids is not None:
@@ -168,7 +172,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "planner": args.planner,
         "waypoint_goal_weight": args.waypoint_goal_weight,
         "waypoint_step_penalty": args.waypoint_step_penalty,
-        "max_misses": args.max_misses,
+        "max_misses": policy.max_misses,
         "task_ids": args.task_ids,
         "solved": [bool(x) for x in result["success"]],
         **timings,
@@ -200,8 +204,9 @@ def main() -> None:
     parser.add_argument(
         "--max-misses",
         type=int,
-        default=2,
-        help="waypoint plans in a row that reach the waypoint nowhere before its edge is removed",
+        default=None,
+        help="waypoint plans in a row that reach the waypoint nowhere before its edge is "
+        "removed (default: make_dorp_policy's)",
     )
     parser.add_argument(
         "--keep-removed-edges",
@@ -237,8 +242,9 @@ def main() -> None:
     parser.add_argument(
         "--waypoint-step-penalty",
         type=float,
-        default=0.0,
-        help="cost per step of a frame at the waypoint: earlier arrival wins",
+        default=None,
+        help="cost per step of a frame at the waypoint: earlier arrival wins "
+        "(default: make_dorp_policy's)",
     )
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
     parser.add_argument("--tasks-per-rollout", type=int, default=10)
