@@ -127,6 +127,11 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
             else {"waypoint_goal_weight": args.waypoint_goal_weight}
         ),
         **({} if args.top_k is None else {"top_k": args.top_k}),
+        **(
+            {}
+            if args.action_persistence is None
+            else {"action_persistence": args.action_persistence}
+        ),
         **({} if args.max_misses is None else {"max_misses": args.max_misses}),
         **(
             {}
@@ -173,6 +178,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "waypoint_goal_weight": args.waypoint_goal_weight,
         "waypoint_step_penalty": args.waypoint_step_penalty,
         "max_misses": policy.max_misses,
+        "action_persistence": getattr(policy.waypoint_planner, "action_persistence", None),
         "task_ids": args.task_ids,
         "solved": [bool(x) for x in result["success"]],
         **timings,
@@ -231,6 +237,13 @@ def main() -> None:
     )
     parser.add_argument("--order", choices=["index", "nearest"], default="index")
     parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)
+    parser.add_argument(
+        "--action-persistence",
+        type=float,
+        default=None,
+        help="random shooting: probability that a sampled action repeats the one before it "
+        "(default: make_dorp_policy's)",
+    )
     parser.add_argument("--top-k", type=int, default=None, help="CEM elites (default: CEM's)")
     parser.add_argument(
         "--waypoint-goal-weight",

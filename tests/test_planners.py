@@ -366,6 +366,53 @@ def test_action_repeat_repeats_decisions():
     assert torch.equal(plan[:, 0::2], plan[:, 1::2])
 
 
+def _sampled_candidates(planner, td):
+    """The candidate decisions ``[B, N, H]`` of one planning call."""
+    seen = []
+    evaluate = planner._evaluate
+
+    def capture(rows, decisions):
+        seen.append(decisions.clone())
+        return evaluate(rows, decisions)
+
+    planner._evaluate = capture
+    planner(td)
+    return seen[0]
+
+
+def test_action_persistence_draws_runs_of_one_action():
+    env = two_object_env()
+    make = lambda p: RandomShootingPlanner(  # noqa: E731
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        num_candidates=400,
+        planning_horizon=10,
+        action_persistence=p,
+        seed=0,
+    )
+    td = env.reset()
+    independent = _sampled_candidates(make(0.0), td.clone())
+    sticky = _sampled_candidates(make(0.8), td.clone())
+    same = lambda d: (d[..., 1:] == d[..., :-1]).float().mean().item()  # noqa: E731
+    # Independent uniform draws over 8 actions repeat 1/8 of the time; with persistence p
+    # a decision repeats with probability p + (1 - p) / 8.
+    assert abs(same(independent) - 1 / 8) < 0.02
+    assert abs(same(sticky) - (0.8 + 0.2 / 8)) < 0.02
+    # Every action still starts sequences, and the default draws what it always drew.
+    assert set(sticky[..., 0].unique().tolist()) == set(range(8))
+    baseline = RandomShootingPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=400, planning_horizon=10, seed=0
+    )
+    assert torch.equal(_sampled_candidates(baseline, td.clone()), independent)
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.0, 2])
+def test_action_persistence_out_of_range(bad):
+    env = two_object_env()
+    with pytest.raises(ValueError, match="action_persistence must be in"):
+        RandomShootingPlanner(GroundTruthModelEnv(env), PixelDistanceCost(), action_persistence=bad)
+
+
 def test_open_loop_emits_the_stored_sequence_then_replans():
     env = ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=3, terminate_on_success=False)
     planner = RandomShootingPlanner(

@@ -13,11 +13,18 @@ __all__ = ["RandomShootingPlanner"]
 
 
 class RandomShootingPlanner(DiscreteMPCPlanner):
-    """Random shooting: ``num_candidates`` uniformly random action sequences, keep the best.
+    """Random shooting: ``num_candidates`` random action sequences, keep the best.
 
-    The paper's VF-RS draws 1000 sequences of 14 steps and executes the best one open
-    loop. Each planning call draws one block of uniforms ``[B, 1, N, H / r]`` from the
-    planner's generator, so the same seed gives the same plans.
+    The paper's VF-RS draws 1000 uniformly random sequences of 14 steps and executes the
+    best one open loop. Each planning call draws one block of uniforms ``[B, 1, N, H / r]``
+    from the planner's generator (two with ``action_persistence > 0``), so the same seed
+    gives the same plans.
+
+    With ``action_persistence = p``, each decision after the first repeats the previous
+    one with probability ``p`` and is drawn uniformly otherwise: runs of one action are
+    geometric with mean ``1 / (1 - p)``. Every sequence can still be drawn, but those that
+    push one object several cells the same way, which uniform draws over many actions
+    almost never hold, become common (``action_repeat`` fixes the run length instead).
 
     Args:
         env: the planning env (not batch-locked, Categorical action).
@@ -26,6 +33,8 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         planning_horizon: env steps per sequence (``H``, default 14).
         num_candidates: sequences per row (``N``, default 1000).
         action_repeat: env steps per decision; must divide ``planning_horizon``.
+        action_persistence: probability in ``[0, 1)`` that a decision repeats the one
+            before it (default 0: independent uniform decisions, as the paper).
         execution: ``"receding"`` (default) or ``"open_loop"``.
         step_aggregation: how a candidate's per-step costs fold into its score
             (``"min"``, ``"sum"`` or ``"final"``); ``None`` takes the cost's.
@@ -58,6 +67,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         planning_horizon: int = 14,
         num_candidates: int = 1000,
         action_repeat: int = 1,
+        action_persistence: float = 0.0,
         execution: str = "receding",
         step_aggregation: str | None = None,
         seed: int | None = None,
@@ -78,6 +88,13 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
         )
+        persistence = float(action_persistence)
+        if not 0.0 <= persistence < 1.0:
+            raise ValueError(
+                f"action_persistence must be in [0, 1) (the probability that a decision "
+                f"repeats the one before it), got {action_persistence!r}."
+            )
+        self.action_persistence = persistence
 
     def _optimize(
         self,
@@ -89,6 +106,12 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         rows = td.batch_size[0]
         u = self._uniforms(rows, 1)[:, 0]
         decisions = (u * self.num_actions).floor().to(torch.int64).clamp_max(self.num_actions - 1)
+        if self.action_persistence > 0:
+            repeat = self._uniforms(rows, 1)[:, 0] < self.action_persistence
+            for t in range(1, decisions.shape[-1]):
+                decisions[..., t] = torch.where(
+                    repeat[..., t], decisions[..., t - 1], decisions[..., t]
+                )
         score, step = self._evaluate(td, decisions)
         best = select_best(score, step)
         index = torch.arange(rows, device=best.device)
