@@ -249,6 +249,8 @@ def test_bad_input_gets_a_clear_error(two_objects, tmp_path):
     cem = make_dorp_policy(env, oracle, graph, planner="cem", top_k=5, optim_steps=2, **SMALL)
     assert (cem.waypoint_planner.top_k, cem.waypoint_planner.optim_steps) == (5, 2)
     assert type(cem.goal_planner).__name__ == "CategoricalCEMPlanner"
+    with pytest.raises(ValueError, match="neither planner is random shooting"):
+        make_dorp_policy(env, oracle, graph, planner="cem", action_persistence=0.3, **SMALL)
     with pytest.raises(ValueError, match="different key_prefix"):
         AbstractGoalPolicy(oracle, graph, policy.waypoint_planner, policy.waypoint_planner)
 
@@ -501,6 +503,15 @@ def test_key_room_and_rearrangement_defaults(two_objects):
     env, oracle, graph = two_objects
     policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
     assert not policy.reenter and not policy.replan_on_miss
+    # Random shooting draws runs of one action; a hop is removed after one missing plan.
+    assert policy.waypoint_planner.action_persistence == 0.5
+    assert policy.goal_planner.action_persistence == 0.5
+    assert policy.max_misses == 1
+    mixed = make_dorp_policy(
+        env, oracle, graph, goal_planner="cem", action_persistence=0.0, **SMALL
+    )
+    assert mixed.waypoint_planner.action_persistence == 0.0
+    assert type(mixed.goal_planner).__name__ == "CategoricalCEMPlanner"
     room = KeyCorridorEnv(batch_size=(1,), seed=0)
     room_oracle = OracleCodeEncoder(room, cell_size=4)
     room_graph = CodeGraph.from_play_data(collect_play_data(room, 500, seed=0), room_oracle)

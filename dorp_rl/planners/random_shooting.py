@@ -116,3 +116,6 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         best = select_best(score, step)
         index = torch.arange(rows, device=best.device)
         return decisions[index, best], score[index, best], step[index, best]
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, action_persistence={self.action_persistence}"

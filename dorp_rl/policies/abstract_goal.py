@@ -189,7 +189,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         waypoint_budget: int = 28,
         max_removed_edges: int = 128,
         goal_budget: int | None = 56,
-        max_misses: int | None = 2,
+        max_misses: int | None = 1,
         miss_threshold: float = 0.5,
         forget_blocked_edges: bool = True,
         reenter: bool | str = False,
@@ -920,12 +920,13 @@ def make_dorp_policy(
     planning_horizon: int = 14,
     num_candidates: int = 1000,
     action_repeat: int = 1,
+    action_persistence: float | None = None,
     goal_planner: str | None = None,
     order: str | Sequence[int] = "index",
     waypoint_budget: int = 28,
     max_removed_edges: int = 128,
     goal_budget: int | None = 56,
-    max_misses: int | None = 2,
+    max_misses: int | None = 1,
     forget_blocked_edges: bool = True,
     reenter: bool | str | None = None,
     max_reentries: int = 8,
@@ -949,6 +950,12 @@ def make_dorp_policy(
             path of a world-model checkpoint.
         planner: ``"rs"`` (random shooting) or ``"cem"`` for the waypoint steps.
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
+        action_persistence: the random-shooting planners' probability that a sampled
+            action repeats the one before it
+            (:class:`~dorp_rl.planners.RandomShootingPlanner`). ``None`` (default): 0.5.
+            With uniform draws over ``4 k`` actions, plans that push one block several
+            cells the same way are so rare that hops failed for want of a candidate and
+            executed plans wandered; 0 draws uniformly, as the paper.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
         order, waypoint_budget, max_removed_edges, goal_budget, max_misses,
             forget_blocked_edges, max_reentries: see :class:`AbstractGoalPolicy`.
@@ -1030,6 +1037,12 @@ def make_dorp_policy(
     for name, value in (("planner", planner), ("goal_planner", goal_planner or planner)):
         if value not in classes:
             raise ValueError(f"{name} must be one of {sorted(classes)}, got {value!r}.")
+    if action_persistence is not None and "rs" not in (planner, goal_planner or planner):
+        raise ValueError(
+            "action_persistence is a RandomShootingPlanner argument, but neither planner is "
+            "random shooting: pass planner='rs' (or goal_planner='rs') or drop it."
+        )
+    rs_only = {"action_persistence": 0.5 if action_persistence is None else action_persistence}
     shape = {
         "planning_horizon": planning_horizon,
         "num_candidates": num_candidates,
@@ -1057,7 +1070,7 @@ def make_dorp_policy(
         seed=seed,
         key_prefix="waypoint_planner_",
         **shared,
-        **(cem_only if planner == "cem" else {}),
+        **(cem_only if planner == "cem" else rs_only),
     )
     goal_kind = goal_planner or planner
     pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
@@ -1080,7 +1093,7 @@ def make_dorp_policy(
         seed=None if seed is None else seed + 1,
         key_prefix="goal_planner_",
         **shared,
-        **(cem_only if goal_kind == "cem" else {}),
+        **(cem_only if goal_kind == "cem" else rs_only),
     )
     return AbstractGoalPolicy(
         encoder,
