@@ -401,7 +401,11 @@ def test_action_persistence_draws_runs_of_one_action():
     # Every action still starts sequences, and the default draws what it always drew.
     assert set(sticky[..., 0].unique().tolist()) == set(range(8))
     baseline = RandomShootingPlanner(
-        GroundTruthModelEnv(env), PixelDistanceCost(), num_candidates=400, planning_horizon=10, seed=0
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        num_candidates=400,
+        planning_horizon=10,
+        seed=0,
     )
     assert torch.equal(_sampled_candidates(baseline, td.clone()), independent)
 
