@@ -645,9 +645,26 @@ def _check(command: str, cmd: Any) -> None:
                         "and --name) and bars follow --progress / --no-progress."
                     )
     if isinstance(cmd, Evaluate):
-        for name in ("tasks", "tasks_per_rollout", "candidates", "planning_horizon"):
+        for name in (
+            "tasks",
+            "tasks_per_rollout",
+            "candidates",
+            "planning_horizon",
+            "waypoint_budget",
+        ):
             if getattr(cmd, name) < 1:
-                raise UsageError(f"--{name.replace('_', '-')} must be >= 1.")
+                raise UsageError(
+                    f"--{name.replace('_', '-')} must be >= 1, got {getattr(cmd, name)}."
+                )
+        if cmd.max_steps is not None and cmd.max_steps < 1:
+            raise UsageError(
+                f"--max-steps must be >= 1 (or None: the env's limit), got {cmd.max_steps}."
+            )
+        for name in ("seed", "task_seed"):
+            if getattr(cmd, name) < 0:
+                raise UsageError(
+                    f"--{name.replace('_', '-')} must be >= 0, got {getattr(cmd, name)}."
+                )
         if not cmd.methods:
             raise UsageError("--methods needs at least one method.")
         if cmd.workers < 1:
