@@ -642,7 +642,7 @@ def _check(command: str, cmd: Any) -> None:
                     option = f"--{key.replace('_', '-')}.{name.replace('_', '-')}"
                     raise UsageError(
                         f"{option} is set by the run: files go to <root>/<name>/ (use --root "
-                        "and --name) and bars follow --progress / --no-progress."
+                        "and --name), bars follow --progress / --no-progress and torch threads --threads."
                     )
     if isinstance(cmd, Evaluate):
         for name in (

@@ -233,6 +233,7 @@ def test_threads_sets_torch_threads(tmp_path, dorp) -> None:
         (["collect", "--threads", "0"], "--threads must be >= 1"),
         (["train-encoder", "--codes.out-dir", "elsewhere"], "--codes.out-dir is set by the run"),
         (["evaluate", "--world-model.no-progress"], "--world-model.progress is set by the run"),
+        (["train-encoder", "--codes.threads", "2"], "--codes.threads is set by the run"),
     ],
 )
 def test_bad_arguments_give_a_usage_error(tmp_path, capsys, args, message) -> None:

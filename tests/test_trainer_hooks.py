@@ -212,6 +212,34 @@ def test_hook_state_is_checkpointed_and_resumed(tmp_path, tiny_configs):
     assert hook.seen == [1, 2, 3, 4, 5]
 
 
+class ThreadsHook(TrainerHook):
+    """Records torch's thread count at every step."""
+
+    def __init__(self) -> None:
+        self.threads: list[int] = []
+
+    def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
+        self.threads.append(torch.get_num_threads())
+        return False
+
+
+def test_threads_apply_while_training_and_are_restored(tmp_path, tiny_configs):
+    torch.set_num_threads(2)  # the one_torch_thread fixture restores torch's setting
+    trainer = WorldModelTrainer(tiny_configs.world_model(tmp_path / "wm", num_steps=2, threads=1))
+    hook = trainer.register_hook("threads", ThreadsHook())
+    trainer.train()
+    assert hook.threads == [1, 1] and torch.get_num_threads() == 2
+    # Threads are bookkeeping: a resume with another count is not refused.
+    more = WorldModelTrainer(tiny_configs.world_model(tmp_path / "wm", num_steps=3, threads=2))
+    more_hook = more.register_hook("threads", ThreadsHook())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # num_steps changed on resume
+        more.train(resume=True)
+    assert more_hook.threads == [2]
+    with pytest.raises(ValueError, match="threads"):
+        tiny_configs.world_model(tmp_path / "bad", threads=0)
+
+
 def test_restart_hooks_keep_their_restarts_across_a_resume(tmp_path, tiny_configs):
     # lr 0 never leaves the initial codes: every attempt is flat at log B and restarts.
     overrides = dict(lr=0.0, collapse_check_after=3, max_restarts=2, checkpoint_every=1)

@@ -51,6 +51,7 @@ class TrainerConfig(ConfigMixin):
         "log_every": Int(low=1),
         "checkpoint_every": Int(low=1),
         "progress": Flag(),
+        "threads": Int(low=1, optional=True),
     }
 
     #: objects of a rearrangement config that does not say
@@ -82,6 +83,11 @@ class TrainerConfig(ConfigMixin):
     """steps between checkpoints"""
     progress: bool = True
     """show a progress bar"""
+    threads: int | None = None
+    """torch threads while training (torch.set_num_threads for the run of train, then
+    restored; None: leave torch's setting). On a shared CPU use 1 per job: with torch's
+    default threads and other work on a 2-core machine a training step was about 100x
+    slower"""
 
     def check_relations(self) -> None:
         """Resolves ``num_objects`` (see the class docstring); subclasses add their rules."""
@@ -209,6 +215,7 @@ class OfflineTrainer:
         "out_dir",
         "data_dir",
         "checkpoint_every",
+        "threads",
     )
     #: config fields a resume takes from the new config, with a warning
     resume_adjustable_fields: ClassVar[tuple[str, ...]] = ("num_steps",)
@@ -478,9 +485,14 @@ class OfflineTrainer:
         """
         lock = DirectoryLock(self.out_dir, ".train.lock", purpose=f"{self.kind} training")
         lock.acquire()
+        threads = getattr(self.config, "threads", None)
+        before = torch.get_num_threads()
+        if threads is not None:
+            torch.set_num_threads(int(threads))
         try:
             return self._train(resume)
         finally:
+            torch.set_num_threads(before)
             lock.release()
 
     def _train(self, resume: bool) -> dict[str, Any]:
