@@ -52,7 +52,12 @@ def main() -> None:
         "--checkpoint", default="outputs/codes/rearrangement5-seed0/checkpoints/last.pt"
     )
     parser.add_argument("--queries", type=int, default=50)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     env = ObjectRearrangementEnv(num_objects=5, batch_size=(256,))

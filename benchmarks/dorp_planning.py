@@ -261,7 +261,12 @@ def main() -> None:
     )
     parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
     parser.add_argument("--tasks-per-rollout", type=int, default=10)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
+    )
     parser.add_argument("--progress", action="store_true")
     parser.add_argument("--out-dir", type=Path, default=Path("outputs"))
     parser.add_argument(

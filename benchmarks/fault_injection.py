@@ -940,7 +940,12 @@ def classify(item: Fault) -> tuple[str, str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
+    )
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--show", nargs="*", default=["silent", "unclear"])
     parser.add_argument("--only", default=None, help="run the categories containing this")

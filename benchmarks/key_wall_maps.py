@@ -31,7 +31,15 @@ from dorp_rl.trainers.representation import load_encoder
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps "
+        "far slower)",
+    )
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
 
     env = KeyWallEnv()
     encoder = load_encoder(args.checkpoint, env=env)

@@ -133,7 +133,10 @@ def main() -> None:
         "--steps-scale", type=float, default=1.0, help="multiplies every run's steps"
     )
     parser.add_argument(
-        "--threads", type=int, default=None, help="torch threads (default: torch's)"
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
     )
     parser.add_argument(
         "--candidates",

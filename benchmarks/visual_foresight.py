@@ -59,7 +59,12 @@ def main() -> None:
         "--tasks-per-rollout", type=int, default=None, help="default: 10 gt, 1 video"
     )
     parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help="'{k}': objects")
-    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="planner seed")
     parser.add_argument(
         "--step-aggregation",
