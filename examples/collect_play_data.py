@@ -38,7 +38,11 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=32)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", type=Path, default=Path("outputs/demo"))
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch threads (default 1: one per job)"
+    )
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
 
     env = make_env(args.env, args.num_objects, args.num_envs)
     name = f"{args.env}-{args.num_objects}" if args.env == "rearrangement" else args.env

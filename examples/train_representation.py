@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import torch
+
 from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
 from dorp_rl.viz import write_diagnostic_plots
 
@@ -57,7 +59,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", type=Path, default=Path("outputs/representation_1obj"))
     parser.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch threads (default 1: one per job)"
+    )
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
 
     trainer = RepresentationTrainer(make_config(args))
     result = trainer.train(resume=args.resume)

@@ -34,7 +34,11 @@ def main() -> None:
     parser.add_argument("--tasks", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out-dir", type=Path, default=Path("outputs/visual_foresight"))
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch threads (default 1: one per job)"
+    )
     args = parser.parse_args()
+    torch.set_num_threads(args.threads)
 
     env = ObjectRearrangementEnv(args.num_objects, batch_size=(), batch_locked=False, seed=0)
     if args.checkpoint is None:
