@@ -2,8 +2,10 @@
 
     python examples/dorp_in_torchrl_trainer.py --smoke          # tiny: about 15 s
     python examples/dorp_in_torchrl_trainer.py                  # small: about 90 s
+    dorp demo                                                   # codes in runs/demo/
+    dorp train-world-model --setting 2obj --name wm2            # a video model in runs/wm2/
     python examples/dorp_in_torchrl_trainer.py --encoder runs/demo/codes/checkpoints/last.pt \\
-        --world-model runs/demo/world_model/checkpoints/last.pt --num-objects 2
+        --world-model runs/wm2/world_model/checkpoints/last.pt --num-objects 2
 
 Offline training from a play buffer uses dorp-rl's own trainers
 (:class:`~dorp_rl.trainers.OfflineTrainer`); online fine-tuning is where torchrl's
