@@ -129,7 +129,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             removed for the task.
         max_removed_edges: edges a task may remove; one more failure ends the task.
             With five blocks, hops often fail because another block is in the way:
-            solved 5-object tasks removed about 28 edges each.
+            with ``make_dorp_policy``'s defaults, 5-object tasks removed about 13 edges
+            each.
         goal_budget: steps the goal-image phase may take in all before the task is
             given up (``None``: no limit but the env's). Pixel distance can get stuck
             where a goal code spans a region the planner cannot cross within its horizon
