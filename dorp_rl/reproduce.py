@@ -47,6 +47,7 @@ from dorp_rl.eval.results import (
     write_results,
     write_timings,
 )
+from dorp_rl.progress import progress_bar
 from dorp_rl.viz import plot_results, write_diagnostic_plots
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
 
@@ -159,11 +160,7 @@ def _rollout_gifs(
     given = TensorDict(state=tasks["state"], goal_state=tasks["goal_state"], batch_size=[n])
     td = env.reset(given.to(env.device), set_state=True)
     limit = env.max_steps if cmd.max_steps is None else cmd.max_steps
-    bar = None
-    if run.progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, desc="GIF rollouts", unit="task")
+    bar = progress_bar(run.progress, total=n, desc="GIF rollouts", unit="task")
 
     def tick(_env: Any, step: Any) -> None:
         finished = int(step["done"].sum())

@@ -19,6 +19,7 @@ from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.config import ConfigMixin, config_differences, format_differences
 from dorp_rl.envs import ENV_NAMES, GridWorldEnv, env_class, make_env
 from dorp_rl.integrity import DirectoryLock, IntegrityError
+from dorp_rl.progress import progress_bar
 from dorp_rl.validation import Choice, Device, Flag, Int, Seed, Text
 
 #: Upper bound of ``num_objects`` (the default colour palette).
@@ -500,12 +501,8 @@ class OfflineTrainer:
         if resume and self.checkpoint_path.exists():
             self._restore(self.read_checkpoint(resume=True))
             self.saved_step = self.step
-        bar = None
-        if cfg.progress:
-            from tqdm.auto import tqdm
-
-            total = self.planned_steps
-            bar = tqdm(total=total, initial=min(self.step, total), desc=self.kind)
+        total = self.planned_steps
+        bar = progress_bar(cfg.progress, total=total, initial=min(self.step, total), desc=self.kind)
         metrics: dict[str, float] = {}
         evaluated_at = -1
         try:

@@ -41,6 +41,7 @@ from dorp_rl.integrity import (
     file_manifest,
     verify_manifest,
 )
+from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_int, check_seed, derive_seed
 
 #: Keys kept for every transition of the play data.
@@ -489,11 +490,7 @@ def _collect(
         trust_policy=True,
     )
     buffer = _make_buffer(num_frames, directory, sampler, batch_size, collect_env.device)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=num_frames, desc="play data", unit="frame")
+    bar = progress_bar(progress, total=num_frames, desc="play data", unit="frame")
     stored = 0
     try:
         for batch in collector:

@@ -58,6 +58,7 @@ from tensordict import TensorDict, TensorDictBase
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.eval.settings import SETTINGS
 from dorp_rl.eval.tasks import check_rollout_batch, evaluate_policy, summarize
+from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
 
 #: backends of :func:`evaluate_parallel`
@@ -428,11 +429,7 @@ def evaluate_parallel(
     results = (
         _run_local(jobs, used, init) if backend == "local" else _run_ray(jobs, used, init, address)
     )
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, desc=f"tasks ({used} {backend} workers)")
+    bar = progress_bar(progress, total=n, desc=f"tasks ({used} {backend} workers)")
     by_chunk: dict[int, dict[str, Any]] = {}
     try:
         for index, chunk_result in results:

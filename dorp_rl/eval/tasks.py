@@ -24,6 +24,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
+from dorp_rl.progress import progress_bar
 from dorp_rl.validation import MissingKeyError, check_int, check_seed, derive_seed
 
 
@@ -159,11 +160,7 @@ def evaluate_policy(
     n = tasks.shape[0]
     check_rollout_batch(env, tasks_per_rollout)
     locked = env.batch_locked and env.batch_size != torch.Size([])
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, desc="tasks", unit="task")
+    bar = progress_bar(progress, total=n, desc="tasks", unit="task")
     success: list[bool] = []
     steps: list[int] = []
     reported: dict[str, list[float]] = {key: [] for key in report_keys}

@@ -43,6 +43,7 @@ from torch import nn
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.modules.encoder import module_device
+from dorp_rl.progress import progress_bar
 
 #: Groups of at most this many nodes get a dense all-pairs distance table.
 DEFAULT_DENSE_LIMIT = 1024
@@ -135,11 +136,7 @@ def encode_transitions(
     n = len(buffer)
     if n < 1:
         raise ValueError("the play buffer is empty: no transitions to build a graph from.")
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, desc="encode play data", unit="frame")
+    bar = progress_bar(progress, total=n, desc="encode play data", unit="frame")
     codes, next_codes = [], []
     device = module_device(encoder)
     for start in range(0, n, chunk_size):
