@@ -47,9 +47,9 @@ class WorldModelConfig(TrainerConfig):
     training first, full open-loop rollouts after. With ``event_share > 0`` at least that
     share of the windows holds an *event*, a transition that changes more cells than an
     ordinary step (:class:`~dorp_rl.data.EventWindowSampler`): random play in key-wall
-    takes the key in about 0.1% of its transitions, and a model trained on uniform
-    windows leaves the door shut when it is taken. Configs stored before the field
-    existed read as 0 (uniform windows, as they were trained).
+    takes the key in about 0.1% of its transitions, too rare in uniform windows for a
+    model to learn that the door opens. Configs stored without the field read as 0
+    (uniform windows).
 
     Use :meth:`rearrangement`, :meth:`key_wall` or :meth:`key_corridor`, then override
     fields with :meth:`replace` (``cfg.replace(model=VideoModelConfig.small())`` or
@@ -141,8 +141,8 @@ class WorldModelConfig(TrainerConfig):
     def key_wall(cls, **overrides: Any) -> WorldModelConfig:
         """Key-wall: windows from the 1000-step random walks, a quarter of them holding a key event.
 
-        Uniform windows hold the key pickup in about 1% of them and the model never learns
-        to open the door; ``event_share=0.25`` makes it see one in every fourth window.
+        About 1% of uniform windows hold a key pickup (the door opening with it);
+        ``event_share=0.25`` puts one in every fourth window.
         """
         return cls(env="key-wall", num_objects=1, trajectory_length=1000, event_share=0.25).replace(
             **overrides
