@@ -50,7 +50,7 @@ from dorp_rl.eval import (
     result_row,
     write_results,
 )
-from dorp_rl.planners import CodeGraph
+from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
 from dorp_rl.trainers import (
     OfflineTrainer,
     RepresentationConfig,
@@ -298,6 +298,8 @@ class Run:
         self.dir = Path(command.root) / command.name
         self.dir.mkdir(parents=True, exist_ok=True)
         self.progress = command.progress
+        #: codes of the play data's transitions, by (codes variant, encoder fingerprint)
+        self.encoded: dict[tuple[str, str], tuple[Any, Any]] = {}
         self.stages_path = self.dir / "stages.json"
         self.stages: dict[str, Any] = (
             json.loads(self.stages_path.read_text()) if self.stages_path.exists() else {}
@@ -480,7 +482,11 @@ def graph_stage(
     env_config = codes.make_env().config()
 
     def build():
-        graph = CodeGraph.from_play_data(buffer, encoder, groups, progress=run.progress)
+        # Graphs over one codes variant (per group, full) share one encoding of the play data.
+        key = (codes_variant, encoder_fingerprint(encoder))
+        if key not in run.encoded:
+            run.encoded[key] = encode_transitions(buffer, encoder, progress=run.progress)
+        graph = CodeGraph.from_play_data(buffer, encoder, groups, transitions=run.encoded[key])
         graph.save(path)
         nodes = [graph.num_nodes(g) for g in range(graph.num_groups)]
         return graph, {"nodes": nodes}

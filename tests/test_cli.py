@@ -14,6 +14,7 @@ import torch
 
 from dorp_rl.cli import main, quiet_torchrl
 from dorp_rl.eval import RESULT_COLUMNS
+from dorp_rl.planners import encoder_fingerprint
 
 TINY_WORLD_MODEL = [
     "--world-model.num-steps", "3",
@@ -208,6 +209,23 @@ def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
     assert set(demo.methods) == {"dorp", "vf-cem"} and demo.low_level == "gt"
     assert demo.codes.num_steps == DEMO_CODE_STEPS < preset.num_steps
     assert demo.codes.to_dict() | {"num_steps": preset.num_steps} == preset.to_dict()
+
+
+def test_graphs_over_one_codes_variant_share_one_encoding(tmp_path, dorp, monkeypatch) -> None:
+    import dorp_rl.cli as cli
+
+    calls = []
+    encode = cli.encode_transitions
+
+    def counting(buffer, encoder, **kwargs):
+        calls.append(encoder_fingerprint(encoder))
+        return encode(buffer, encoder, **kwargs)
+
+    monkeypatch.setattr(cli, "encode_transitions", counting)
+    dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "dorp", "dorp-full")
+    assert len(calls) == 1  # the per-one-hot and the full graph: one encoding
+    assert (tmp_path / "run" / "graph.pt").exists()
+    assert (tmp_path / "run" / "graph-full.pt").exists()
 
 
 def test_threads_sets_torch_threads(tmp_path, dorp) -> None:

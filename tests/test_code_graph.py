@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
-from dorp_rl.planners import CodeGraph, encoder_fingerprint
+from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
 
 
 def random_walk_codes(num_onehots: int, size: int, steps: int, seed: int = 0):
@@ -127,6 +127,16 @@ def test_from_play_data_with_oracle_codes_joins_neighbouring_regions():
         TensorDict(pixels=td["pixels"], next=td["next"].select("pixels"), batch_size=[500]), oracle
     )
     assert small.num_groups == 2
+    # Codes encoded once build the same graphs as encoding again, for any groups.
+    transitions = encode_transitions(buffer, oracle)
+    for groups in ("onehot", "full"):
+        again = CodeGraph.from_play_data(buffer, oracle, groups)
+        shared = CodeGraph.from_play_data(buffer, oracle, groups, transitions=transitions)
+        assert shared.config() == again.config()
+        for name, value in again.state_dict().items():
+            assert torch.equal(shared.state_dict()[name], value), name
+    with pytest.raises(ValueError, match="transitions must be two code tensors of shape"):
+        CodeGraph.from_play_data(buffer, oracle, transitions=(transitions[0][:10],) * 2)
 
 
 def test_key_room_group_joins_agent_and_key_bit():

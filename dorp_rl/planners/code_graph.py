@@ -368,11 +368,14 @@ class CodeGraph(nn.Module):
         chunk_size: int = 1024,
         progress: bool = False,
         dense_limit: int = DEFAULT_DENSE_LIMIT,
+        transitions: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> CodeGraph:
         """Encodes every transition of a play buffer and builds the graphs.
 
         Each stored transition (``pixels`` -> ``("next", "pixels")``, one step of one
-        trajectory) gives an edge when its two codes differ.
+        trajectory) gives an edge when its two codes differ. Encoding is almost all of
+        the time: to build several graphs (e.g. per group and full) from one buffer and
+        encoder, encode once with :func:`encode_transitions` and pass ``transitions``.
 
         Args:
             buffer: a play buffer (:func:`~dorp_rl.data.collect_play_data`) or a
@@ -383,10 +386,26 @@ class CodeGraph(nn.Module):
             chunk_size: transitions encoded at a time.
             progress: show a tqdm bar.
             dense_limit: see the class docstring.
+            transitions: ``(codes, next_codes)`` of this buffer's transitions by this
+                encoder (:func:`encode_transitions`); ``None`` encodes them here.
+
+        Raises:
+            ValueError: ``transitions`` that do not hold one code pair per transition of
+                ``buffer`` with the encoder's one-hots.
         """
-        codes, next_codes = encode_transitions(
-            buffer, encoder, chunk_size=chunk_size, progress=progress
-        )
+        if transitions is None:
+            codes, next_codes = encode_transitions(
+                buffer, encoder, chunk_size=chunk_size, progress=progress
+            )
+        else:
+            codes, next_codes = transitions
+            wanted = [len(buffer), len(encoder.code_sizes)]
+            if list(codes.shape) != wanted or list(next_codes.shape) != wanted:
+                raise ValueError(
+                    f"transitions must be two code tensors of shape {wanted} (one code per "
+                    f"frame of each of the buffer's transitions, encode_transitions), got "
+                    f"{list(codes.shape)} and {list(next_codes.shape)}."
+                )
         metadata = getattr(buffer, "metadata", None) or {}
         return cls.from_transitions(
             codes,
