@@ -209,16 +209,16 @@ def test_waypoint_panel_borders_the_masked_one_hots_and_lights_the_waypoint_regi
 
 
 def test_the_evaluation_bar_moves_as_tasks_finish(monkeypatch) -> None:
-    import tqdm.auto
+    from dorp_rl import progress
 
     updates: list[int] = []
+    update = progress._LogSafeBar.update
 
-    class Recorder(tqdm.auto.tqdm):
-        def update(self, n=1):
-            updates.append(int(n))
-            return super().update(n)
+    def recording(self, n=1):
+        updates.append(int(n))
+        return update(self, n)
 
-    monkeypatch.setattr(tqdm.auto, "tqdm", Recorder)
+    monkeypatch.setattr(progress._LogSafeBar, "update", recording)
 
     def greedy(td):  # one object straight to its goal: done after its lower bound
         diff = (td["goal_state"] - td["state"])[:, 0]
