@@ -8,6 +8,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from dorp_rl.planners.base import DiscreteMPCPlanner, select_best
+from dorp_rl.validation import check_float
 
 __all__ = ["RandomShootingPlanner"]
 
@@ -88,13 +89,10 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
         )
-        persistence = float(action_persistence)
-        if not 0.0 <= persistence < 1.0:
-            raise ValueError(
-                f"action_persistence must be in [0, 1) (the probability that a decision "
-                f"repeats the one before it), got {action_persistence!r}."
-            )
-        self.action_persistence = persistence
+        # the probability that a decision repeats the one before it
+        self.action_persistence = check_float(
+            "action_persistence", action_persistence, low=0.0, high=1.0, high_open=True
+        )
 
     def _optimize(
         self,
