@@ -182,7 +182,9 @@ class Evaluate(BuildGraph):
     """step limit per task (default: the env's, 400 for 2 objects, 1400 for 5)"""
     workers: int = 1
     """processes (or Ray actors) the tasks are spread over, chunk by chunk, one torch thread
-    each; the results equal a one-process run (dorp_rl.eval.evaluate_parallel)"""
+    each; the results equal a one-process run (dorp_rl.eval.evaluate_parallel). With
+    reproduce --paper and the local backend, up to this many settings run side by side
+    instead (longest first), each with the workers left over"""
     backend: Literal["local", "ray"] = "local"
     """'local': worker processes on this machine; 'ray': Ray actors on a cluster
     (pip install dorp-rl[ray])"""
@@ -293,8 +295,12 @@ def quiet_torchrl(active: bool) -> Iterator[None]:
 class Run:
     """A run folder: resolved config, stage records, log and results."""
 
-    def __init__(self, command: Any, command_name: str) -> None:
+    def __init__(
+        self, command: Any, command_name: str, echo: Callable[[str], None] | None = None
+    ) -> None:
         self.command = command
+        #: where :meth:`say` prints (default: above any progress bar of this process)
+        self.echo = echo
         self.dir = Path(command.root) / command.name
         self.dir.mkdir(parents=True, exist_ok=True)
         self.progress = command.progress
@@ -311,7 +317,7 @@ class Run:
         """Prints ``message`` (above any progress bar) and appends it to ``log.txt``."""
         from tqdm.auto import tqdm
 
-        tqdm.write(message)
+        (self.echo or tqdm.write)(message)
         with (self.dir / "log.txt").open("a") as f:
             f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {message}\n")
 

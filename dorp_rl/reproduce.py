@@ -13,9 +13,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
+import multiprocessing
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
+import torch
 from tensordict import TensorDict
 
 from dorp_rl.cli import (
@@ -51,7 +57,7 @@ from dorp_rl.progress import progress_bar
 from dorp_rl.viz import plot_results, write_diagnostic_plots
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
 
-__all__ = ["paper_methods", "pictures_stage", "reproduce_paper", "say_pictures"]
+__all__ = ["paper_methods", "pictures_stage", "reproduce_paper", "run_setting", "say_pictures"]
 
 #: fields that a setting decides (never carried from one setting's preset to another)
 _SETTING_FIELDS = ("env", "num_objects")
@@ -219,6 +225,110 @@ def _carry_changes(target: Any, given: Any, default: Any) -> Any:
     return dataclasses.replace(target, **changes)
 
 
+def _expected_cost(setting: str) -> float:
+    """A rough relative cost of a setting's pipeline, to start the longest ones first
+    (measured here: 5 objects about 11x 1 object, 3 objects 5x, key rooms about 1x)."""
+    spec = SETTINGS[setting]
+    if spec.env in ("key-wall", "key-corridor"):
+        return 1.0
+    return spec.num_objects**2 * len(paper_methods(setting)) / 6
+
+
+def _setting_command(cmd: Reproduce, base: Reproduce, setting: str, run: Run) -> Reproduce:
+    """The single-setting command of ``setting`` in ``--paper``: its presets with the
+    command line's ``--codes.*`` / ``--world-model.*`` changes, Table 1's methods."""
+    preset = default_command("reproduce", setting)
+    return dataclasses.replace(
+        cmd,
+        root=str(run.dir),
+        name=setting,
+        setting=setting,
+        codes=_carry_changes(preset.codes, cmd.codes, base.codes),
+        world_model=_carry_changes(preset.world_model, cmd.world_model, base.world_model),
+        methods=paper_methods(setting),
+        paper=False,
+    )
+
+
+def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """One setting of ``--paper`` in its sub-run (``sub`` from :func:`_setting_command`):
+    evaluations and pictures. Returns its result ``rows``, its stage ``timings`` and its
+    ``pictures``; ``echo`` is where the sub-run's messages go (default: printed)."""
+    subrun = Run(sub, "reproduce", echo=echo)
+    before = {k: json.dumps(v) for k, v in subrun.stages.items()}
+    evaluate_stage(subrun, sub)
+    pictures = pictures_stage(subrun, sub)
+    keys = {_evaluation_key(sub, m) for m in sub.methods}
+    rows = [
+        add_paper_figures(subrun.stages[_evaluation_key(sub, m)]["summary"]) for m in sub.methods
+    ]
+    timings = [
+        {
+            "setting": sub.setting,
+            "stage": stage,
+            "does": describe_stage(stage),
+            "seconds": float(record.get("seconds", 0.0)),
+            "this_command": "ran" if before.get(stage) != json.dumps(record) else "reused",
+        }
+        for stage, record in subrun.stages.items()
+        if record.get("config") is not None
+        and not (stage.startswith("evaluate:") and stage not in keys)
+    ]
+    return {"rows": rows, "timings": timings, "pictures": pictures}
+
+
+def _run_setting_in_worker(sub: Reproduce, messages: Any) -> dict[str, Any]:
+    """:func:`run_setting` in a worker process; its messages go to the parent's queue."""
+    torch.set_num_threads(sub.threads)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # no bars here to keep clean
+    return run_setting(sub, echo=lambda message: messages.put(f"[{sub.setting}] {message}"))
+
+
+def _settings_side_by_side(
+    run: Run,
+    subs: dict[str, Reproduce],
+    processes: int,
+    finished: Callable[[str, dict[str, Any]], None],
+) -> None:
+    """Runs the settings of ``subs`` in ``processes`` worker processes (``spawn``), the
+    longest first; relays their messages and calls ``finished(setting, result)`` here as
+    each one ends. A failed setting stops the queued ones; the running ones finish (their
+    stages are kept) before its error is raised."""
+    context = multiprocessing.get_context("spawn")
+    order = sorted(subs, key=_expected_cost, reverse=True)
+    bar = progress_bar(run.progress, total=len(order), desc="settings", unit="setting")
+    with context.Manager() as manager:
+        messages = manager.Queue()
+
+        def relay() -> None:
+            while not messages.empty():
+                run.say(messages.get())
+
+        pool = ProcessPoolExecutor(processes, mp_context=context)
+        try:
+            futures = {pool.submit(_run_setting_in_worker, subs[s], messages): s for s in order}
+            pending = set(futures)
+            while pending:
+                done, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
+                relay()
+                for future in done:
+                    try:
+                        result = future.result()
+                    except BrokenProcessPool as err:
+                        raise RuntimeError(
+                            f"the worker process of {futures[future]} died (out of memory?); "
+                            "run with --workers 1 to see the error in this process."
+                        ) from err
+                    finished(futures[future], result)
+                    if bar is not None:
+                        bar.update(1)
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+            relay()
+            if bar is not None:
+                bar.close()
+
+
 def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
     """The paper's Table 1: :func:`paper_methods` in each of ``cmd.settings``.
 
@@ -231,51 +341,49 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
     ``success.png``, ``steps.png`` and ``timings.csv`` / ``timings.md`` (seconds per
     stage and setting).
 
+    With ``--workers N`` (local backend) up to N settings run side by side in worker
+    processes, the longest first, each spreading its evaluations over the workers left
+    over (``N // settings``, at least 1); their messages are relayed here and bars are
+    off in them. Every stage is seeded, so the results equal those of one process. With
+    ``--backend ray`` the settings run one after another and each evaluation is spread
+    over the cluster.
+
     Returns:
         The result rows, with the paper's figures.
     """
     base = default_command("reproduce", cmd.setting)
-    rows: list[dict[str, Any]] = []
-    timings: list[dict[str, Any]] = []
-    pictures: dict[str, list[Path]] = {}
+    side_by_side = min(cmd.workers, len(cmd.settings)) if cmd.backend == "local" else 1
+    inner = max(1, cmd.workers // side_by_side)
+    subs: dict[str, Reproduce] = {}
     for setting in cmd.settings:
-        preset = default_command("reproduce", setting)
-        sub = dataclasses.replace(
-            cmd,
-            root=str(run.dir),
-            name=setting,
-            setting=setting,
-            codes=_carry_changes(preset.codes, cmd.codes, base.codes),
-            world_model=_carry_changes(preset.world_model, cmd.world_model, base.world_model),
-            methods=paper_methods(setting),
-            paper=False,
-        )
-        subrun = Run(sub, "reproduce")
-        before = {k: json.dumps(v) for k, v in subrun.stages.items()}
+        sub = _setting_command(cmd, base, setting, run)
+        if side_by_side > 1:  # bars of several processes would garble one terminal
+            sub = dataclasses.replace(sub, workers=inner, progress=False)
+        subs[setting] = sub
         run.say(
             f"{setting}: {', '.join(sub.methods)} on {sub.tasks} tasks, low level "
-            f"{sub.low_level}, in {subrun.dir}"
+            f"{sub.low_level}, in {Path(sub.root) / sub.name}"
         )
-        evaluate_stage(subrun, sub)
-        pictures[setting] = pictures_stage(subrun, sub)
-        keys = {_evaluation_key(sub, m) for m in sub.methods}
-        for method in sub.methods:
-            rows.append(add_paper_figures(subrun.stages[_evaluation_key(sub, method)]["summary"]))
-        for stage, record in subrun.stages.items():
-            if record.get("config") is None or (
-                stage.startswith("evaluate:") and stage not in keys
-            ):
-                continue
-            timings.append(
-                {
-                    "setting": setting,
-                    "stage": stage,
-                    "does": describe_stage(stage),
-                    "seconds": float(record.get("seconds", 0.0)),
-                    "this_command": "ran" if before.get(stage) != json.dumps(record) else "reused",
-                }
-            )
-        write_timings(timings, run.dir)  # after every setting: a stopped run keeps its times
+    results: dict[str, dict[str, Any]] = {}
+
+    def finished(setting: str, result: dict[str, Any]) -> None:
+        results[setting] = result
+        # After every setting, in the order of --settings: a stopped run keeps its times.
+        write_timings([t for s in cmd.settings if s in results for t in results[s]["timings"]],
+                      run.dir)  # fmt: skip
+
+    if side_by_side > 1:
+        run.say(
+            f"{side_by_side} settings side by side (longest first), {inner} worker(s) and "
+            f"{cmd.threads} thread(s) each; each sub-run's log.txt has its own lines"
+        )
+        _settings_side_by_side(run, subs, side_by_side, finished)
+    else:
+        for setting, sub in subs.items():
+            finished(setting, run_setting(sub))
+    rows = [row for s in cmd.settings for row in results[s]["rows"]]
+    timings = [t for s in cmd.settings for t in results[s]["timings"]]
+    pictures = {s: results[s]["pictures"] for s in cmd.settings}
     figures = plot_results(rows, run.dir, PAPER_SUCCESS)
     links = [
         f"- {setting}: "

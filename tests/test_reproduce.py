@@ -12,6 +12,7 @@ import torch
 from PIL import Image
 from tensordict import TensorDict
 
+from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.cli import main
 from dorp_rl.envs import ObjectRearrangementEnv
 from dorp_rl.eval import RESULT_COLUMNS, evaluate_policy, make_task_set
@@ -82,6 +83,38 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
     _, timings_again = read_csv(run / "timings.csv")
     assert {t["this_command"] for t in timings_again} == {"reused"}
     assert [t["seconds"] for t in timings_again] == [t["seconds"] for t in timings]
+
+
+def test_settings_side_by_side_give_the_one_process_results(tmp_path, dorp) -> None:
+    args = ("reproduce", "--paper", "--settings", "keywall", "keycorridor",
+            *dorp.CODES, *dorp.EVAL, "--gifs", "0")  # fmt: skip
+    dorp(tmp_path, *args, name="one")
+    out = dorp(tmp_path, *args, "--workers", "2", name="two")
+    assert "2 settings side by side" in out
+    # The workers' lines are relayed here, named by setting, and kept in their sub-runs.
+    assert "[keycorridor] codes: running (not run yet)" in out
+    assert "codes: running (not run yet)" in (tmp_path / "two" / "keywall" / "log.txt").read_text()
+
+    timed = {"seconds_per_task"}
+    one, two = (read_csv(tmp_path / name / "results.csv")[1] for name in ("one", "two"))
+    assert [r["setting"] for r in two] == ["keywall", "keycorridor"]  # --settings order
+    assert [{k: v for k, v in r.items() if k not in timed} for r in two] == [
+        {k: v for k, v in r.items() if k not in timed} for r in one
+    ]
+    for setting in ("keywall", "keycorridor"):  # bitwise the same codes
+        weights = [
+            load_checkpoint(tmp_path / name / setting / "codes" / "checkpoints" / "last.pt")
+            for name in ("one", "two")
+        ]
+        first, second = (w["state"]["encoder"] for w in weights)
+        assert first.keys() == second.keys()
+        assert all(torch.equal(first[k], second[k]) for k in first)
+    _, timings = read_csv(tmp_path / "two" / "timings.csv")
+    assert [t["setting"] for t in timings][0] == "keywall"
+    assert {t["setting"] for t in timings} == {"keywall", "keycorridor"}
+
+    again = dorp(tmp_path, *args, "--workers", "2", name="two")
+    assert ": running (" not in again and "[keywall] evaluate:dorp:gt: done for this" in again
 
 
 def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, dorp) -> None:
