@@ -197,6 +197,25 @@ def test_hooks_are_called_in_order_and_a_claimed_step_skips_the_rest(tmp_path, t
         trainer.register_hook("first", CountingHook())
 
 
+def test_hooks_are_torchrl_hooks_registered_the_torchrl_way(tmp_path, tiny_configs):
+    from torchrl.trainers import TrainerHookBase
+
+    trainer = WorldModelTrainer(tiny_configs.world_model(tmp_path / "wm", num_steps=2))
+    hook = CountingHook()
+    assert isinstance(hook, TrainerHookBase)
+    hook.register(trainer)  # torchrl's entry point, under the hook's default name
+    hook_named = CountingHook()
+    hook_named.register(trainer, name="again")
+    assert list(trainer.hooks) == ["hook", "again"] and hook.trainer is trainer
+    trainer.train()
+    assert hook.seen == hook_named.seen == [1, 2]
+    with pytest.raises(TypeError, match="TrainerHook instances, got object"):
+        trainer.register_hook("other", object())
+    representation = RepresentationTrainer(tiny_configs.representation(tmp_path / "codes"))
+    assert list(representation.hooks) == ["screening", "collapse", "entanglement"]
+    assert all(isinstance(h, TrainerHookBase) for h in representation.hooks.values())
+
+
 def test_hook_state_is_checkpointed_and_resumed(tmp_path, tiny_configs):
     trainer = WorldModelTrainer(tiny_configs.world_model(tmp_path / "wm", num_steps=3))
     trainer.register_hook("count", CountingHook())

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
+from torchrl.trainers import TrainerHookBase
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.config import ConfigMixin, config_differences, format_differences
@@ -136,12 +137,13 @@ class TrainerConfig(ConfigMixin):
         return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
 
 
-class TrainerHook:
+class TrainerHook(TrainerHookBase):
     """A piece of trainer behaviour with its own state, called by the trainer loop.
 
-    In the spirit of torchrl's ``TrainerHookBase``: a hook is registered on an
-    :class:`OfflineTrainer` under a name (:meth:`OfflineTrainer.register_hook`), which
-    calls :meth:`after_step` after every step (after logging, before evaluation and
+    A torchrl :class:`~torchrl.trainers.TrainerHookBase` for :class:`OfflineTrainer`:
+    ``hook.register(trainer)`` (torchrl's way, under :attr:`default_name`) or
+    ``trainer.register_hook(name, hook)`` registers it under a name. The trainer calls
+    :meth:`after_step` after every step (after logging, before evaluation and
     checkpoints), in registration order. A hook returning ``True`` has acted on the step
     (e.g. re-initialised the model); the hooks after it are not called for that step.
     Its :meth:`state_dict` is saved in every checkpoint and given back to
@@ -149,12 +151,16 @@ class TrainerHook:
     where it was.
     """
 
+    #: the name :meth:`register` uses when none is given
+    default_name = "hook"
+    #: the trainer it is registered on (``None`` until registered)
     trainer: Any = None
+    #: the name it is registered under
+    name: str = ""
 
-    def register(self, trainer: OfflineTrainer, name: str) -> None:
-        """Called by :meth:`OfflineTrainer.register_hook`."""
-        self.trainer = trainer
-        self.name = name
+    def register(self, trainer: OfflineTrainer, name: str | None = None) -> None:
+        """Registers this hook on ``trainer`` under ``name`` (default :attr:`default_name`)."""
+        trainer.register_hook(self.default_name if name is None else name, self)
 
     def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
         """Called after every step with its metrics; ``True``: later hooks are skipped."""
@@ -251,7 +257,11 @@ class OfflineTrainer:
             raise ValueError(
                 f"a hook is already registered as {name!r} (hooks: {sorted(self.hooks)})."
             )
-        hook.register(self, name)
+        if not isinstance(hook, TrainerHook):
+            raise TypeError(
+                f"hooks of an OfflineTrainer are TrainerHook instances, got {type(hook).__name__}."
+            )
+        hook.trainer, hook.name = self, name
         self.hooks[name] = hook
         return hook
 

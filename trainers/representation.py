@@ -338,6 +338,8 @@ class CollapseRestart(RestartHook):
     ``collapse_loss_margin`` of ``log B`` (nothing learned).
     """
 
+    default_name = "collapse"
+
     def reason(self, metrics: dict[str, float], logged: bool = True) -> str | None:
         trainer = self.trainer
         return self.collapse_reason(metrics, trainer.step - trainer.attempt_start)
@@ -368,6 +370,8 @@ class EntanglementRestart(RestartHook):
     ``map_entanglement`` of its last five logged steps is above
     ``entanglement_threshold``: some object map follows several objects or none.
     """
+
+    default_name = "entanglement"
 
     def reason(self, metrics: dict[str, float], logged: bool) -> str | None:
         if not logged:
@@ -403,6 +407,8 @@ class CandidateScreening(TrainerHook):
     ``<out_dir>/checkpoints/candidate<i>.pt``. The state is the scored candidates.
     While screening it acts on every step, so the restart hooks after it wait.
     """
+
+    default_name = "screening"
 
     def __init__(self) -> None:
         self.candidates: list[dict[str, Any]] = []
@@ -564,9 +570,11 @@ class RepresentationTrainer(OfflineTrainer):
         self.inits = 1
         self.attempt_start = 0
         self.history_start = 0
-        self.screening_hook = self.register_hook("screening", CandidateScreening())
-        self.collapse_hook = self.register_hook("collapse", CollapseRestart())
-        self.entanglement_hook = self.register_hook("entanglement", EntanglementRestart())
+        self.screening_hook = CandidateScreening()
+        self.collapse_hook = CollapseRestart()
+        self.entanglement_hook = EntanglementRestart()
+        for hook in (self.screening_hook, self.collapse_hook, self.entanglement_hook):
+            hook.register(self)  # in this order: screening claims its steps first
         self._build(seed=config.seed)
 
     # ------------------------------------------------------------------ #
