@@ -4,16 +4,29 @@ torchrl logs INFO lines on stdout (for instance when a replay buffer's storage i
 created); printed while a tqdm bar is drawn, they land inside the bar. A bar made by
 :func:`progress_bar` routes the ``torchrl`` logger's stream handlers through
 ``tqdm.write`` while it is open, so those lines appear above the bar.
+
+Bars of worker processes cannot draw on the parent's terminal without garbling it. In a
+worker, :func:`relay_bars` turns every bar of :func:`progress_bar` into events sent to
+the parent (a few per second at most), where a :class:`BarMirror` draws them as bars of
+its own.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
+import os
+import time
+from collections.abc import Callable
 from typing import Any
 
 from tqdm.auto import tqdm
 
-__all__ = ["progress_bar"]
+__all__ = ["BarMirror", "progress_bar", "relay_bars"]
+
+#: where the bars of this process go as events (see :func:`relay_bars`); None: drawn here
+_relay: Callable[[tuple[Any, ...]], None] | None = None
+_bar_ids = itertools.count()
 
 
 class _AboveBarHandler(logging.StreamHandler):
@@ -55,10 +68,104 @@ class _LogSafeBar(tqdm):
                 self._logger.handlers = handlers
 
 
+class _RelayedBar:
+    """A bar of a worker process: its state goes to the parent as events (see
+    :func:`relay_bars`), at most one update every ``interval`` seconds, and at close."""
+
+    interval = 0.5
+
+    def __init__(self, send: Callable[[tuple[Any, ...]], None], **kwargs: Any) -> None:
+        self._send = send
+        self._key = f"{os.getpid()}:{next(_bar_ids)}"
+        self.n = int(kwargs.get("initial", 0))
+        self.total = kwargs.get("total")
+        self._pending, self._postfix, self._last = 0, None, 0.0
+        shown = {k: kwargs[k] for k in ("total", "initial", "desc", "unit") if k in kwargs}
+        send(("open", self._key, shown))
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        self._pending += n
+        self._flush(force=False)
+
+    def set_postfix(self, ordered_dict: Any = None, refresh: bool = True, **kwargs: Any) -> None:
+        self._postfix = {**dict(ordered_dict or {}), **kwargs}
+        self._flush(force=False)
+
+    def _flush(self, force: bool) -> None:
+        now = time.monotonic()
+        if force or now - self._last >= self.interval:
+            self._send(("update", self._key, self._pending, self._postfix))
+            self._pending, self._last = 0, now
+
+    def close(self) -> None:
+        self._flush(force=True)
+        self._send(("close", self._key))
+
+
+def relay_bars(send: Callable[[tuple[Any, ...]], None] | None) -> None:
+    """From now on, bars of :func:`progress_bar` in this process are events given to
+    ``send`` (e.g. a multiprocessing queue's ``put``) instead of being drawn; a
+    :class:`BarMirror` in the parent draws them. ``None`` draws bars here again."""
+    global _relay
+    _relay = send
+
+
+class BarMirror:
+    """Draws, in this process, the bars that worker processes relay (:func:`relay_bars`).
+
+    Examples:
+        >>> events = []
+        >>> relay_bars(events.append)
+        >>> bar = progress_bar(True, total=4, desc="codes")
+        >>> bar.update(4)
+        >>> bar.close()
+        >>> relay_bars(None)
+        >>> mirror = BarMirror(disable=True)
+        >>> for event in events:
+        ...     mirror.show(event, prefix="[2obj] ")
+        >>> mirror.finished
+        {'[2obj] codes': 4}
+    """
+
+    def __init__(self, **tqdm_kwargs: Any) -> None:
+        self._kwargs = tqdm_kwargs
+        self._bars: dict[str, tuple[tqdm, str]] = {}
+        self._counts: dict[str, int] = {}
+        #: description -> count of every bar closed so far
+        self.finished: dict[str, int] = {}
+
+    def show(self, event: tuple[Any, ...], prefix: str = "") -> None:
+        """Applies one event of a relayed bar; ``prefix`` goes before its description."""
+        kind, key = event[0], event[1]
+        if kind == "open":
+            shown = dict(event[2])
+            shown["desc"] = prefix + str(shown.get("desc", ""))
+            self._bars[key] = (_LogSafeBar(leave=False, **shown, **self._kwargs), shown["desc"])
+            self._counts[key] = int(shown.get("initial", 0))
+        elif key in self._bars:
+            bar, desc = self._bars[key]
+            if kind == "update":
+                if event[3]:
+                    bar.set_postfix(event[3], refresh=False)
+                bar.update(event[2])
+                self._counts[key] += event[2]
+            elif kind == "close":
+                self.finished[desc] = self._counts.pop(key)
+                self._bars.pop(key)[0].close()
+
+    def close(self) -> None:
+        """Closes every bar still open (e.g. of a worker that died)."""
+        for key in list(self._bars):
+            self._bars.pop(key)[0].close()
+
+
 def progress_bar(enabled: bool, **kwargs: Any) -> tqdm | None:
     """A tqdm bar (``kwargs`` as tqdm's: ``total``, ``desc``, ...) or ``None`` if not ``enabled``.
 
     Close it when done (``bar.close()``): that also gives torchrl's logger its handler back.
+    In a worker process after :func:`relay_bars`, the bar is relayed to the parent (it
+    has ``update``, ``set_postfix``, ``n``, ``total`` and ``close``).
 
     Examples:
         >>> bar = progress_bar(True, total=3, desc="work", disable=True)
@@ -67,4 +174,8 @@ def progress_bar(enabled: bool, **kwargs: Any) -> tqdm | None:
         >>> progress_bar(False, total=3) is None
         True
     """
-    return _LogSafeBar(**kwargs) if enabled else None
+    if not enabled:
+        return None
+    if _relay is not None:
+        return _RelayedBar(_relay, **kwargs)  # type: ignore[return-value]
+    return _LogSafeBar(**kwargs)

@@ -53,7 +53,7 @@ from dorp_rl.eval.results import (
     write_results,
     write_timings,
 )
-from dorp_rl.progress import progress_bar
+from dorp_rl.progress import BarMirror, progress_bar, relay_bars
 from dorp_rl.viz import plot_results, write_diagnostic_plots
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
 
@@ -278,10 +278,12 @@ def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> di
 
 
 def _run_setting_in_worker(sub: Reproduce, messages: Any) -> dict[str, Any]:
-    """:func:`run_setting` in a worker process; its messages go to the parent's queue."""
+    """:func:`run_setting` in a worker process: its messages and bars go to the parent
+    through the queue ``messages`` as ``(kind, setting, payload)``."""
     torch.set_num_threads(sub.threads)
-    logging.getLogger("torchrl").setLevel(logging.WARNING)  # no bars here to keep clean
-    return run_setting(sub, echo=lambda message: messages.put(f"[{sub.setting}] {message}"))
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+    relay_bars(lambda event: messages.put(("bar", sub.setting, event)))
+    return run_setting(sub, echo=lambda message: messages.put(("say", sub.setting, message)))
 
 
 def _settings_side_by_side(
@@ -291,25 +293,31 @@ def _settings_side_by_side(
     finished: Callable[[str, dict[str, Any]], None],
 ) -> None:
     """Runs the settings of ``subs`` in ``processes`` worker processes (``spawn``), the
-    longest first; relays their messages and calls ``finished(setting, result)`` here as
-    each one ends. A failed setting stops the queued ones; the running ones finish (their
-    stages are kept) before its error is raised."""
+    longest first. Their messages are said here, named by setting, and their bars drawn
+    here (:class:`~dorp_rl.progress.BarMirror`); ``finished(setting, result)`` is called
+    as each one ends. A failed setting stops the queued ones; the running ones finish
+    (their stages are kept) before its error is raised."""
     context = multiprocessing.get_context("spawn")
     order = sorted(subs, key=_expected_cost, reverse=True)
     bar = progress_bar(run.progress, total=len(order), desc="settings", unit="setting")
+    mirror = BarMirror()
     with context.Manager() as manager:
         messages = manager.Queue()
 
         def relay() -> None:
             while not messages.empty():
-                run.say(messages.get())
+                kind, setting, payload = messages.get()
+                if kind == "say":
+                    run.say(f"[{setting}] {payload}")
+                else:
+                    mirror.show(payload, prefix=f"[{setting}] ")
 
         pool = ProcessPoolExecutor(processes, mp_context=context)
         try:
             futures = {pool.submit(_run_setting_in_worker, subs[s], messages): s for s in order}
             pending = set(futures)
             while pending:
-                done, pending = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
+                done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
                 relay()
                 for future in done:
                     try:
@@ -325,6 +333,7 @@ def _settings_side_by_side(
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
             relay()
+            mirror.close()
             if bar is not None:
                 bar.close()
 
@@ -343,8 +352,8 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
 
     With ``--workers N`` (local backend) up to N settings run side by side in worker
     processes, the longest first, each spreading its evaluations over the workers left
-    over (``N // settings``, at least 1); their messages are relayed here and bars are
-    off in them. Every stage is seeded, so the results equal those of one process. With
+    over (``N // settings``, at least 1); their messages and progress bars are relayed
+    here. Every stage is seeded, so the results equal those of one process. With
     ``--backend ray`` the settings run one after another and each evaluation is spread
     over the cluster.
 
@@ -357,8 +366,8 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
     subs: dict[str, Reproduce] = {}
     for setting in cmd.settings:
         sub = _setting_command(cmd, base, setting, run)
-        if side_by_side > 1:  # bars of several processes would garble one terminal
-            sub = dataclasses.replace(sub, workers=inner, progress=False)
+        if side_by_side > 1:
+            sub = dataclasses.replace(sub, workers=inner)
         subs[setting] = sub
         run.say(
             f"{setting}: {', '.join(sub.methods)} on {sub.tasks} tasks, low level "

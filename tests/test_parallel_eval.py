@@ -176,6 +176,28 @@ def test_cli_workers_give_the_one_process_results(tmp_path, capsys):
     assert "evaluate:vf-rs:gt: done for this config, skipped" in capsys.readouterr().out
 
 
+def test_cli_ray_backend_gives_the_one_process_results(tmp_path, capsys):
+    ray = pytest.importorskip("ray", reason="Ray is an optional dependency (dorp-rl[ray])")
+    args = [
+        "evaluate", "--root", str(tmp_path), "--no-progress", "--setting", "1obj",
+        "--methods", "vf-rs", "random", "--tasks", "4", "--tasks-per-rollout", "2",
+        "--candidates", "8", "--planning-horizon", "3", "--max-steps", "40",
+    ]  # fmt: skip
+    main([*args, "--name", "one"])
+    # No Ray running: the command starts a local instance and shuts it down after.
+    main([*args, "--name", "ray", "--workers", "2", "--backend", "ray"])
+    assert not ray.is_initialized()
+    capsys.readouterr()
+    rows = {}
+    for name in ("one", "ray"):
+        stages = json.loads((tmp_path / name / "stages.json").read_text())
+        rows[name] = {k: v["summary"] for k, v in stages.items() if k.startswith("evaluate:")}
+    assert set(rows["ray"]) == {"evaluate:vf-rs:gt", "evaluate:random"}
+    for key, row in rows["one"].items():
+        assert rows["ray"][key]["per_task"] == row["per_task"], key
+        assert rows["ray"][key]["success_rate"] == row["success_rate"], key
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

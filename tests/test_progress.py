@@ -46,3 +46,35 @@ def test_collect_play_data_keeps_torchrl_lines_out_of_its_bar(capsys):
         if "[torchrl]" in line:
             assert "play data" not in line
     assert logger.handlers == before
+
+
+def test_relayed_bars_become_events_and_a_mirror_draws_them(monkeypatch):
+    from dorp_rl import progress
+
+    events: list[tuple] = []
+    clock = iter(float(t) for t in range(100))
+    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock) * 0.2)
+    progress.relay_bars(events.append)
+    try:
+        bar = progress_bar(True, total=10, desc="codes", initial=2)
+        assert not isinstance(bar, progress._LogSafeBar)  # nothing drawn in this process
+        for _ in range(8):
+            bar.update(1)
+        bar.set_postfix({"loss": "1.5"})
+        bar.close()
+    finally:
+        progress.relay_bars(None)
+    assert isinstance(progress_bar(True, total=1, disable=True), progress._LogSafeBar)
+    assert events[0][0] == "open" and events[0][2] == {"total": 10, "initial": 2, "desc": "codes"}
+    updates = [e for e in events if e[0] == "update"]
+    assert 1 < len(updates) < 9  # at most one every 0.5 s (clock steps of 0.2 s), one at close
+    assert sum(e[2] for e in updates) == 8 and updates[-1][3] == {"loss": "1.5"}
+    assert events[-1] == ("close", events[0][1])
+
+    out = io.StringIO()
+    mirror = progress.BarMirror(file=out, mininterval=0)
+    for event in events:
+        mirror.show(event, prefix="[3obj] ")
+    assert mirror.finished == {"[3obj] codes": 10}
+    assert "[3obj] codes" in out.getvalue() and "loss=1.5" in out.getvalue()
+    mirror.show(("update", "unknown", 1, None))  # a bar never opened here is ignored
