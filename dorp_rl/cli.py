@@ -726,7 +726,18 @@ def parse(argv: Sequence[str]) -> tuple[str, Any]:
     """The subcommand name and its config from ``argv`` (tyro; exit code 2 on bad arguments)."""
     import tyro
 
-    _, setting = _scan(argv)
+    command, setting = _scan(argv)
+    if command in COMMANDS:
+        # One subcommand parsed alone: its errors and help name it ("dorp evaluate").
+        rest = list(argv)
+        rest.remove(command)
+        cmd = tyro.cli(
+            COMMANDS[command],
+            args=rest,
+            prog=f"dorp {command}",
+            default=default_command(command, setting),
+        )
+        return command, cmd
     choices = tuple(
         Annotated[
             cls,

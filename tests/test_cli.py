@@ -242,6 +242,8 @@ def test_threads_sets_torch_threads(tmp_path, dorp) -> None:
         (["evaluate", "--methods", "magic"], "magic"),
         (["evaluate", "--low-level", "no/such/checkpoint.pt"], "no/such/checkpoint.pt"),
         (["train-encoder", "--codes.num-steps", "0"], "num_steps must be >= 1"),
+        (["evaluate", "--codes.lr", "-1"], "Error parsing codes: lr must be >= 0"),
+        (["evaluate", "--tasks", "x"], "see dorp evaluate --help"),
         (["collect", "--codes.env", "key-wall", "--codes.num-objects", "1"], "--setting"),
         (["evaluate", "--tasks", "0"], "--tasks must be >= 1"),
         (["evaluate", "--max-steps", "0"], "--max-steps must be >= 1"),
@@ -260,7 +262,7 @@ def test_bad_arguments_give_a_usage_error(tmp_path, capsys, args, message) -> No
     assert err.value.code == 2
     captured = capsys.readouterr()
     assert message in captured.err + captured.out
-    assert "Traceback" not in captured.err
+    assert "Traceback" not in captured.err and "tyro" not in captured.err + captured.out
     assert not any(tmp_path.iterdir())  # nothing was run
 
 
