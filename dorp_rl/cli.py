@@ -29,6 +29,7 @@ import logging
 import operator
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -295,6 +296,9 @@ def quiet_torchrl(active: bool) -> Iterator[None]:
 class Run:
     """A run folder: resolved config, stage records, log and results."""
 
+    #: seconds between updates of a running stage's time in ``stages.json``
+    heartbeat: float = 30.0
+
     def __init__(
         self, command: Any, command_name: str, echo: Callable[[str], None] | None = None
     ) -> None:
@@ -307,6 +311,7 @@ class Run:
         #: codes of the play data's transitions, by (codes variant, encoder fingerprint)
         self.encoded: dict[tuple[str, str], tuple[Any, Any]] = {}
         self.stages_path = self.dir / "stages.json"
+        self._saving = threading.RLock()
         self.stages: dict[str, Any] = (
             json.loads(self.stages_path.read_text()) if self.stages_path.exists() else {}
         )
@@ -328,11 +333,17 @@ class Run:
         outputs: Sequence[Path],
         build: Callable[[], tuple[Any, dict[str, Any]]],
         load: Callable[[], Any],
+        resume: Callable[[], tuple[Any, dict[str, Any]]] | None = None,
     ) -> Any:
         """Runs ``build`` unless the stage is recorded with ``config`` and its ``outputs`` exist.
 
         ``build`` returns (value, summary); the summary is stored with the config. A
-        stage that runs again first removes its old ``outputs``.
+        stage that runs again first removes its old ``outputs``, except that a stage with
+        a ``resume`` (a training: it continues from its last checkpoint) which was
+        stopped before it finished, with the same ``config``, calls ``resume`` on its
+        outputs as they are. While a stage runs, its record holds the seconds spent so
+        far (updated every :attr:`heartbeat` seconds), so a stopped and resumed stage
+        reports the time of both parts.
         """
         config = json.loads(json.dumps(config))  # as stored: tuples become lists
         record = self.stages.get(name)
@@ -341,8 +352,17 @@ class Run:
         if record is not None and record["config"] == config and all(p.exists() for p in outputs):
             self.say(f"{name}: done for this config, skipped{self._where(outputs)}")
             return load()
+        resuming = (
+            resume is not None
+            and record is not None
+            and record["config"] is None
+            and record.get("started") == config
+            and all(p.exists() for p in outputs)
+        )
         if record is None:
             reason = "not run yet"
+        elif resuming:
+            reason = "it did not finish last time; resuming from its last checkpoint"
         elif record["config"] is None:
             reason = "it did not finish last time"
         elif record["config"] != config:
@@ -354,27 +374,47 @@ class Run:
         else:
             reason = "its files are missing"
         self.say(f"{name}: running ({reason})")
+        before = float(record.get("seconds", 0.0)) if resuming and record is not None else 0.0
         # Unfinished until build returns; the record keeps its place (and its row's).
-        self.stages[name] = {"config": None}
-        self._save()
-        for path in outputs:
-            _remove(path)
+        self._record(name, {"config": None, "started": config, "seconds": before})
+        if not resuming:
+            for path in outputs:
+                _remove(path)
         start = time.perf_counter()
-        with quiet_torchrl(self.progress):
-            value, summary = build()
-        seconds = time.perf_counter() - start
-        self.stages[name] = {"config": config, "summary": summary, "seconds": seconds}
-        self._save()
+        stop = threading.Event()
+
+        def beat() -> None:
+            while not stop.wait(self.heartbeat):
+                so_far = before + time.perf_counter() - start
+                self._record(name, {"config": None, "started": config, "seconds": so_far})
+
+        beating = threading.Thread(target=beat, name=f"stage {name} heartbeat", daemon=True)
+        beating.start()
+        try:
+            with quiet_torchrl(self.progress):
+                value, summary = (resume if resuming else build)()  # type: ignore[misc]
+        finally:
+            stop.set()
+            beating.join()
+        seconds = before + time.perf_counter() - start
+        self._record(name, {"config": config, "summary": summary, "seconds": seconds})
         self.say(f"{name}: done in {seconds:.0f} s{self._where(outputs)}")
         return value
 
     def _where(self, outputs: Sequence[Path]) -> str:
         return f" ({', '.join(str(p) for p in outputs)})" if outputs else ""
 
+    def _record(self, name: str, record: dict[str, Any]) -> None:
+        """Sets and saves the record of stage ``name`` (a running stage's heartbeat too)."""
+        with self._saving:
+            self.stages[name] = record
+            self._save()
+
     def _save(self) -> None:
-        tmp = self.stages_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.stages, indent=2) + "\n")
-        tmp.replace(self.stages_path)
+        with self._saving:
+            tmp = self.stages_path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.stages, indent=2) + "\n")
+            tmp.replace(self.stages_path)
 
     def result_rows(self) -> list[dict[str, Any]]:
         """The rows of every finished evaluation stage, in the order they were run."""
@@ -448,9 +488,9 @@ def codes_stage(run: Run, codes: RepresentationConfig, variant: str = ""):
     )
     checkpoint = codes_dir / "checkpoints" / "last.pt"
 
-    def build():
+    def build(resume: bool = False):
         trainer = RepresentationTrainer(cfg, buffer=buffer)
-        trainer.train()
+        trainer.train(resume=resume)
         diagnostics = trainer.evaluate()
         summary = {
             k: diagnostics[k]
@@ -465,7 +505,8 @@ def codes_stage(run: Run, codes: RepresentationConfig, variant: str = ""):
         return load_encoder(checkpoint, codes.make_env())
 
     name = _tagged("codes", variant)
-    encoder = run.stage(name, _stage_config(cfg), [codes_dir], build, load)
+    resume = functools.partial(build, resume=True)
+    encoder = run.stage(name, _stage_config(cfg), [codes_dir], build, load, resume)
     return encoder, buffer
 
 
@@ -527,13 +568,14 @@ def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
     )
     checkpoint = run.dir / "world_model" / "checkpoints" / "last.pt"
 
-    def build():
-        result = WorldModelTrainer(cfg).train()
+    def build(resume: bool = False):
+        result = WorldModelTrainer(cfg).train(resume=resume)
         accuracy = result.get("evaluation", {}).get("exact_accuracy_last")
         return checkpoint, {"exact_accuracy_last": accuracy}
 
     outputs = [run.dir / "world_model", run.dir / "world_model_play"]
-    run.stage("world_model", _stage_config(cfg), outputs, build, lambda: checkpoint)
+    resume = functools.partial(build, resume=True)
+    run.stage("world_model", _stage_config(cfg), outputs, build, lambda: checkpoint, resume)
     return checkpoint
 
 

@@ -137,6 +137,53 @@ def test_a_stage_that_did_not_finish_runs_again(tmp_path, dorp) -> None:
     assert json.loads(stages_path.read_text())["codes"]["config"]["num_steps"] == 5
 
 
+def test_an_interrupted_training_stage_resumes_from_its_last_checkpoint(
+    tmp_path, dorp, monkeypatch
+) -> None:
+    from dorp_rl.checkpoint import load_checkpoint
+    from dorp_rl.trainers import RepresentationTrainer
+
+    args = ("train-encoder", *dorp.CODES, "--codes.num-steps", "10",
+            "--codes.checkpoint-every", "4")  # fmt: skip
+    dorp(tmp_path, *args, name="whole")
+    step = RepresentationTrainer.train_step
+
+    def stopped_at_step_7(self):
+        if self.step == 7:
+            raise KeyboardInterrupt  # as a user's Ctrl-C or the end of a session
+        return step(self)
+
+    monkeypatch.setattr(RepresentationTrainer, "train_step", stopped_at_step_7)
+    monkeypatch.setattr("dorp_rl.cli.Run.heartbeat", 0.01)
+    with pytest.raises(KeyboardInterrupt):
+        dorp(tmp_path, *args, name="stopped")
+    record = json.loads((tmp_path / "stopped" / "stages.json").read_text())["codes"]
+    assert record["config"] is None and record["started"]["num_steps"] == 10
+    assert record["seconds"] > 0  # the time so far, kept by the heartbeat
+    checkpoint = tmp_path / "stopped" / "codes" / "checkpoints" / "last.pt"
+    assert load_checkpoint(checkpoint)["step"] == 4
+    monkeypatch.setattr(RepresentationTrainer, "train_step", step)
+
+    out = dorp(tmp_path, *args, name="stopped")
+    assert "codes: running (it did not finish last time; resuming from its last checkpoint)" in out
+    resumed = json.loads((tmp_path / "stopped" / "stages.json").read_text())["codes"]
+    assert resumed["seconds"] >= record["seconds"]  # both parts
+    whole, again = (
+        load_checkpoint(tmp_path / name / "codes" / "checkpoints" / "last.pt")
+        for name in ("whole", "stopped")
+    )
+    assert again["step"] == whole["step"] == 10
+    first, second = whole["state"]["encoder"], again["state"]["encoder"]
+    assert all(torch.equal(first[k], second[k]) for k in first)  # as if never stopped
+    # A changed config does not resume: it trains again from the start.
+    dorp(tmp_path, *args, name="other")
+    stages = tmp_path / "other" / "stages.json"
+    stored = json.loads(stages.read_text())
+    stored["codes"] = {"config": None, "started": {"num_steps": 3}, "seconds": 1.0}
+    stages.write_text(json.dumps(stored))
+    assert "codes: running (it did not finish last time)\n" in dorp(tmp_path, *args, name="other")
+
+
 def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, dorp) -> None:
     run = tmp_path / "run"
     out = dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL,
