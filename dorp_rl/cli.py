@@ -215,6 +215,11 @@ class Reproduce(Evaluate):
         "1obj", "2obj", "3obj", "5obj", "keywall", "keycorridor"
     )  # fmt: skip
     """with --paper: the settings to run"""
+    seeds: tuple[int, ...] = ()
+    """with --paper: run every setting once per seed (its codes', world model's and
+    planners' seed; the tasks stay those of --task-seed), in sub-runs <setting>-seed<k>/,
+    and pool the results over seeds (success rate ± std over seeds); empty: one run with
+    --seed and the presets' seeds"""
 
 
 @dataclass
@@ -727,6 +732,11 @@ def _check(command: str, cmd: Any) -> None:
             raise UsageError("--address is for --backend ray (the Ray cluster to join).")
         if cmd.gifs < 0:
             raise UsageError(f"--gifs must be >= 0, got {cmd.gifs}.")
+        if getattr(cmd, "seeds", ()) and not getattr(cmd, "paper", False):
+            raise UsageError(
+                "--seeds is an option of reproduce --paper (one sub-run per setting and "
+                "seed); for one run, set --seed and --codes.seed."
+            )
         if getattr(cmd, "paper", False):
             if command != "reproduce":
                 raise UsageError(f"--paper is an option of reproduce, not of {command}.")
@@ -737,6 +747,8 @@ def _check(command: str, cmd: Any) -> None:
                 )
             if not cmd.settings:
                 raise UsageError("--settings needs at least one setting.")
+            if any(seed < 0 for seed in cmd.seeds) or len(set(cmd.seeds)) != len(cmd.seeds):
+                raise UsageError(f"--seeds must be distinct and >= 0, got {list(cmd.seeds)}.")
             if cmd.low_level not in ("gt", "world-model"):
                 raise UsageError(
                     "--paper runs several settings: --low-level must be 'gt' or "

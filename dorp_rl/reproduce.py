@@ -46,10 +46,12 @@ from dorp_rl.eval import (
 from dorp_rl.eval.diagnostics import key_room_diagnostics
 from dorp_rl.eval.results import (
     PAPER_COLUMNS,
+    SEED_COLUMNS,
     add_paper_figures,
     describe_stage,
     format_paper_table,
     format_timings,
+    pool_seeds,
     write_results,
     write_timings,
 )
@@ -234,37 +236,52 @@ def _expected_cost(setting: str) -> float:
     return spec.num_objects**2 * len(paper_methods(setting)) / 6
 
 
-def _setting_command(cmd: Reproduce, base: Reproduce, setting: str, run: Run) -> Reproduce:
+def _setting_command(
+    cmd: Reproduce, base: Reproduce, setting: str, run: Run, seed: int | None = None
+) -> Reproduce:
     """The single-setting command of ``setting`` in ``--paper``: its presets with the
-    command line's ``--codes.*`` / ``--world-model.*`` changes, Table 1's methods."""
+    command line's ``--codes.*`` / ``--world-model.*`` changes, Table 1's methods, in the
+    sub-run ``<setting>`` (or ``<setting>-seed<seed>``, whose codes, world model and
+    planners use ``seed``)."""
     preset = default_command("reproduce", setting)
+    codes = _carry_changes(preset.codes, cmd.codes, base.codes)
+    world_model = _carry_changes(preset.world_model, cmd.world_model, base.world_model)
+    seeds: dict[str, Any] = {}
+    if seed is not None:
+        codes = dataclasses.replace(codes, seed=seed)
+        world_model = dataclasses.replace(world_model, seed=seed)
+        seeds["seed"] = seed
     return dataclasses.replace(
         cmd,
         root=str(run.dir),
-        name=setting,
+        name=setting if seed is None else f"{setting}-seed{seed}",
         setting=setting,
-        codes=_carry_changes(preset.codes, cmd.codes, base.codes),
-        world_model=_carry_changes(preset.world_model, cmd.world_model, base.world_model),
+        codes=codes,
+        world_model=world_model,
         methods=paper_methods(setting),
         paper=False,
+        seeds=(),
+        **seeds,
     )
 
 
 def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> dict[str, Any]:
     """One setting of ``--paper`` in its sub-run (``sub`` from :func:`_setting_command`):
-    evaluations and pictures. Returns its result ``rows``, its stage ``timings`` and its
-    ``pictures``; ``echo`` is where the sub-run's messages go (default: printed)."""
+    evaluations and pictures. Returns its result ``rows`` (with the planners' ``seed``),
+    its stage ``timings`` (by sub-run name) and its ``pictures``; ``echo`` is where the
+    sub-run's messages go (default: printed)."""
     subrun = Run(sub, "reproduce", echo=echo)
     before = {k: json.dumps(v) for k, v in subrun.stages.items()}
     evaluate_stage(subrun, sub)
     pictures = pictures_stage(subrun, sub)
     keys = {_evaluation_key(sub, m) for m in sub.methods}
     rows = [
-        add_paper_figures(subrun.stages[_evaluation_key(sub, m)]["summary"]) for m in sub.methods
+        {**add_paper_figures(subrun.stages[_evaluation_key(sub, m)]["summary"]), "seed": sub.seed}
+        for m in sub.methods
     ]
     timings = [
         {
-            "setting": sub.setting,
+            "setting": sub.name,
             "stage": stage,
             "does": describe_stage(stage),
             "seconds": float(record.get("seconds", 0.0)),
@@ -279,11 +296,11 @@ def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> di
 
 def _run_setting_in_worker(sub: Reproduce, messages: Any) -> dict[str, Any]:
     """:func:`run_setting` in a worker process: its messages and bars go to the parent
-    through the queue ``messages`` as ``(kind, setting, payload)``."""
+    through the queue ``messages`` as ``(kind, sub-run name, payload)``."""
     torch.set_num_threads(sub.threads)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
-    relay_bars(lambda event: messages.put(("bar", sub.setting, event)))
-    return run_setting(sub, echo=lambda message: messages.put(("say", sub.setting, message)))
+    relay_bars(lambda event: messages.put(("bar", sub.name, event)))
+    return run_setting(sub, echo=lambda message: messages.put(("say", sub.name, message)))
 
 
 def _settings_side_by_side(
@@ -298,7 +315,7 @@ def _settings_side_by_side(
     as each one ends. A failed setting stops the queued ones; the running ones finish
     (their stages are kept) before its error is raised."""
     context = multiprocessing.get_context("spawn")
-    order = sorted(subs, key=_expected_cost, reverse=True)
+    order = sorted(subs, key=lambda name: _expected_cost(subs[name].setting), reverse=True)
     bar = progress_bar(run.progress, total=len(order), desc="settings", unit="setting")
     mirror = BarMirror()
     with context.Manager() as manager:
@@ -361,59 +378,69 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
         The result rows, with the paper's figures.
     """
     base = default_command("reproduce", cmd.setting)
-    side_by_side = min(cmd.workers, len(cmd.settings)) if cmd.backend == "local" else 1
+    seeds: tuple[int | None, ...] = cmd.seeds or (None,)
+    jobs = len(cmd.settings) * len(seeds)
+    side_by_side = min(cmd.workers, jobs) if cmd.backend == "local" else 1
     inner = max(1, cmd.workers // side_by_side)
-    subs: dict[str, Reproduce] = {}
+    subs: dict[str, Reproduce] = {}  # by sub-run name, in the order of --settings, --seeds
     for setting in cmd.settings:
-        sub = _setting_command(cmd, base, setting, run)
-        if side_by_side > 1:
-            sub = dataclasses.replace(sub, workers=inner)
-        subs[setting] = sub
-        run.say(
-            f"{setting}: {', '.join(sub.methods)} on {sub.tasks} tasks, low level "
-            f"{sub.low_level}, in {Path(sub.root) / sub.name}"
-        )
+        for seed in seeds:
+            sub = _setting_command(cmd, base, setting, run, seed)
+            if side_by_side > 1:
+                sub = dataclasses.replace(sub, workers=inner)
+            subs[sub.name] = sub
+            run.say(
+                f"{sub.name}: {', '.join(sub.methods)} on {sub.tasks} tasks, low level "
+                f"{sub.low_level}, in {Path(sub.root) / sub.name}"
+            )
     results: dict[str, dict[str, Any]] = {}
 
-    def finished(setting: str, result: dict[str, Any]) -> None:
-        results[setting] = result
-        # After every setting, in the order of --settings: a stopped run keeps its times.
-        write_timings([t for s in cmd.settings if s in results for t in results[s]["timings"]],
-                      run.dir)  # fmt: skip
+    def finished(name: str, result: dict[str, Any]) -> None:
+        results[name] = result
+        # After every sub-run, in the order of --settings: a stopped run keeps its times.
+        write_timings([t for n in subs if n in results for t in results[n]["timings"]], run.dir)
 
     if side_by_side > 1:
         run.say(
-            f"{side_by_side} settings side by side (longest first), {inner} worker(s) and "
+            f"{side_by_side} sub-runs side by side (longest first), {inner} worker(s) and "
             f"{cmd.threads} thread(s) each; each sub-run's log.txt has its own lines"
         )
         _settings_side_by_side(run, subs, side_by_side, finished)
     else:
-        for setting, sub in subs.items():
-            finished(setting, run_setting(sub))
-    rows = [row for s in cmd.settings for row in results[s]["rows"]]
-    timings = [t for s in cmd.settings for t in results[s]["timings"]]
-    pictures = {s: results[s]["pictures"] for s in cmd.settings}
-    figures = plot_results(rows, run.dir, PAPER_SUCCESS)
+        for name, sub in subs.items():
+            finished(name, run_setting(sub))
+    rows = [row for name in subs for row in results[name]["rows"]]
+    timings = [t for name in subs for t in results[name]["timings"]]
+    pictures = {name: results[name]["pictures"] for name in subs}
+    table_rows = pool_seeds(rows) if cmd.seeds else rows
+    columns = RESULT_COLUMNS + (SEED_COLUMNS if cmd.seeds else ()) + PAPER_COLUMNS
+    figures = plot_results(table_rows, run.dir, PAPER_SUCCESS)
     links = [
-        f"- {setting}: "
+        f"- {name}: "
         + ", ".join(
-            f"[{p.relative_to(run.dir / setting / 'pictures').as_posix()}]"
+            f"[{p.relative_to(run.dir / name / 'pictures').as_posix()}]"
             f"({p.relative_to(run.dir).as_posix()})"
             for p in files
         )
-        for setting, files in pictures.items()
+        for name, files in pictures.items()
         if files
     ]
     sections = [
         "## As the paper's Table 1\n\nOurs, the paper's in brackets (SR: success rate; steps "
         "of the solved tasks, mean ± std; max: none solved within the step limit).\n\n"
-        + format_paper_table(rows),
+        + format_paper_table(table_rows),
         "## Wall-clock per stage\n\nSee [timings.md](timings.md).",
     ]
     if links:
         sections.append("## Pictures\n\n" + "\n".join(links))
-    write_results(rows, run.dir, figures, columns=RESULT_COLUMNS + PAPER_COLUMNS, sections=sections)
-    print(f"\n{format_paper_table(rows)}\n\n{format_timings(timings)}\n")
+    if cmd.seeds:
+        sections.insert(1, f"Success rates are pooled over the seeds {list(cmd.seeds)} (± std "
+                        "over seeds); results.csv has a row per seed and the pooled row "
+                        "(seed 'all').")  # fmt: skip
+        rows = [{"success_rate_std": "", **r} for r in rows]
+        rows += [r for r in table_rows if r.get("seed") == "all"]
+    write_results(rows, run.dir, figures, columns=columns, sections=sections)
+    print(f"\n{format_paper_table(table_rows)}\n\n{format_timings(timings)}\n")
     run.say(
         f"results: {run.dir / 'results.csv'}, {run.dir / 'results.md'}; "
         f"timings: {run.dir / 'timings.csv'}, {run.dir / 'timings.md'}"

@@ -4,6 +4,7 @@ the paper-table layout and the evaluation progress bar."""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.cli import main
 from dorp_rl.envs import ObjectRearrangementEnv
 from dorp_rl.eval import RESULT_COLUMNS, evaluate_policy, make_task_set
-from dorp_rl.eval.results import PAPER_COLUMNS, format_paper_table
+from dorp_rl.eval.results import PAPER_COLUMNS, SEED_COLUMNS, format_paper_table
 from dorp_rl.reproduce import paper_methods
 from dorp_rl.viz.rollouts import rollout_gif_frames, waypoint_panel
 
@@ -117,6 +118,36 @@ def test_settings_side_by_side_give_the_one_process_results(tmp_path, dorp) -> N
     assert ": running (" not in again and "[keywall] evaluate:dorp:gt: done for this" in again
 
 
+def test_a_seed_sweep_runs_a_sub_run_per_seed_and_pools_them(tmp_path, dorp) -> None:
+    out = dorp(tmp_path, "reproduce", "--paper", "--settings", "1obj", "--seeds", "3", "4",
+               *dorp.CODES, *dorp.EVAL, "--gifs", "0", "--max-steps", "12")  # fmt: skip
+    assert "1obj-seed3: dorp, dorp-arbitrary" in out
+    run = tmp_path / "run"
+    columns, rows = read_csv(run / "results.csv")
+    assert tuple(columns) == RESULT_COLUMNS + SEED_COLUMNS + PAPER_COLUMNS
+    methods = list(paper_methods("1obj"))
+    assert [(r["method"], r["seed"]) for r in rows] == [
+        *((m, "3") for m in methods), *((m, "4") for m in methods), *((m, "all") for m in methods)
+    ]  # fmt: skip
+    for method in methods:
+        per_seed = [float(r["success_rate"]) for r in rows if r["method"] == method][:2]
+        pooled = next(r for r in rows if r["method"] == method and r["seed"] == "all")
+        assert float(pooled["success_rate"]) == pytest.approx(sum(per_seed) / 2)
+        assert float(pooled["success_rate_std"]) == pytest.approx(float(np.std(per_seed, ddof=1)))
+        assert pooled["tasks"] == "4"
+    for seed in (3, 4):  # each sub-run trained and planned with its own seed
+        config = json.loads((run / f"1obj-seed{seed}" / "config.json").read_text())
+        assert config["seed"] == seed and config["codes"]["seed"] == seed
+    first, second = (
+        load_checkpoint(run / f"1obj-seed{k}" / "codes" / "checkpoints" / "last.pt")["state"]
+        for k in (3, 4)
+    )
+    assert not all(torch.equal(first["encoder"][k], second["encoder"][k]) for k in first["encoder"])
+    assert "pooled over the seeds [3, 4]" in (run / "results.md").read_text()
+    _, timings = read_csv(run / "timings.csv")
+    assert {t["setting"] for t in timings} == {"1obj-seed3", "1obj-seed4"}
+
+
 def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, dorp) -> None:
     out = dorp(
         tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF
@@ -142,6 +173,8 @@ def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, dorp) -> None:
     [
         (["reproduce", "--paper", "--methods", "dorp"], "--methods does not apply with --paper"),
         (["demo", "--paper"], "--paper is an option of reproduce"),
+        (["reproduce", "--seeds", "0", "1"], "--seeds is an option of reproduce --paper"),
+        (["reproduce", "--paper", "--seeds", "1", "1"], "--seeds must be distinct"),
         (["reproduce", "--paper", "--low-level", __file__], "must be 'gt' or"),
         (["evaluate", "--gifs", "-1"], "--gifs must be >= 0"),
     ],

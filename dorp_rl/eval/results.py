@@ -121,7 +121,8 @@ def format_paper_table(rows: Sequence[dict[str, Any]]) -> str:
     rate and steps with the paper's in brackets (``-``: not run here or not reported).
 
     Args:
-        rows: result rows (with ``per_task`` for the steps' spread).
+        rows: result rows (with ``per_task`` for the steps' spread; pooled over seeds by
+            :func:`pool_seeds`, the success rate shows ``± std`` over the seeds).
     """
     settings = list(dict.fromkeys(r["setting"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
@@ -139,12 +140,77 @@ def format_paper_table(rows: Sequence[dict[str, Any]]) -> str:
             if row is None:
                 cells += [f"- ({paper_sr_text})", f"- ({paper_steps or '-'})"]
                 continue
+            spread = row.get("success_rate_std")
+            spread_text = f" ± {spread:.2f}" if isinstance(spread, float) else ""
             cells += [
-                f"{row['success_rate']:.2f} ({paper_sr_text})",
+                f"{row['success_rate']:.2f}{spread_text} ({paper_sr_text})",
                 f"{steps_spread(row) or _show(row['mean_steps'])} ({paper_steps or '-'})",
             ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+#: columns a seed sweep (``dorp reproduce --paper --seeds``) adds to its results
+SEED_COLUMNS: tuple[str, ...] = ("seed", "success_rate_std")
+
+
+def pool_seeds(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (setting, method, low level) over the seeds of a sweep.
+
+    Rows that share a setting, method and low level (one per seed, each with
+    ``per_task``) are pooled task by task: ``success_rate``, ``mean_steps``,
+    ``mean_lower_bound`` and ``steps_over_bound`` over every task of every seed,
+    ``seconds_per_task`` their mean, ``seed`` ``"all"`` and ``success_rate_std`` the
+    standard deviation of the seeds' success rates. A group of one row is kept as it is.
+
+    Examples:
+        >>> rows = [dict(setting="1obj", method="dorp", low_level="gt", tasks=2, seed=s,
+        ...              seconds_per_task=1.0, per_task=dict(success=ok, steps=[4, 8],
+        ...              lower_bound=[2, 4])) for s, ok in ((0, [1, 1]), (1, [1, 0]))]
+        >>> pooled = pool_seeds(rows)[0]
+        >>> pooled["success_rate"], pooled["mean_steps"], pooled["steps_over_bound"]
+        (0.75, 5.333333333333333, 2.0)
+        >>> pooled["tasks"], pooled["seed"], round(pooled["success_rate_std"], 3)
+        (6, 'all', 0.354)
+    """
+    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((row["setting"], row["method"], row.get("low_level", "gt")), []).append(
+            row
+        )
+    pooled: list[dict[str, Any]] = []
+    for group in groups.values():
+        if len(group) == 1:
+            pooled.append(group[0])
+            continue
+        per_task = {
+            key: [v for row in group for v in row["per_task"][key]]
+            for key in ("success", "steps", "lower_bound")
+        }
+        solved = [i for i, ok in enumerate(per_task["success"]) if ok]
+        steps = [float(per_task["steps"][i]) for i in solved]
+        bounds = [float(per_task["lower_bound"][i]) for i in solved]
+        rates = torch.tensor([sum(r["per_task"]["success"]) / len(r["per_task"]["success"])
+                              for r in group], dtype=torch.float64)  # fmt: skip
+        pooled.append(
+            {
+                **group[0],
+                "tasks": len(per_task["success"]),
+                "success_rate": len(solved) / len(per_task["success"]),
+                "mean_steps": sum(steps) / len(steps) if steps else math.nan,
+                "mean_lower_bound": sum(bounds) / len(bounds) if bounds else math.nan,
+                "steps_over_bound": (
+                    sum(s / b for s, b in zip(steps, bounds, strict=True)) / len(steps)
+                    if steps
+                    else math.nan
+                ),
+                "seconds_per_task": sum(r["seconds_per_task"] for r in group) / len(group),
+                "seed": "all",
+                "success_rate_std": float(rates.std()),
+                "per_task": per_task,
+            }
+        )
+    return pooled
 
 
 def steps_over_bound(result: dict[str, Any], tasks: TensorDictBase) -> float:
