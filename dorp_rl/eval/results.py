@@ -171,7 +171,7 @@ def pool_seeds(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         >>> pooled["success_rate"], pooled["mean_steps"], pooled["steps_over_bound"]
         (0.75, 5.333333333333333, 2.0)
         >>> pooled["tasks"], pooled["seed"], round(pooled["success_rate_std"], 3)
-        (6, 'all', 0.354)
+        (4, 'all', 0.354)
     """
     groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for row in rows:
