@@ -91,7 +91,7 @@ def test_settings_side_by_side_give_the_one_process_results(tmp_path, dorp) -> N
             *dorp.CODES, *dorp.EVAL, "--gifs", "0")  # fmt: skip
     dorp(tmp_path, *args, name="one")
     out = dorp(tmp_path, *args, "--workers", "2", name="two")
-    assert "2 settings side by side" in out
+    assert "2 sub-runs side by side" in out
     # The workers' lines are relayed here, named by setting, and kept in their sub-runs.
     assert "[keycorridor] codes: running (not run yet)" in out
     assert "codes: running (not run yet)" in (tmp_path / "two" / "keywall" / "log.txt").read_text()
