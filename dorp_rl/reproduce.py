@@ -303,31 +303,32 @@ def _run_setting_in_worker(sub: Reproduce, messages: Any) -> dict[str, Any]:
     return run_setting(sub, echo=lambda message: messages.put(("say", sub.name, message)))
 
 
-def _settings_side_by_side(
+def _subruns_side_by_side(
     run: Run,
     subs: dict[str, Reproduce],
     processes: int,
     finished: Callable[[str, dict[str, Any]], None],
 ) -> None:
-    """Runs the settings of ``subs`` in ``processes`` worker processes (``spawn``), the
-    longest first. Their messages are said here, named by setting, and their bars drawn
-    here (:class:`~dorp_rl.progress.BarMirror`); ``finished(setting, result)`` is called
-    as each one ends. A failed setting stops the queued ones; the running ones finish
-    (their stages are kept) before its error is raised."""
+    """Runs the sub-runs of ``subs`` (by name: a setting, or a setting and seed) in
+    ``processes`` worker processes (``spawn``), the longest setting first. Their messages
+    are said here, named by sub-run, and their bars drawn here
+    (:class:`~dorp_rl.progress.BarMirror`); ``finished(name, result)`` is called as each
+    one ends. A failed sub-run stops the queued ones; the running ones finish (their
+    stages are kept) before its error is raised."""
     context = multiprocessing.get_context("spawn")
     order = sorted(subs, key=lambda name: _expected_cost(subs[name].setting), reverse=True)
-    bar = progress_bar(run.progress, total=len(order), desc="settings", unit="setting")
+    bar = progress_bar(run.progress, total=len(order), desc="sub-runs", unit="sub-run")
     mirror = BarMirror()
     with context.Manager() as manager:
         messages = manager.Queue()
 
         def relay() -> None:
             while not messages.empty():
-                kind, setting, payload = messages.get()
+                kind, name, payload = messages.get()
                 if kind == "say":
-                    run.say(f"[{setting}] {payload}")
+                    run.say(f"[{name}] {payload}")
                 else:
-                    mirror.show(payload, prefix=f"[{setting}] ")
+                    mirror.show(payload, prefix=f"[{name}] ")
 
         pool = ProcessPoolExecutor(processes, mp_context=context)
         try:
@@ -405,7 +406,7 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
             f"{side_by_side} sub-runs side by side (longest first), {inner} worker(s) and "
             f"{cmd.threads} thread(s) each; each sub-run's log.txt has its own lines"
         )
-        _settings_side_by_side(run, subs, side_by_side, finished)
+        _subruns_side_by_side(run, subs, side_by_side, finished)
     else:
         for name, sub in subs.items():
             finished(name, run_setting(sub))
