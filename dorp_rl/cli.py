@@ -344,9 +344,9 @@ class Run:
 
         ``build`` returns (value, summary); the summary is stored with the config. A
         stage that runs again first removes its old ``outputs``, except that a stage with
-        a ``resume`` (a training: it continues from its last checkpoint) which was
-        stopped before it finished, with the same ``config``, calls ``resume`` on its
-        outputs as they are. While a stage runs, its record holds the seconds spent so
+        a ``resume`` which was stopped before it finished, with the same ``config``,
+        calls ``resume`` on its outputs as they are: a training continues from its last
+        checkpoint, an evaluation from its last finished chunk of tasks. While a stage runs, its record holds the seconds spent so
         far (updated every :attr:`heartbeat` seconds), so a stopped and resumed stage
         reports the time of both parts.
         """
@@ -367,7 +367,7 @@ class Run:
         if record is None:
             reason = "not run yet"
         elif resuming:
-            reason = "it did not finish last time; resuming from its last checkpoint"
+            reason = "it did not finish last time; resuming where it stopped"
         elif record["config"] is None:
             reason = "it did not finish last time"
         elif record["config"] != config:
@@ -636,7 +636,18 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
                 graph=run.stages[dorp[2]]["config"],
             )
 
-        def build(method: str = method, dorp: Any = dorp) -> tuple[None, dict[str, Any]]:
+        key = f"evaluate:{method}" + ("" if method == "random" else f":{level_name}")
+        # Finished chunks of tasks, so a stopped evaluation resumes at the next chunk.
+        chunk_file = run.dir / "evaluations" / (key.replace(":", "-") + ".json")
+
+        def build(
+            resume: bool = False,
+            method: str = method,
+            dorp: Any = dorp,
+            chunk_file: Path = chunk_file,
+        ) -> tuple[None, dict[str, Any]]:
+            if not resume:
+                chunk_file.unlink(missing_ok=True)  # from another config, or none
             # Picklable factories: --workers/--backend rebuild env and policy per worker;
             # the policy is reseeded with seed + k per chunk k, so any --workers agrees.
             make_env = functools.partial(setting.make_env, batch_size=(batch,), seed=cmd.seed)
@@ -652,7 +663,9 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
                 backend=cmd.backend,
                 address=cmd.address,
                 progress=run.progress,
+                resume_file=chunk_file,
             )
+            chunk_file.unlink()  # its per-task results go into the stage's record
             level = "none" if method == "random" else level_name
             row = result_row(result, tasks, setting=cmd.setting, method=method, low_level=level)
             row["per_task"] = {  # for the steps plot; not a results.csv column
@@ -667,8 +680,8 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
             )
             return None, row
 
-        key = f"evaluate:{method}" + ("" if method == "random" else f":{level_name}")
-        run.stage(key, config, [], build, lambda: None)
+        resume = functools.partial(build, resume=True)
+        run.stage(key, config, [], build, lambda: None, resume)
     rows = run.result_rows()
     figures = plot_results(rows, run.dir, PAPER_SUCCESS)
     write_results(rows, run.dir, figures)

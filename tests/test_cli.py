@@ -165,7 +165,7 @@ def test_an_interrupted_training_stage_resumes_from_its_last_checkpoint(
     monkeypatch.setattr(RepresentationTrainer, "train_step", step)
 
     out = dorp(tmp_path, *args, name="stopped")
-    assert "codes: running (it did not finish last time; resuming from its last checkpoint)" in out
+    assert "codes: running (it did not finish last time; resuming where it stopped)" in out
     resumed = json.loads((tmp_path / "stopped" / "stages.json").read_text())["codes"]
     assert resumed["seconds"] >= record["seconds"]  # both parts
     whole, again = (
@@ -182,6 +182,50 @@ def test_an_interrupted_training_stage_resumes_from_its_last_checkpoint(
     stored["codes"] = {"config": None, "started": {"num_steps": 3}, "seconds": 1.0}
     stages.write_text(json.dumps(stored))
     assert "codes: running (it did not finish last time)\n" in dorp(tmp_path, *args, name="other")
+
+
+def test_an_interrupted_evaluation_resumes_at_its_next_chunk_of_tasks(
+    tmp_path, dorp, monkeypatch
+) -> None:
+    import dorp_rl.eval.tasks as harness
+
+    args = ("evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "vf-rs", "--tasks", "6")
+    dorp(tmp_path, *args, name="whole")
+    run_chunk = harness._run_chunk
+    ran: list[int] = []  # the first task of every chunk run
+
+    def stopped_at_the_third_chunk(*chunk_args, **kwargs):
+        if chunk_args[3] == 4:
+            raise KeyboardInterrupt
+        ran.append(chunk_args[3])
+        return run_chunk(*chunk_args, **kwargs)
+
+    monkeypatch.setattr(harness, "_run_chunk", stopped_at_the_third_chunk)
+    with pytest.raises(KeyboardInterrupt):
+        dorp(tmp_path, *args, name="stopped")
+    chunk_file = tmp_path / "stopped" / "evaluations" / "evaluate-vf-rs-gt.json"
+    assert sorted(json.loads(chunk_file.read_text())["chunks"]) == ["0", "1"]
+    assert ran == [0, 2]
+
+    ran.clear()
+    monkeypatch.setattr(
+        harness, "_run_chunk", lambda *a, **k: ran.append(a[3]) or run_chunk(*a, **k)
+    )
+    out = dorp(tmp_path, *args, name="stopped")
+    assert (
+        "evaluate:vf-rs:gt: running (it did not finish last time; resuming where it stopped)" in out
+    )
+    assert ran == [4]  # only the unfinished chunk
+    assert not chunk_file.exists()  # its results are in the stage's record now
+    whole, resumed = (
+        json.loads((tmp_path / name / "stages.json").read_text())["evaluate:vf-rs:gt"]["summary"]
+        for name in ("whole", "stopped")
+    )
+    assert resumed["per_task"] == whole["per_task"]
+    assert resumed["success_rate"] == whole["success_rate"]
+    # A changed config starts over: the chunks of the old one are not used.
+    dorp(tmp_path, *args, "--seed", "1", name="stopped")
+    assert ran == [4, 0, 2, 4]
 
 
 def test_evaluate_random_and_visual_foresight_write_the_results(tmp_path, dorp) -> None:

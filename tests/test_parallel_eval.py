@@ -105,6 +105,70 @@ def test_two_worker_processes_give_the_one_process_results(dorp_spec, one_proces
         assert result[key] == one_process[key]
 
 
+def test_a_stopped_evaluation_resumes_at_its_first_unfinished_chunk(
+    dorp_spec, one_process, tmp_path, monkeypatch
+):
+    import dorp_rl.eval.tasks as harness
+
+    spec, tasks = dorp_spec
+    env = spec.make_env()
+    policy = spec.make_policy(env)
+    run_chunk = harness._run_chunk
+    ran: list[int] = []  # the first task of every chunk run
+    stop = True
+
+    def stopped_at_the_third_chunk(*args, **kwargs):
+        first = args[3]
+        if first == 4 and stop:
+            raise KeyboardInterrupt  # a user's Ctrl-C, or the end of a session
+        ran.append(first)
+        return run_chunk(*args, **kwargs)
+
+    monkeypatch.setattr(harness, "_run_chunk", stopped_at_the_third_chunk)
+    path = tmp_path / "eval.json"
+    with pytest.raises(KeyboardInterrupt):
+        evaluate_policy(env, policy, tasks, seed=0, resume_file=path, **RUN)
+    stored = json.loads(path.read_text())
+    assert sorted(stored["chunks"]) == ["0", "1"] and stored["seconds"] > 0
+    two_chunks = path.read_text()
+
+    ran.clear()
+    stop = False
+    result = evaluate_policy(env, policy, tasks, seed=0, resume_file=path, **RUN)
+    assert ran == [4]  # chunks 0 and 1 came from the file
+    assert per_task(result) == per_task(one_process)  # as if never stopped
+    assert result["seconds"] > stored["seconds"]  # both parts
+    assert sorted(json.loads(path.read_text())["chunks"]) == ["0", "1", "2"]
+
+    # Two worker processes resume the same file; what is in it is not run again.
+    marked = json.loads(two_chunks)
+    marked["chunks"]["0"]["steps"] = [999, 999]
+    path.write_text(json.dumps(marked))
+    result = evaluate_parallel(
+        spec.make_env, spec.make_policy, tasks, seed=0, workers=2, resume_file=path, **RUN
+    )
+    assert result["steps"][:2] == [999, 999]  # taken from the file
+    assert per_task(result)[0] == per_task(one_process)[0]
+    assert result["steps"][2:] == one_process["steps"][2:]
+
+    # An evaluation the file was not written for, a damaged file, no seed: clear errors.
+    with pytest.raises(ValueError, match="different evaluation.*max_steps 60 -> 50"):
+        evaluate_policy(env, policy, tasks, seed=0, resume_file=path,
+                        **{**RUN, "max_steps": 50})  # fmt: skip
+    with pytest.raises(ValueError, match="different evaluation.*seed 0 -> 1"):
+        evaluate_parallel(spec.make_env, spec.make_policy, tasks, seed=1, workers=2,
+                          resume_file=path, **RUN)  # fmt: skip
+    marked["chunks"]["1"]["steps"] = [3]
+    path.write_text(json.dumps(marked))
+    with pytest.raises(ValueError, match="chunk 1 should hold 2 results per key"):
+        evaluate_policy(env, policy, tasks, seed=0, resume_file=path, **RUN)
+    path.write_text(two_chunks[: len(two_chunks) // 2])  # cut short
+    with pytest.raises(ValueError, match="not a readable evaluation record.*remove it"):
+        evaluate_policy(env, policy, tasks, seed=0, resume_file=path, **RUN)
+    with pytest.raises(ValueError, match="resume_file needs seed"):
+        evaluate_policy(env, policy, tasks, resume_file=tmp_path / "new.json", **RUN)
+
+
 def test_the_ray_backend_gives_the_one_process_results(dorp_spec, one_process):
     ray = pytest.importorskip("ray", reason="Ray is an optional dependency (dorp-rl[ray])")
     spec, tasks = dorp_spec

@@ -57,7 +57,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.eval.settings import SETTINGS
-from dorp_rl.eval.tasks import check_rollout_batch, evaluate_policy, summarize
+from dorp_rl.eval.tasks import _ChunkFile, check_rollout_batch, evaluate_policy, summarize
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
 
@@ -331,6 +331,7 @@ def evaluate_parallel(
     address: str | None = None,
     progress: bool = False,
     report_keys: Sequence[str] = (),
+    resume_file: str | Path | None = None,
 ) -> dict[str, Any]:
     """Runs a policy on every task of ``tasks``, chunk by chunk over ``workers`` processes.
 
@@ -357,10 +358,13 @@ def evaluate_parallel(
             ``"ray://host:port"``.
         progress: show a tqdm bar over tasks.
         report_keys: as in :func:`~dorp_rl.eval.evaluate_policy`.
+        resume_file: as in :func:`~dorp_rl.eval.evaluate_policy`: finished chunks are
+            written there as they come back, and chunks already in it are not run again.
 
     Returns:
         The dict of :func:`~dorp_rl.eval.evaluate_policy` (``seconds`` is the wall time,
-        worker start-up included), plus ``workers`` (processes used) and ``backend``.
+        worker start-up and earlier runs of a ``resume_file`` included), plus
+        ``workers`` (processes used) and ``backend``.
 
     Raises:
         ValueError: ``workers < 1``, an unknown backend, an ``address`` without the Ray
@@ -394,9 +398,7 @@ def evaluate_parallel(
             )
     n = tasks.shape[0]
     chunks = -(-n // tasks_per_rollout)
-    used = min(workers, chunks)
-    start = time.perf_counter()
-    if backend == "local" and used == 1:
+    if backend == "local" and min(workers, chunks) == 1:
         env = make_env()
         result = evaluate_policy(
             env,
@@ -407,6 +409,7 @@ def evaluate_parallel(
             progress=progress,
             report_keys=report_keys,
             seed=seed,
+            resume_file=resume_file,
         )
         return {**result, "workers": 1, "backend": backend}
 
@@ -415,6 +418,12 @@ def evaluate_parallel(
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
     check_rollout_batch(env, tasks_per_rollout, name="the env of make_env()")
     del env
+    record = None
+    if resume_file is not None:
+        evaluation = _ChunkFile.describe(tasks, limit, tasks_per_rollout, seed, report_keys)
+        record = _ChunkFile(resume_file, evaluation)
+    by_chunk: dict[int, dict[str, Any]] = {} if record is None else dict(record.chunks)
+    earlier = 0.0 if record is None else record.seconds
     options = {
         "max_steps": limit,
         "tasks_per_rollout": tasks_per_rollout,
@@ -423,22 +432,34 @@ def evaluate_parallel(
     }
     jobs = []
     for index in range(chunks):
+        if index in by_chunk:
+            continue
         chunk = tasks[index * tasks_per_rollout : (index + 1) * tasks_per_rollout]
         jobs.append((index, chunk["state"].tolist(), chunk["goal_state"].tolist()))
+    used = max(1, min(workers, len(jobs)))
+    start = time.perf_counter()
     init = (make_env, make_policy, options)
-    results = (
-        _run_local(jobs, used, init) if backend == "local" else _run_ray(jobs, used, init, address)
-    )
     bar = progress_bar(progress, total=n, desc=f"tasks ({used} {backend} workers)")
-    by_chunk: dict[int, dict[str, Any]] = {}
-    try:
-        for index, chunk_result in results:
-            by_chunk[index] = chunk_result
+    if bar is not None:
+        bar.update(sum(len(part["success"]) for part in by_chunk.values()))
+    if jobs:
+        results = (
+            _run_local(jobs, used, init)
+            if backend == "local"
+            else _run_ray(jobs, used, init, address)
+        )
+        try:
+            for index, chunk_result in results:
+                by_chunk[index] = chunk_result
+                if record is not None:
+                    record.add(index, chunk_result, earlier + time.perf_counter() - start)
+                if bar is not None:
+                    bar.update(len(chunk_result["success"]))
+        finally:
             if bar is not None:
-                bar.update(len(chunk_result["success"]))
-    finally:
-        if bar is not None:
-            bar.close()
+                bar.close()
+    elif bar is not None:
+        bar.close()
     ordered = [by_chunk[index] for index in range(chunks)]
     reported = {key: [v for part in ordered for v in part[key]] for key in report_keys}
     result = summarize(
@@ -446,7 +467,7 @@ def evaluate_parallel(
         [v for part in ordered for v in part["success"]],
         [v for part in ordered for v in part["steps"]],
         limit,
-        time.perf_counter() - start,
+        earlier + time.perf_counter() - start,
         reported,
     )
     return {**result, "workers": used, "backend": backend}

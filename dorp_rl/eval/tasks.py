@@ -16,8 +16,11 @@ worker processes or machines.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -108,6 +111,7 @@ def evaluate_policy(
     progress: bool = False,
     report_keys: Sequence[str] = (),
     seed: int | None = None,
+    resume_file: str | Path | None = None,
 ) -> dict[str, Any]:
     """Runs ``policy`` on every task and returns success and step figures.
 
@@ -131,6 +135,13 @@ def evaluate_policy(
             chunk of ``tasks_per_rollout`` tasks (:func:`seed_policy`); the rule that makes
             :func:`~dorp_rl.eval.evaluate_parallel` match this function. ``None`` (the
             default) leaves the policy's generators as they are.
+        resume_file: a JSON file where the results of each finished chunk are written.
+            Chunks already in it are not run again, so an evaluation stopped part way
+            (a long one through a video model) resumes at its first unfinished chunk
+            with the results of an uninterrupted run. Needs ``seed``; the caller keeps
+            the policy the same (the file identifies the tasks, limit, chunk size, seed
+            and report keys, and refuses a different evaluation). ``seconds`` then
+            includes the earlier runs.
 
     Returns:
         ``success`` (bool list per task), ``steps`` (int list: steps until success, or
@@ -159,64 +170,200 @@ def evaluate_policy(
             )
     n = tasks.shape[0]
     check_rollout_batch(env, tasks_per_rollout)
+    record = None
+    if resume_file is not None:
+        if seed is None:
+            raise ValueError(
+                "resume_file needs seed: a chunk's results then depend only on its index, "
+                "so finished chunks can be skipped."
+            )
+        evaluation = _ChunkFile.describe(tasks, limit, tasks_per_rollout, seed, report_keys)
+        record = _ChunkFile(resume_file, evaluation)
     locked = env.batch_locked and env.batch_size != torch.Size([])
+    chunks: list[dict[str, list]] = []
+    earlier = 0.0 if record is None else record.seconds
     bar = progress_bar(progress, total=n, desc="tasks", unit="task")
-    success: list[bool] = []
-    steps: list[int] = []
-    reported: dict[str, list[float]] = {key: [] for key in report_keys}
     start = time.perf_counter()
     for first in range(0, n, tasks_per_rollout):
-        chunk = tasks[first : first + tasks_per_rollout]
-        rows = chunk.shape[0]
-        if seed is not None:
-            seed_policy(policy, derive_seed(seed, first // tasks_per_rollout))
-        if locked and rows != tasks_per_rollout:  # pad the last chunk with repeats
-            chunk = torch.cat([chunk, chunk[:1].expand(tasks_per_rollout - rows)], 0)
-        given = TensorDict(
-            state=chunk["state"], goal_state=chunk["goal_state"], batch_size=chunk.shape
-        ).to(env.device)
-        td = env.reset(given, set_state=True)
-
-        def tick(_env: Any, step: TensorDictBase, first: int = first, rows: int = rows) -> None:
-            # The bar moves as tasks finish, not only per chunk, so it can tell time left.
-            finished = first + int(step["done"].reshape(-1)[:rows].sum())
-            if bar is not None and finished > bar.n:
-                bar.update(finished - bar.n)
-
-        rollout = env.rollout(
-            limit,
-            policy,
-            None if bar is None else tick,
-            tensordict=td,
-            auto_reset=False,
-            break_when_any_done=False,
-            break_when_all_done=True,
-        )
-        done = rollout["next", "done"].squeeze(-1)[:rows]  # [rows, T]
-        won = rollout["next", "success"].squeeze(-1)[:rows]
-        t = done.shape[-1]
-        first_done = torch.where(
-            done.any(-1),
-            done.float().argmax(-1),
-            torch.full_like(done[:, 0], t - 1, dtype=torch.int64),
-        )
-        won_at_end = won.gather(-1, first_done[:, None]).squeeze(-1) & done.any(-1)
-        for row in range(rows):
-            success.append(bool(won_at_end[row]))
-            steps.append(int(first_done[row]) + 1 if success[-1] else limit)
-        for key in report_keys:
-            if key not in rollout.keys(True, True):
-                raise MissingKeyError(
-                    f"report key {key!r} is not in the rollout: does the policy write it?"
+        index = first // tasks_per_rollout
+        if record is not None and index in record.chunks:
+            chunks.append(record.chunks[index])
+        else:
+            chunks.append(
+                _run_chunk(
+                    env,
+                    policy,
+                    tasks[first : first + tasks_per_rollout],
+                    first,
+                    limit,
+                    tasks_per_rollout,
+                    locked,
+                    report_keys,
+                    seed,
+                    bar,
                 )
-            values = rollout.get(key)[:rows]
-            values = values.reshape(rows, t, -1)[torch.arange(rows), first_done, 0]
-            reported[key] += values.float().tolist()
-        if bar is not None and first + rows > bar.n:
-            bar.update(first + rows - bar.n)
+            )
+            if record is not None:
+                record.add(index, chunks[-1], earlier + time.perf_counter() - start)
+        if bar is not None and first + len(chunks[-1]["success"]) > bar.n:
+            bar.update(first + len(chunks[-1]["success"]) - bar.n)
     if bar is not None:
         bar.close()
-    return summarize(tasks, success, steps, limit, time.perf_counter() - start, reported)
+    joined = {
+        k: [v for chunk in chunks for v in chunk[k]] for k in ("success", "steps", *report_keys)
+    }
+    reported = {key: joined[key] for key in report_keys}
+    seconds = earlier + time.perf_counter() - start
+    return summarize(tasks, joined["success"], joined["steps"], limit, seconds, reported)
+
+
+def _run_chunk(
+    env: GridWorldEnv,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    chunk: TensorDictBase,
+    first: int,
+    limit: int,
+    tasks_per_rollout: int,
+    locked: bool,
+    report_keys: Sequence[str],
+    seed: int | None,
+    bar: Any,
+) -> dict[str, list]:
+    """One batched rollout of the tasks ``chunk`` (task ``first`` onwards); per-task lists."""
+    rows = chunk.shape[0]
+    if seed is not None:
+        seed_policy(policy, derive_seed(seed, first // tasks_per_rollout))
+    if locked and rows != tasks_per_rollout:  # pad the last chunk with repeats
+        chunk = torch.cat([chunk, chunk[:1].expand(tasks_per_rollout - rows)], 0)
+    given = TensorDict(
+        state=chunk["state"], goal_state=chunk["goal_state"], batch_size=chunk.shape
+    ).to(env.device)
+    td = env.reset(given, set_state=True)
+
+    def tick(_env: Any, step: TensorDictBase) -> None:
+        # The bar moves as tasks finish, not only per chunk, so it can tell time left.
+        finished = first + int(step["done"].reshape(-1)[:rows].sum())
+        if finished > bar.n:
+            bar.update(finished - bar.n)
+
+    rollout = env.rollout(
+        limit,
+        policy,
+        None if bar is None else tick,
+        tensordict=td,
+        auto_reset=False,
+        break_when_any_done=False,
+        break_when_all_done=True,
+    )
+    done = rollout["next", "done"].squeeze(-1)[:rows]  # [rows, T]
+    won = rollout["next", "success"].squeeze(-1)[:rows]
+    t = done.shape[-1]
+    first_done = torch.where(
+        done.any(-1),
+        done.float().argmax(-1),
+        torch.full_like(done[:, 0], t - 1, dtype=torch.int64),
+    )
+    won_at_end = won.gather(-1, first_done[:, None]).squeeze(-1) & done.any(-1)
+    success = [bool(won_at_end[row]) for row in range(rows)]
+    result: dict[str, list] = {
+        "success": success,
+        "steps": [int(first_done[row]) + 1 if success[row] else limit for row in range(rows)],
+    }
+    for key in report_keys:
+        if key not in rollout.keys(True, True):
+            raise MissingKeyError(
+                f"report key {key!r} is not in the rollout: does the policy write it?"
+            )
+        values = rollout.get(key)[:rows]
+        result[key] = (
+            values.reshape(rows, t, -1)[torch.arange(rows), first_done, 0].float().tolist()
+        )
+    return result
+
+
+class _ChunkFile:
+    """The finished chunks of one evaluation, kept in a JSON file so a stopped run resumes.
+
+    The file holds what identifies the evaluation (task set digest, step limit, chunk
+    size, seed, report keys), the per-task results of every finished chunk and the
+    seconds spent so far. It is rewritten whole (to a temporary file, then renamed)
+    after each chunk, so a stop at any moment leaves the last finished chunk in it.
+    """
+
+    def __init__(self, path: str | Path, evaluation: dict[str, Any]) -> None:
+        self.path = Path(path)
+        self.evaluation = evaluation
+        self.chunks: dict[int, dict[str, list]] = {}
+        self.seconds = 0.0
+        if not self.path.exists():
+            return
+        try:
+            data = json.loads(self.path.read_text())
+            chunks = {int(k): v for k, v in data["chunks"].items()}
+            seconds = float(data["seconds"])
+            stored = data["evaluation"]
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
+            raise ValueError(
+                f"resume_file {self.path} is not a readable evaluation record ({err!r}): "
+                "remove it to run the evaluation from the start."
+            ) from err
+        if stored != evaluation:
+            changed = [
+                f"{k} {stored.get(k)!r} -> {evaluation.get(k)!r}"
+                for k in sorted(set(stored) | set(evaluation))
+                if stored.get(k) != evaluation.get(k)
+            ]
+            raise ValueError(
+                f"resume_file {self.path} was written by a different evaluation "
+                f"({', '.join(changed)}): remove it, or pass another file."
+            )
+        per_chunk = evaluation["tasks_per_rollout"]
+        for index, chunk in chunks.items():
+            rows = min(per_chunk, evaluation["num_tasks"] - index * per_chunk)
+            lengths = {
+                k: len(chunk.get(k, ())) for k in ("success", "steps", *evaluation["report_keys"])
+            }
+            if rows < 1 or any(n != rows for n in lengths.values()):
+                raise ValueError(
+                    f"resume_file {self.path}: chunk {index} should hold {rows} results per "
+                    f"key, got {lengths}: remove the file to run the evaluation from the start."
+                )
+        self.chunks, self.seconds = chunks, seconds
+
+    @staticmethod
+    def describe(
+        tasks: TensorDictBase,
+        max_steps: int,
+        tasks_per_rollout: int,
+        seed: int,
+        report_keys: Sequence[str],
+    ) -> dict[str, Any]:
+        """What identifies an evaluation (the policy is the caller's to keep the same)."""
+        digest = hashlib.sha256()
+        for key in ("state", "goal_state"):
+            digest.update(tasks[key].to(torch.int64).cpu().contiguous().numpy().tobytes())
+        return {
+            "num_tasks": int(tasks.shape[0]),
+            "tasks": digest.hexdigest()[:16],
+            "max_steps": int(max_steps),
+            "tasks_per_rollout": int(tasks_per_rollout),
+            "seed": int(seed),
+            "report_keys": list(report_keys),
+        }
+
+    def add(self, index: int, chunk: dict[str, list], seconds: float) -> None:
+        """Records chunk ``index`` and the seconds spent so far (earlier runs included)."""
+        self.chunks[index] = chunk
+        self.seconds = seconds
+        data = {
+            "evaluation": self.evaluation,
+            "seconds": seconds,
+            "chunks": {str(k): v for k, v in sorted(self.chunks.items())},
+        }
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.write_text(json.dumps(data) + "\n")
+        tmp.replace(self.path)
 
 
 def summarize(
