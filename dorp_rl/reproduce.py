@@ -18,6 +18,7 @@ import multiprocessing
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.managers import SyncManager
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from dorp_rl.eval import (
     rearrangement_diagnostics,
 )
 from dorp_rl.eval.diagnostics import key_room_diagnostics
+from dorp_rl.eval.parallel import exit_with_parent
 from dorp_rl.eval.results import (
     PAPER_COLUMNS,
     SEED_COLUMNS,
@@ -297,6 +299,7 @@ def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> di
 def _run_setting_in_worker(sub: Reproduce, messages: Any) -> dict[str, Any]:
     """:func:`run_setting` in a worker process: its messages and bars go to the parent
     through the queue ``messages`` as ``(kind, sub-run name, payload)``."""
+    exit_with_parent()
     torch.set_num_threads(sub.threads)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     relay_bars(lambda event: messages.put(("bar", sub.name, event)))
@@ -319,7 +322,9 @@ def _subruns_side_by_side(
     order = sorted(subs, key=lambda name: _expected_cost(subs[name].setting), reverse=True)
     bar = progress_bar(run.progress, total=len(order), desc="sub-runs", unit="sub-run")
     mirror = BarMirror()
-    with context.Manager() as manager:
+    manager = SyncManager(ctx=context)
+    manager.start(exit_with_parent)  # the queue's process too ends with this one
+    with manager:
         messages = manager.Queue()
 
         def relay() -> None:

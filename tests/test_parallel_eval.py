@@ -4,7 +4,10 @@ Ray; the seeding rule it rests on; bad arguments; and ``dorp evaluate --workers 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import sys
+import time
 
 import pytest
 import torch
@@ -167,6 +170,59 @@ def test_a_stopped_evaluation_resumes_at_its_first_unfinished_chunk(
         evaluate_policy(env, policy, tasks, seed=0, resume_file=path, **RUN)
     with pytest.raises(ValueError, match="resume_file needs seed"):
         evaluate_policy(env, policy, tasks, resume_file=tmp_path / "new.json", **RUN)
+
+
+PARENT_SCRIPT = """
+import multiprocessing, os, sys, time
+from concurrent.futures import ProcessPoolExecutor
+from dorp_rl.eval.parallel import exit_with_parent
+
+def task():
+    print(os.getpid(), flush=True)
+    time.sleep(120)
+
+if __name__ == "__main__":
+    watch = sys.argv[1] == "watch"
+    pool = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"),
+                               initializer=exit_with_parent if watch else None)
+    pool.submit(task)
+    time.sleep(120)
+"""
+
+
+def _ended(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")  # a zombie has ended
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads /proc")
+def test_workers_end_when_their_parent_is_killed(tmp_path):
+    import subprocess
+
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT_SCRIPT)
+    ended = {}
+    for mode in ("watch", "no-watch"):
+        errors = tmp_path / f"{mode}.err"  # the killed parent's leaked-semaphore warnings
+        with errors.open("w") as err:
+            parent = subprocess.Popen([sys.executable, str(script), mode],
+                                      stdout=subprocess.PIPE, stderr=err, text=True)  # fmt: skip
+        line = parent.stdout.readline()
+        assert line.strip().isdigit(), errors.read_text()
+        worker = int(line)
+        parent.kill()  # SIGKILL: no clean-up in the parent
+        parent.wait()
+        deadline = time.monotonic() + 10
+        while not _ended(worker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        ended[mode] = _ended(worker)
+        if not ended[mode]:
+            os.kill(worker, signal.SIGKILL)
+    # Without the watch the worker runs on (what a pool does); with it, it ends.
+    assert ended == {"watch": True, "no-watch": False}
 
 
 def test_the_ray_backend_gives_the_one_process_results(dorp_spec, one_process):

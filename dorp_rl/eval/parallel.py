@@ -43,7 +43,10 @@ Backends:
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.connection
+import os
 import pickle
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -222,12 +225,35 @@ class _ChunkRunner:
 _RUNNER: _ChunkRunner | None = None  # the runner of a local worker process
 
 
+def exit_with_parent() -> None:
+    """In a worker process, ends the process as soon as its parent is gone.
+
+    A pool's worker outlives a parent that was killed outright (``SIGKILL``, the OOM
+    killer, a closed session) and runs its task to the end: for a sub-run of
+    ``dorp reproduce --paper --workers N`` that is hours of CPU, holding the run's
+    locks so that running the command again would be refused. A daemon thread waits on
+    the parent's sentinel and exits when it closes; what the worker had finished is kept
+    (stage records, checkpoints, finished chunks of tasks). Does nothing in a process
+    that no ``multiprocessing`` parent started.
+    """
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        multiprocessing.connection.wait([parent.sentinel])
+        os._exit(1)  # no clean-up: the parent, which would receive it, is gone
+
+    threading.Thread(target=watch, name="exit with parent", daemon=True).start()
+
+
 def _init_local_worker(
     make_env: Callable[[], GridWorldEnv],
     make_policy: Callable[[GridWorldEnv], Policy],
     options: dict[str, Any],
 ) -> None:
     global _RUNNER
+    exit_with_parent()
     _RUNNER = _ChunkRunner(make_env, make_policy, options)
 
 
