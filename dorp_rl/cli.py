@@ -864,7 +864,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     except UsageError as err:
         print(f"usage: dorp {name} [-h] [OPTIONS]\ndorp {name}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    run_command(name, cmd)
+    try:
+        run_command(name, cmd)
+    except KeyboardInterrupt:
+        print(
+            f"\ndorp {name}: stopped. Finished stages are kept: the same command goes on, "
+            "a training from its last checkpoint, an evaluation from its last finished "
+            "chunk of tasks.",
+            file=sys.stderr,
+        )
+        raise SystemExit(130) from None  # 128 + SIGINT, as a shell reports Ctrl-C
 
 
 if __name__ == "__main__":

@@ -328,12 +328,15 @@ def _subruns_side_by_side(
         messages = manager.Queue()
 
         def relay() -> None:
-            while not messages.empty():
-                kind, name, payload = messages.get()
-                if kind == "say":
-                    run.say(f"[{name}] {payload}")
-                else:
-                    mirror.show(payload, prefix=f"[{name}] ")
+            try:
+                while not messages.empty():
+                    kind, name, payload = messages.get()
+                    if kind == "say":
+                        run.say(f"[{name}] {payload}")
+                    else:
+                        mirror.show(payload, prefix=f"[{name}] ")
+            except (EOFError, OSError):  # the queue's process has ended (Ctrl-C reaches
+                pass  # it too); every sub-run's lines are in its own log.txt as well
 
         pool = ProcessPoolExecutor(processes, mp_context=context)
         try:

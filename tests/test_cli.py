@@ -155,8 +155,11 @@ def test_an_interrupted_training_stage_resumes_from_its_last_checkpoint(
 
     monkeypatch.setattr(RepresentationTrainer, "train_step", stopped_at_step_7)
     monkeypatch.setattr("dorp_rl.cli.Run.heartbeat", 0.01)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(SystemExit) as stopped:
         dorp(tmp_path, *args, name="stopped")
+    assert stopped.value.code == 130  # as a shell reports Ctrl-C
+    said = dorp.capsys.readouterr().err
+    assert "dorp train-encoder: stopped. Finished stages are kept: the same command goes on" in said
     record = json.loads((tmp_path / "stopped" / "stages.json").read_text())["codes"]
     assert record["config"] is None and record["started"]["num_steps"] == 10
     assert record["seconds"] > 0  # the time so far, kept by the heartbeat
@@ -201,7 +204,7 @@ def test_an_interrupted_evaluation_resumes_at_its_next_chunk_of_tasks(
         return run_chunk(*chunk_args, **kwargs)
 
     monkeypatch.setattr(harness, "_run_chunk", stopped_at_the_third_chunk)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(SystemExit):
         dorp(tmp_path, *args, name="stopped")
     chunk_file = tmp_path / "stopped" / "evaluations" / "evaluate-vf-rs-gt.json"
     assert sorted(json.loads(chunk_file.read_text())["chunks"]) == ["0", "1"]
