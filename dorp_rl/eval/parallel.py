@@ -465,9 +465,8 @@ def evaluate_parallel(
     used = max(1, min(workers, len(jobs)))
     start = time.perf_counter()
     init = (make_env, make_policy, options)
-    bar = progress_bar(progress, total=n, desc=f"tasks ({used} {backend} workers)")
-    if bar is not None:
-        bar.update(sum(len(part["success"]) for part in by_chunk.values()))
+    done = sum(len(part["success"]) for part in by_chunk.values())  # recorded: not progress
+    bar = progress_bar(progress, total=n, initial=done, desc=f"tasks ({used} {backend} workers)")
     if jobs:
         results = (
             _run_local(jobs, used, init)

@@ -182,7 +182,9 @@ def evaluate_policy(
     locked = env.batch_locked and env.batch_size != torch.Size([])
     chunks: list[dict[str, list]] = []
     earlier = 0.0 if record is None else record.seconds
-    bar = progress_bar(progress, total=n, desc="tasks", unit="task")
+    # Tasks of recorded chunks count from the start, not as progress (the time left).
+    done = sum(len(c["success"]) for c in record.chunks.values()) if record is not None else 0
+    bar = progress_bar(progress, total=n, initial=done, desc="tasks", unit="task")
     start = time.perf_counter()
     for first in range(0, n, tasks_per_rollout):
         index = first // tasks_per_rollout
