@@ -52,6 +52,7 @@ from dorp_rl.eval.results import (
     add_paper_figures,
     describe_stage,
     format_paper_table,
+    format_time_by_kind,
     format_timings,
     pool_seeds,
     write_results,
@@ -449,7 +450,10 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
         rows = [{"success_rate_std": "", **r} for r in rows]
         rows += [r for r in table_rows if r.get("seed") == "all"]
     write_results(rows, run.dir, figures, columns=columns, sections=sections)
-    print(f"\n{format_paper_table(table_rows)}\n\n{format_timings(timings)}\n")
+    print(
+        f"\n{format_paper_table(table_rows)}\n\n{format_timings(timings)}\n\n"
+        f"Where the time went:\n\n{format_time_by_kind(timings)}\n"
+    )
     run.say(
         f"results: {run.dir / 'results.csv'}, {run.dir / 'results.md'}; "
         f"timings: {run.dir / 'timings.csv'}, {run.dir / 'timings.md'}"

@@ -61,7 +61,17 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
         assert float(stages[stage]["seconds"]) > 0 and stages[stage]["this_command"] == "ran"
     assert "codes:full" not in stages  # the full-graph ablation plans with DORP's codes
     assert (run / "1obj" / "codes-arbitrary" / "checkpoints" / "last.pt").is_file()
-    assert "| all | total |" in (run / "timings.md").read_text()
+    timings_md = (run / "timings.md").read_text()
+    assert "| all | total |" in timings_md
+    # What dominates: seconds by what the stages do, largest first, adding up to the total.
+    section = timings_md.split("## Where the time went")[1].splitlines()
+    by_kind = [line for line in section if line.startswith("| ") and "| share |" not in line]
+    spent = [float(line.split(" | ")[2]) for line in by_kind]
+    assert spent == sorted(spent, reverse=True) and len(spent) == len({t["does"] for t in timings})
+    assert sum(spent) == pytest.approx(
+        sum(float(t["seconds"]) for t in timings), abs=0.1 * len(spent)
+    )
+    assert "Where the time went:" in out
 
     pictures = run / "1obj" / "pictures"
     for still in ("code_map.png", "factorization_histogram.png",

@@ -5,7 +5,7 @@
 :data:`PAPER_TABLE` holds the paper's Table 1 (and its key-room figures);
 :func:`add_paper_figures` puts them beside a row (:data:`PAPER_COLUMNS`) and
 :func:`format_paper_table` lays rows out as Table 1. :func:`write_timings` writes the
-wall-clock of each stage of a run.
+wall-clock of each stage of a run and :func:`format_time_by_kind` what dominates it.
 """
 
 from __future__ import annotations
@@ -343,10 +343,40 @@ def format_timings(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def format_time_by_kind(rows: Sequence[dict[str, Any]]) -> str:
+    """What dominates a run: the seconds of timing rows summed by what their stages do
+    (over settings), largest first, with each kind's share of all stage seconds.
+
+    Examples:
+        >>> rows = [
+        ...     {"setting": "1obj", "does": "train video model", "seconds": 30.0},
+        ...     {"setting": "2obj", "does": "train video model", "seconds": 50.0},
+        ...     {"setting": "2obj", "does": "train codes", "seconds": 20.0},
+        ... ]
+        >>> print(format_time_by_kind(rows))
+        | does | settings | seconds | share |
+        |---|---|---|---|
+        | train video model | 2 | 80.0 | 80% |
+        | train codes | 1 | 20.0 | 20% |
+    """
+    seconds: dict[str, float] = {}
+    settings: dict[str, set[str]] = {}
+    for r in rows:
+        seconds[r["does"]] = seconds.get(r["does"], 0.0) + float(r["seconds"])
+        settings.setdefault(r["does"], set()).add(r["setting"])
+    total = sum(seconds.values())
+    lines = ["| does | settings | seconds | share |", "|---|---|---|---|"]
+    for does, spent in sorted(seconds.items(), key=lambda item: -item[1]):
+        share = f"{100 * spent / total:.0f}%" if total > 0 else "-"
+        lines.append(f"| {does} | {len(settings[does])} | {spent:.1f} | {share} |")
+    return "\n".join(lines)
+
+
 def write_timings(rows: Sequence[dict[str, Any]], directory: str | Path) -> tuple[Path, Path]:
     """Writes ``timings.csv`` and ``timings.md`` (:data:`TIMING_COLUMNS`: per stage of
     each setting its wall-clock seconds and whether this command ran it (``ran``) or
-    reused it from an earlier command (``reused``)) into ``directory``."""
+    reused it from an earlier command (``reused``)) into ``directory``; ``timings.md``
+    also sums them by what the stages do (:func:`format_time_by_kind`)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     csv_path, md_path = directory / "timings.csv", directory / "timings.md"
@@ -356,6 +386,9 @@ def write_timings(rows: Sequence[dict[str, Any]], directory: str | Path) -> tupl
         writer.writerows(rows)
     md_path.write_text(
         "# Wall-clock per stage\n\nSeconds each stage took when it ran (stages reused from "
-        "an earlier command keep the time they took then).\n\n" + format_timings(rows) + "\n"
+        "an earlier command keep the time they took then).\n\n"
+        + format_timings(rows)
+        + "\n\n## Where the time went\n\nThe same seconds summed by what the stages do, "
+        "over the settings, largest first.\n\n" + format_time_by_kind(rows) + "\n"
     )
     return csv_path, md_path
