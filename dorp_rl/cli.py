@@ -346,9 +346,9 @@ class Run:
         stage that runs again first removes its old ``outputs``, except that a stage with
         a ``resume`` which was stopped before it finished, with the same ``config``,
         calls ``resume`` on its outputs as they are: a training continues from its last
-        checkpoint, an evaluation from its last finished chunk of tasks. While a stage runs, its record holds the seconds spent so
-        far (updated every :attr:`heartbeat` seconds), so a stopped and resumed stage
-        reports the time of both parts.
+        checkpoint, an evaluation from its last finished chunk of tasks. While a stage
+        runs, its record holds the seconds spent so far (updated every :attr:`heartbeat`
+        seconds), so a stopped and resumed stage reports the time of both parts.
         """
         config = json.loads(json.dumps(config))  # as stored: tuples become lists
         record = self.stages.get(name)

@@ -60,7 +60,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.eval.settings import SETTINGS
-from dorp_rl.eval.tasks import _ChunkFile, check_rollout_batch, evaluate_policy, summarize
+from dorp_rl.eval.tasks import _ChunkFile, check_rollout_batch, evaluate_policy, summarize_chunks
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
 
@@ -444,10 +444,7 @@ def evaluate_parallel(
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
     check_rollout_batch(env, tasks_per_rollout, name="the env of make_env()")
     del env
-    record = None
-    if resume_file is not None:
-        evaluation = _ChunkFile.describe(tasks, limit, tasks_per_rollout, seed, report_keys)
-        record = _ChunkFile(resume_file, evaluation)
+    record = _ChunkFile.open(resume_file, tasks, limit, tasks_per_rollout, seed, report_keys)
     by_chunk: dict[int, dict[str, Any]] = {} if record is None else dict(record.chunks)
     earlier = 0.0 if record is None else record.seconds
     options = {
@@ -467,32 +464,23 @@ def evaluate_parallel(
     init = (make_env, make_policy, options)
     done = sum(len(part["success"]) for part in by_chunk.values())  # recorded: not progress
     bar = progress_bar(progress, total=n, initial=done, desc=f"tasks ({used} {backend} workers)")
-    if jobs:
-        results = (
-            _run_local(jobs, used, init)
-            if backend == "local"
-            else _run_ray(jobs, used, init, address)
-        )
-        try:
+    try:
+        if jobs:
+            results = (
+                _run_local(jobs, used, init)
+                if backend == "local"
+                else _run_ray(jobs, used, init, address)
+            )
             for index, chunk_result in results:
                 by_chunk[index] = chunk_result
                 if record is not None:
                     record.add(index, chunk_result, earlier + time.perf_counter() - start)
                 if bar is not None:
                     bar.update(len(chunk_result["success"]))
-        finally:
-            if bar is not None:
-                bar.close()
-    elif bar is not None:
-        bar.close()
+    finally:
+        if bar is not None:
+            bar.close()
     ordered = [by_chunk[index] for index in range(chunks)]
-    reported = {key: [v for part in ordered for v in part[key]] for key in report_keys}
-    result = summarize(
-        tasks,
-        [v for part in ordered for v in part["success"]],
-        [v for part in ordered for v in part["steps"]],
-        limit,
-        earlier + time.perf_counter() - start,
-        reported,
-    )
+    seconds = earlier + time.perf_counter() - start
+    result = summarize_chunks(tasks, ordered, limit, seconds, report_keys)
     return {**result, "workers": used, "backend": backend}

@@ -170,15 +170,12 @@ def evaluate_policy(
             )
     n = tasks.shape[0]
     check_rollout_batch(env, tasks_per_rollout)
-    record = None
-    if resume_file is not None:
-        if seed is None:
-            raise ValueError(
-                "resume_file needs seed: a chunk's results then depend only on its index, "
-                "so finished chunks can be skipped."
-            )
-        evaluation = _ChunkFile.describe(tasks, limit, tasks_per_rollout, seed, report_keys)
-        record = _ChunkFile(resume_file, evaluation)
+    if resume_file is not None and seed is None:
+        raise ValueError(
+            "resume_file needs seed: a chunk's results then depend only on its index, "
+            "so finished chunks can be skipped."
+        )
+    record = _ChunkFile.open(resume_file, tasks, limit, tasks_per_rollout, seed, report_keys)
     locked = env.batch_locked and env.batch_size != torch.Size([])
     chunks: list[dict[str, list]] = []
     earlier = 0.0 if record is None else record.seconds
@@ -211,12 +208,22 @@ def evaluate_policy(
             bar.update(first + len(chunks[-1]["success"]) - bar.n)
     if bar is not None:
         bar.close()
-    joined = {
-        k: [v for chunk in chunks for v in chunk[k]] for k in ("success", "steps", *report_keys)
-    }
-    reported = {key: joined[key] for key in report_keys}
     seconds = earlier + time.perf_counter() - start
-    return summarize(tasks, joined["success"], joined["steps"], limit, seconds, reported)
+    return summarize_chunks(tasks, chunks, limit, seconds, report_keys)
+
+
+def summarize_chunks(
+    tasks: TensorDictBase,
+    chunks: Sequence[dict[str, list]],
+    max_steps: int,
+    seconds: float,
+    report_keys: Sequence[str] = (),
+) -> dict[str, Any]:
+    """:func:`summarize` of per-chunk results (``success``, ``steps`` and the
+    ``report_keys`` lists of each chunk, in task order)."""
+    joined = {k: [v for c in chunks for v in c[k]] for k in ("success", "steps", *report_keys)}
+    reported = {key: joined[key] for key in report_keys}
+    return summarize(tasks, joined["success"], joined["steps"], max_steps, seconds, reported)
 
 
 def _run_chunk(
@@ -331,6 +338,21 @@ class _ChunkFile:
                     f"key, got {lengths}: remove the file to run the evaluation from the start."
                 )
         self.chunks, self.seconds = chunks, seconds
+
+    @classmethod
+    def open(
+        cls,
+        path: str | Path | None,
+        tasks: TensorDictBase,
+        max_steps: int,
+        tasks_per_rollout: int,
+        seed: int,
+        report_keys: Sequence[str],
+    ) -> _ChunkFile | None:
+        """The record of this evaluation at ``path`` (``None``: no record kept)."""
+        if path is None:
+            return None
+        return cls(path, cls.describe(tasks, max_steps, tasks_per_rollout, seed, report_keys))
 
     @staticmethod
     def describe(
