@@ -462,7 +462,7 @@ def evaluate_parallel(
     used = max(1, min(workers, len(jobs)))
     start = time.perf_counter()
     init = (make_env, make_policy, options)
-    done = sum(len(part["success"]) for part in by_chunk.values())  # recorded: not progress
+    done = 0 if record is None else record.finished_tasks  # recorded: not progress
     bar = progress_bar(progress, total=n, initial=done, desc=f"tasks ({used} {backend} workers)")
     try:
         if jobs:

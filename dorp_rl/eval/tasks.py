@@ -180,7 +180,7 @@ def evaluate_policy(
     chunks: list[dict[str, list]] = []
     earlier = 0.0 if record is None else record.seconds
     # Tasks of recorded chunks count from the start, not as progress (the time left).
-    done = sum(len(c["success"]) for c in record.chunks.values()) if record is not None else 0
+    done = 0 if record is None else record.finished_tasks
     bar = progress_bar(progress, total=n, initial=done, desc="tasks", unit="task")
     start = time.perf_counter()
     for first in range(0, n, tasks_per_rollout):
@@ -310,7 +310,7 @@ class _ChunkFile:
             data = json.loads(self.path.read_text())
             chunks = {int(k): v for k, v in data["chunks"].items()}
             seconds = float(data["seconds"])
-            stored = data["evaluation"]
+            stored = dict(data["evaluation"])
         except (ValueError, KeyError, TypeError, AttributeError) as err:
             raise ValueError(
                 f"resume_file {self.path} is not a readable evaluation record ({err!r}): "
@@ -338,6 +338,11 @@ class _ChunkFile:
                     f"key, got {lengths}: remove the file to run the evaluation from the start."
                 )
         self.chunks, self.seconds = chunks, seconds
+
+    @property
+    def finished_tasks(self) -> int:
+        """Tasks in the recorded chunks."""
+        return sum(len(chunk["success"]) for chunk in self.chunks.values())
 
     @classmethod
     def open(
