@@ -215,6 +215,9 @@ class Reproduce(Evaluate):
         "1obj", "2obj", "3obj", "5obj", "keywall", "keycorridor"
     )  # fmt: skip
     """with --paper: the settings to run"""
+    paper_methods: tuple[Method, ...] = ()
+    """with --paper: run only these of each setting's Table 1 methods (empty: all of them);
+    a setting where Table 1 has none of them is left out, and the run says so"""
     seeds: tuple[int, ...] = ()
     """with --paper: run every setting once per seed (its codes', world model's and
     planners' seed; the tasks stay those of --task-seed), in sub-runs <setting>-seed<k>/,
@@ -745,6 +748,11 @@ def _check(command: str, cmd: Any) -> None:
             raise UsageError("--address is for --backend ray (the Ray cluster to join).")
         if cmd.gifs < 0:
             raise UsageError(f"--gifs must be >= 0, got {cmd.gifs}.")
+        if getattr(cmd, "paper_methods", ()) and not getattr(cmd, "paper", False):
+            raise UsageError(
+                "--paper-methods is an option of reproduce --paper (which of Table 1's "
+                "methods to run); for one setting, use --methods."
+            )
         if getattr(cmd, "seeds", ()) and not getattr(cmd, "paper", False):
             raise UsageError(
                 "--seeds is an option of reproduce --paper (one sub-run per setting and "
@@ -756,10 +764,12 @@ def _check(command: str, cmd: Any) -> None:
             if cmd.methods != defaults.methods:
                 raise UsageError(
                     "--methods does not apply with --paper: it runs the methods of the "
-                    "paper's Table 1 in each setting (choose settings with --settings)."
+                    "paper's Table 1 in each setting (choose among them with "
+                    "--paper-methods, and settings with --settings)."
                 )
             if not cmd.settings:
                 raise UsageError("--settings needs at least one setting.")
+            _check_paper_methods(cmd.paper_methods, cmd.settings)
             if any(seed < 0 for seed in cmd.seeds) or len(set(cmd.seeds)) != len(cmd.seeds):
                 raise UsageError(f"--seeds must be distinct and >= 0, got {list(cmd.seeds)}.")
             if cmd.low_level not in ("gt", "world-model"):
@@ -772,6 +782,21 @@ def _check(command: str, cmd: Any) -> None:
                 f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file; "
                 f"{cmd.low_level!r} is none of these."
             )
+
+
+def _check_paper_methods(chosen: Sequence[str], settings: Sequence[str]) -> None:
+    """``--paper-methods`` must name methods of Table 1 that some of ``settings`` has."""
+    from dorp_rl.reproduce import paper_methods
+
+    if not chosen:
+        return
+    in_table = {m for setting in settings for m in paper_methods(setting)}
+    missing = [m for m in chosen if m not in in_table]
+    if missing:
+        raise UsageError(
+            f"--paper-methods {' '.join(missing)}: not in Table 1 for the settings "
+            f"{' '.join(settings)}, whose methods are {', '.join(sorted(in_table))}."
+        )
 
 
 def _scan(argv: Sequence[str]) -> tuple[str | None, str]:

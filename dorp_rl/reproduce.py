@@ -78,6 +78,12 @@ def paper_methods(setting: str) -> tuple[str, ...]:
     return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
 
 
+def _chosen_methods(cmd: Reproduce, setting: str) -> tuple[str, ...]:
+    """Table 1's methods in ``setting``, only those of ``cmd.paper_methods`` if it names any."""
+    chosen = cmd.paper_methods
+    return tuple(m for m in paper_methods(setting) if not chosen or m in chosen)
+
+
 def _level_name(cmd: Evaluate) -> str:
     return cmd.low_level if cmd.low_level in ("gt", "world-model") else "checkpoint"
 
@@ -230,13 +236,14 @@ def _carry_changes(target: Any, given: Any, default: Any) -> Any:
     return dataclasses.replace(target, **changes)
 
 
-def _expected_cost(setting: str) -> float:
-    """A rough relative cost of a setting's pipeline, to start the longest ones first
-    (measured here: 5 objects about 11x 1 object, 3 objects 5x, key rooms about 1x)."""
-    spec = SETTINGS[setting]
+def _expected_cost(sub: Reproduce) -> float:
+    """A rough relative cost of a sub-run, to start the longest ones first (measured here
+    with all of Table 1's methods: 5 objects about 11x 1 object, 3 objects 5x, key rooms
+    about 1x)."""
+    spec = SETTINGS[sub.setting]
     if spec.env in ("key-wall", "key-corridor"):
         return 1.0
-    return spec.num_objects**2 * len(paper_methods(setting)) / 6
+    return spec.num_objects**2 * len(sub.methods) / 6
 
 
 def _setting_command(
@@ -261,8 +268,9 @@ def _setting_command(
         setting=setting,
         codes=codes,
         world_model=world_model,
-        methods=paper_methods(setting),
+        methods=_chosen_methods(cmd, setting),
         paper=False,
+        paper_methods=(),
         seeds=(),
         **seeds,
     )
@@ -320,7 +328,7 @@ def _subruns_side_by_side(
     one ends. A failed sub-run stops the queued ones; the running ones finish (their
     stages are kept) before its error is raised."""
     context = multiprocessing.get_context("spawn")
-    order = sorted(subs, key=lambda name: _expected_cost(subs[name].setting), reverse=True)
+    order = sorted(subs, key=lambda name: _expected_cost(subs[name]), reverse=True)
     bar = progress_bar(run.progress, total=len(order), desc="sub-runs", unit="sub-run")
     mirror = BarMirror()
     manager = SyncManager(ctx=context)
@@ -366,7 +374,8 @@ def _subruns_side_by_side(
 
 
 def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
-    """The paper's Table 1: :func:`paper_methods` in each of ``cmd.settings``.
+    """The paper's Table 1: :func:`paper_methods` in each of ``cmd.settings`` (only those
+    of ``cmd.paper_methods`` if it names any).
 
     Each setting is a sub-run ``<run>/<setting>/`` (its own play data, codes per
     similarity, graphs, world model, results and pictures). ``--codes.*`` and
@@ -389,11 +398,19 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
     """
     base = default_command("reproduce", cmd.setting)
     seeds: tuple[int | None, ...] = cmd.seeds or (None,)
-    jobs = len(cmd.settings) * len(seeds)
+    settings = [s for s in cmd.settings if _chosen_methods(cmd, s)]
+    for setting in cmd.settings:
+        if setting not in settings:
+            run.say(
+                f"{setting}: left out, Table 1 has none of --paper-methods "
+                f"{' '.join(cmd.paper_methods)} there (its methods: "
+                f"{', '.join(paper_methods(setting))})"
+            )
+    jobs = len(settings) * len(seeds)
     side_by_side = min(cmd.workers, jobs) if cmd.backend == "local" else 1
     inner = max(1, cmd.workers // side_by_side)
     subs: dict[str, Reproduce] = {}  # by sub-run name, in the order of --settings, --seeds
-    for setting in cmd.settings:
+    for setting in settings:
         for seed in seeds:
             sub = _setting_command(cmd, base, setting, run, seed)
             if side_by_side > 1:

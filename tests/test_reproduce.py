@@ -178,10 +178,44 @@ def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, dorp) -> None:
     assert not (tmp_path / "vf" / "run" / "pictures").exists()
 
 
+def test_paper_methods_choose_among_table_1_and_leave_out_settings_without_them(
+    tmp_path, dorp
+) -> None:
+    out = dorp(tmp_path, "reproduce", "--paper", "--settings", "1obj", "keywall",
+               "--paper-methods", "dorp-full", "vf-rs", "--low-level", "gt",
+               *dorp.CODES, *dorp.EVAL, "--gifs", "0")  # fmt: skip
+    assert "keywall: left out, Table 1 has none of --paper-methods dorp-full vf-rs" in out
+    assert "1obj: dorp-full, vf-rs on 2 tasks" in out  # in Table 1's order
+    run = tmp_path / "run"
+    assert not (run / "keywall").exists()
+    _, rows = read_csv(run / "results.csv")
+    assert [(r["setting"], r["method"]) for r in rows] == [("1obj", "dorp-full"), ("1obj", "vf-rs")]
+    _, timings = read_csv(run / "timings.csv")
+    evaluated = {t["stage"] for t in timings if t["stage"].startswith("evaluate:")}
+    assert evaluated == {"evaluate:dorp-full:gt", "evaluate:vf-rs:gt"}
+    assert "codes:arbitrary" not in {t["stage"] for t in timings}  # no ablation codes trained
+
+    # Adding a method later runs only its stages; the others are reused.
+    more = dorp(tmp_path, "reproduce", "--paper", "--settings", "1obj",
+                "--paper-methods", "dorp-full", "vf-rs", "vf-cem", "--low-level", "gt",
+                *dorp.CODES, *dorp.EVAL, "--gifs", "0")  # fmt: skip
+    assert "evaluate:vf-rs:gt: done for this config, skipped" in more
+    assert "evaluate:vf-cem:gt: running (not run yet)" in more
+    _, rows_more = read_csv(run / "results.csv")
+    assert [r["method"] for r in rows_more] == ["dorp-full", "vf-rs", "vf-cem"]
+    assert rows_more[:2] == rows
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (["reproduce", "--paper", "--methods", "dorp"], "--methods does not apply with --paper"),
+        (["reproduce", "--paper-methods", "dorp"], "--paper-methods is an option of reproduce"),
+        (
+            ["reproduce", "--paper", "--settings", "keywall", "--paper-methods", "vf-rs"],
+            "--paper-methods vf-rs: not in Table 1 for the settings keywall",
+        ),
+        (["reproduce", "--paper", "--paper-methods", "random"], "--paper-methods random: not"),
         (["demo", "--paper"], "--paper is an option of reproduce"),
         (["reproduce", "--seeds", "0", "1"], "--seeds is an option of reproduce --paper"),
         (["reproduce", "--paper", "--seeds", "1", "1"], "--seeds must be distinct"),
