@@ -1,0 +1,146 @@
+"""What an evaluation through a run's video model costs, measured on its first steps.
+
+For each setting of a ``dorp reproduce --paper`` folder that has a trained video model
+(``<run>/<setting>/world_model/checkpoints/last.pt``) and each method, this runs the
+first chunk of the run's task set (``tasks_per_rollout`` tasks side by side, the run's
+seeds, candidates and horizon) for ``--steps`` batched steps twice: planning with the
+true dynamics and through the video model. It times both in CPU seconds of this process
+(one torch thread), so other work on a shared machine does not inflate them, and prints
+per method:
+
+- the CPU seconds per batched step of each, and their ratio;
+- the evaluation's seconds with the true dynamics, from the run's own record of it;
+- an estimate of the evaluation through the video model: the ratio times those seconds
+  (as if it needed the steps the true dynamics needed: a lower estimate when the model
+  makes the method solve fewer tasks), and at most: every chunk of tasks run to the step
+  limit at the full-batch cost measured here;
+- the seconds the run took for it through the video model, where it has finished.
+
+Nothing of the run is changed. The VF planners plan open loop: one planning horizon of
+steps (14) is one plan and its execution, the unit their cost repeats in.
+
+    .venv/bin/python benchmarks/video_planning_cost.py runs/paper-w2 --settings 3obj 5obj \
+        --methods vf-rs vf-cem --steps 14 --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from dorp_rl.eval import SETTINGS, evaluate_policy, make_task_set
+from dorp_rl.eval.parallel import EvalSpec
+
+VF_METHODS = ("vf-rs", "vf-cem")
+
+
+def _cpu_seconds_per_step(spec: EvalSpec, tasks: Any, steps: int, seed: int) -> float:
+    env = spec.make_env()
+    policy = spec.make_policy(env)
+    start = time.process_time()
+    evaluate_policy(
+        env, policy, tasks, max_steps=steps, tasks_per_rollout=spec.tasks_per_rollout, seed=seed
+    )
+    return (time.process_time() - start) / steps
+
+
+def planning_costs(run: Path, settings: list[str], methods: list[str], steps: int) -> list[dict]:
+    """One row per setting and method: see the module docstring."""
+    rows = []
+    for setting in settings:
+        sub = run / setting
+        checkpoint = sub / "world_model" / "checkpoints" / "last.pt"
+        if not checkpoint.is_file():
+            print(f"{setting}: no video model yet ({checkpoint}), left out")
+            continue
+        config = json.loads((sub / "config.json").read_text())
+        stages = json.loads((sub / "stages.json").read_text())
+        per = min(config["tasks"], config["tasks_per_rollout"])
+        env = SETTINGS[setting].make_env(batch_size=(per,), seed=config["seed"])
+        limit = config["max_steps"] or env.max_steps
+        first_chunk = make_task_set(env, config["tasks"], seed=config["task_seed"])[:per]
+        chunks = math.ceil(config["tasks"] / per)
+        for method in methods:
+            if method not in VF_METHODS:
+                raise SystemExit(f"--methods: {method!r} is not one of {VF_METHODS}.")
+            cost = {}
+            for level, low_level in (("gt", "gt"), ("video", str(checkpoint))):
+                spec = EvalSpec(
+                    setting,
+                    method,
+                    low_level=low_level,
+                    tasks_per_rollout=per,
+                    candidates=config["candidates"],
+                    planning_horizon=config["planning_horizon"],
+                    seed=config["seed"],
+                )
+                cost[level] = _cpu_seconds_per_step(spec, first_chunk, steps, config["seed"])
+            ratio = cost["video"] / cost["gt"]
+            gt_record = stages.get(f"evaluate:{method}:gt") or {}
+            video_record = stages.get(f"evaluate:{method}:world-model") or {}
+            gt_seconds = gt_record.get("seconds") if gt_record.get("config") else None
+            rows.append(
+                {
+                    "setting": setting,
+                    "method": method,
+                    "gt_cpu_s_per_step": cost["gt"],
+                    "video_cpu_s_per_step": cost["video"],
+                    "ratio": ratio,
+                    "gt_seconds": gt_seconds,
+                    "estimate_seconds": None if gt_seconds is None else ratio * gt_seconds,
+                    "at_most_seconds": cost["video"] * chunks * limit,
+                    "video_seconds": video_record.get("seconds")
+                    if video_record.get("config")
+                    else None,
+                }
+            )
+            print(f"{setting} {method}: {rows[-1]}", flush=True)
+    return rows
+
+
+def _hours(seconds: float | None) -> str:
+    if seconds is None:
+        return "–"
+    return f"{seconds:.0f} s" if seconds < 3600 else f"{seconds / 3600:.1f} h"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="a reproduce --paper folder (runs/<name>)")
+    parser.add_argument("--settings", nargs="+", default=["2obj", "3obj", "5obj"])
+    parser.add_argument("--methods", nargs="+", default=list(VF_METHODS))
+    parser.add_argument(
+        "--steps", type=int, default=14, help="batched steps timed (a multiple of the horizon)"
+    )
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = parser.parse_args()
+    if args.steps < 1:
+        raise SystemExit(f"--steps must be >= 1, got {args.steps}.")
+    torch.set_num_threads(args.threads)
+    rows = planning_costs(args.run, args.settings, args.methods, args.steps)
+    print(
+        "\n| setting | method | CPU s per step, true dynamics | video model | ratio | "
+        "evaluation, true dynamics | estimate through the video model | at most | "
+        "measured through the video model |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['setting']} | {r['method']} | {r['gt_cpu_s_per_step']:.3f} | "
+            f"{r['video_cpu_s_per_step']:.2f} | {r['ratio']:.0f}x | "
+            f"{_hours(r['gt_seconds'])} | {_hours(r['estimate_seconds'])} | "
+            f"{_hours(r['at_most_seconds'])} | {_hours(r['video_seconds'])} |"
+        )
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
