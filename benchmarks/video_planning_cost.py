@@ -9,11 +9,12 @@ true dynamics and through the video model. It times both in CPU seconds of this 
 per method:
 
 - the CPU seconds per batched step of each, and their ratio;
-- the evaluation's seconds with the true dynamics, from the run's own record of it;
-- an estimate of the evaluation through the video model: the ratio times those seconds
-  (as if it needed the steps the true dynamics needed: a lower estimate when the model
-  makes the method solve fewer tasks), and at most: every chunk of tasks run to the step
-  limit at the full-batch cost measured here;
+- the batched steps and seconds of the evaluation with the true dynamics, from the
+  run's own record of it;
+- an estimate of the evaluation through the video model: the cost per step measured here
+  times those batched steps (as if it needed the steps the true dynamics needed: a lower
+  estimate when the model makes the method solve fewer tasks), and at most: every chunk
+  of tasks run to the step limit;
 - the seconds the run took for it through the video model, where it has finished.
 
 Nothing of the run is changed. The VF planners plan open loop: one planning horizon of
@@ -41,13 +42,23 @@ VF_METHODS = ("vf-rs", "vf-cem")
 
 
 def _cpu_seconds_per_step(spec: EvalSpec, tasks: Any, steps: int, seed: int) -> float:
+    """CPU seconds per batched step of ``tasks`` run for at most ``steps`` steps (the
+    chunk stops early when all its tasks are solved: its longest task's steps count)."""
     env = spec.make_env()
     policy = spec.make_policy(env)
     start = time.process_time()
-    evaluate_policy(
+    result = evaluate_policy(
         env, policy, tasks, max_steps=steps, tasks_per_rollout=spec.tasks_per_rollout, seed=seed
     )
-    return (time.process_time() - start) / steps
+    return (time.process_time() - start) / max(result["steps"])
+
+
+def _batched_steps(record: dict, per: int) -> int | None:
+    """Batched steps of a finished evaluation record: per chunk, its longest task's."""
+    if not record.get("config"):
+        return None
+    steps = record["summary"]["per_task"]["steps"]
+    return sum(max(steps[i : i + per]) for i in range(0, len(steps), per))
 
 
 def planning_costs(run: Path, settings: list[str], methods: list[str], steps: int) -> list[dict]:
@@ -81,19 +92,19 @@ def planning_costs(run: Path, settings: list[str], methods: list[str], steps: in
                     seed=config["seed"],
                 )
                 cost[level] = _cpu_seconds_per_step(spec, first_chunk, steps, config["seed"])
-            ratio = cost["video"] / cost["gt"]
             gt_record = stages.get(f"evaluate:{method}:gt") or {}
             video_record = stages.get(f"evaluate:{method}:world-model") or {}
-            gt_seconds = gt_record.get("seconds") if gt_record.get("config") else None
+            gt_steps = _batched_steps(gt_record, per)
             rows.append(
                 {
                     "setting": setting,
                     "method": method,
                     "gt_cpu_s_per_step": cost["gt"],
                     "video_cpu_s_per_step": cost["video"],
-                    "ratio": ratio,
-                    "gt_seconds": gt_seconds,
-                    "estimate_seconds": None if gt_seconds is None else ratio * gt_seconds,
+                    "ratio": cost["video"] / cost["gt"],
+                    "gt_batched_steps": gt_steps,
+                    "gt_seconds": gt_record.get("seconds") if gt_steps is not None else None,
+                    "estimate_seconds": None if gt_steps is None else cost["video"] * gt_steps,
                     "at_most_seconds": cost["video"] * chunks * limit,
                     "video_seconds": video_record.get("seconds")
                     if video_record.get("config")
@@ -132,10 +143,12 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        gt = "–" if r["gt_seconds"] is None else f"{r['gt_batched_steps']} steps, "
+        gt += "" if r["gt_seconds"] is None else _hours(r["gt_seconds"])
         print(
             f"| {r['setting']} | {r['method']} | {r['gt_cpu_s_per_step']:.3f} | "
             f"{r['video_cpu_s_per_step']:.2f} | {r['ratio']:.0f}x | "
-            f"{_hours(r['gt_seconds'])} | {_hours(r['estimate_seconds'])} | "
+            f"{gt} | {_hours(r['estimate_seconds'])} | "
             f"{_hours(r['at_most_seconds'])} | {_hours(r['video_seconds'])} |"
         )
     if args.json is not None:
