@@ -18,14 +18,14 @@ per method:
 - the seconds the run took for it through the video model, where it has finished.
 
 A step costs more later in a chunk than on its first plan, with either low level (the
-true dynamics' run took 1.6-7.7x its first plan's cost times its steps at 3 and 5
+true dynamics' run took 2-8x its first plan's cost times its steps at 3 and 5
 objects): the first estimate misses that, the second carries it over as the true
-dynamics showed it. At 1 object, where both evaluations finished, the first gave 43 and
-72-74 s for VF-RS and VF-CEM, the second 87-92 and 202-229 s (two runs), against 95
-and 253 s measured.
+dynamics showed it. At 1 object, where both evaluations finished, the first gave 43-44
+and 71-74 s for VF-RS and VF-CEM, the second 80-92 and 186-229 s (three runs), against
+95 and 253 s measured.
 
-Nothing of the run is changed. The VF planners plan open loop: one planning horizon of
-steps (14) is one plan and its execution, the unit their cost repeats in.
+Nothing of the run is changed. The VF planners plan open loop, at most a planning horizon
+(14 steps) at a time: time a multiple of it.
 
     .venv/bin/python benchmarks/video_planning_cost.py runs/paper-w2 --settings 3obj 5obj \
         --methods vf-rs vf-cem --steps 14 --threads 1
