@@ -20,6 +20,12 @@ from pathlib import Path
 from typing import Any
 
 
+def batched_steps(steps: list[int], per: int) -> int:
+    """Batched steps of an evaluation whose tasks (``steps`` each) ran ``per`` at a time:
+    per chunk, its longest task's."""
+    return sum(max(steps[i : i + per]) for i in range(0, len(steps), per))
+
+
 def evaluation_costs(run: Path) -> list[dict[str, Any]]:
     """One row per finished evaluation stage of ``run`` (a run folder, or a
     ``reproduce --paper`` folder with one sub-run per setting)."""
@@ -36,7 +42,7 @@ def evaluation_costs(run: Path) -> list[dict[str, Any]]:
             summary, config = record["summary"], record["config"]
             steps = summary["per_task"]["steps"]
             per = config["tasks_per_rollout"]
-            batched = sum(max(steps[i : i + per]) for i in range(0, len(steps), per))
+            batched = batched_steps(steps, per)
             rows.append(
                 {
                     "setting": summary["setting"],

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from evaluation_step_cost import batched_steps  # this folder is on the path of a script
 
 from dorp_rl.eval import SETTINGS, evaluate_policy, make_task_set
 from dorp_rl.eval.parallel import EvalSpec
@@ -63,8 +64,7 @@ def _batched_steps(record: dict, per: int) -> int | None:
     """Batched steps of a finished evaluation record: per chunk, its longest task's."""
     if not record.get("config"):
         return None
-    steps = record["summary"]["per_task"]["steps"]
-    return sum(max(steps[i : i + per]) for i in range(0, len(steps), per))
+    return batched_steps(record["summary"]["per_task"]["steps"], per)
 
 
 def planning_costs(run: Path, settings: list[str], methods: list[str], steps: int) -> list[dict]:
