@@ -31,6 +31,8 @@ import json
 import math
 import multiprocessing as mp
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 import traceback
@@ -913,6 +915,153 @@ def _video_action() -> Any:
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours.cpu()])
     model = VideoPredictionModel(4, palette, VideoModelConfig.small())
     model.predict(_frames(), torch.full((64, 1), 4))
+
+
+# ------------------------------------------------------------------ command line
+#: a tiny collection for the command's faults (seconds, not minutes)
+_TINY = ["--setting", "1obj", "--threads", "1", "--codes.num-frames", "2000"]
+
+
+def _dorp(*argv: str, wait: bool = True, **kwargs: Any) -> Any:
+    """Runs ``python -m dorp_rl *argv`` (a new process, as a user would)."""
+    command = [sys.executable, "-m", "dorp_rl", *argv]
+    process = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs
+    )
+    if not wait:
+        return process
+    out, err = process.communicate(timeout=600)
+    return process.returncode, out, err
+
+
+def _refused(code: int, err: str) -> None:
+    """A usage message (exit 2, no traceback) is the command's clear error."""
+    if code == 2 and "Traceback" not in err:
+        raise ValueError(err.strip().splitlines()[-1])
+    if "Traceback" in err:
+        raise RuntimeError(err.strip().splitlines()[-1])
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+def _cli_name(name: str) -> Callable[[], Any]:
+    def run() -> Any:
+        base = fresh("cli-name")
+        runs = base / "nest" / "runs"
+        runs.mkdir(parents=True)
+        code, _, err = _dorp("collect", *_TINY, "--root", str(runs), "--name", name)
+        outside = [p for p in base.rglob("*") if p.is_file() and runs not in p.parents]
+        _refused(code, err)
+        if outside or any(runs.iterdir()):
+            raise Silent(f"wrote {len(outside)} files outside the root, or into it directly")
+        raise Silent(f"--name {name!r} taken (exit {code})")
+
+    return run
+
+
+for _name in ["../../escape", "/tmp/dorp-absolute-escape", "", ".", "a/../.."]:
+    FAULTS.append(Fault("command line", f"--name {_name!r}", _cli_name(_name), ("--name",)))
+
+
+@fault("command line", "two commands on one run folder at once", ("lock",))
+def _cli_two_commands() -> Any:
+    runs = fresh("cli-two")
+    first = _dorp(
+        "collect", *_TINY[:4], "--codes.num-frames", "200000", "--root", str(runs),
+        "--name", "r", wait=False,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not (runs / "r" / "play").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        code, _, err = _dorp("collect", *_TINY, "--root", str(runs), "--name", "r")
+        first_code = first.wait(timeout=600)
+        if first_code != 0:
+            raise Silent(f"the first command ended with exit {first_code}")
+        load_play_data(runs / "r" / "play")  # the first command's data are whole
+        _refused(code, err)
+        raise Silent("a second command ran on a busy run folder")
+    finally:
+        first.kill()
+        first.wait()
+
+
+def _cli_damaged_run(damage: Callable[[Path], None]) -> Callable[[], Any]:
+    def run() -> Any:
+        runs = fresh("cli-damaged")
+        code, _, err = _dorp("collect", *_TINY, "--root", str(runs), "--name", "r")
+        if code != 0:
+            raise RuntimeError(f"the first collect failed: {err[-300:]}")
+        damage(runs / "r")
+        before = _snapshot(runs / "r")
+        code, _, err = _dorp("build-graph", *_TINY, "--root", str(runs), "--name", "r")
+        changed = _snapshot(runs / "r") != before
+        _refused(code, err)
+        raise Silent(f"exit {code}, run folder changed: {changed}")
+
+    return run
+
+
+def _write(name: str, text: str) -> Callable[[Path], None]:
+    return lambda folder: (folder / name).write_text(text)
+
+
+def _swap_play(folder: Path) -> None:
+    shutil.rmtree(folder / "play")
+    shutil.copytree(play_dir(), folder / "play")
+
+
+for _name, _damage, _words in [
+    ("stages.json corrupt", _write("stages.json", "{not json"), ("stages.json",)),
+    ("stages.json empty", _write("stages.json", ""), ("stages.json",)),
+    ("stages.json is []", _write("stages.json", "[]"), ("stages.json",)),
+    ("stages.json without a config", _write("stages.json", '{"play": {}}'), ("stages.json",)),
+    ("play/ swapped for other data", _swap_play, ("play",)),
+]:
+    FAULTS.append(Fault("command line", _name, _cli_damaged_run(_damage), _words))
+
+
+@fault("command line", "--root is a file", ("--root",))
+def _cli_root_file() -> Any:
+    path = fresh("cli-root-file")
+    path.write_text("notes")
+    code, _, err = _dorp("collect", *_TINY, "--root", str(path), "--name", "r")
+    _refused(code, err)
+    raise Silent(f"exit {code}")
+
+
+def _cli_low_level(make: Callable[[Path], Path]) -> Callable[[], Any]:
+    def run() -> Any:
+        runs = fresh("cli-low-level")
+        runs.mkdir(parents=True)
+        target = make(runs)
+        code, _, err = _dorp(
+            "evaluate", "--setting", "keywall", *_TINY[2:], "--root", str(runs), "--name", "r",
+            "--tasks", "1", "--methods", "vf-rs", "--candidates", "8", "--planning-horizon", "2",
+            "--max-steps", "2", "--low-level", str(target),
+        )  # fmt: skip
+        _refused(code, err)
+        raise Silent(f"exit {code}")
+
+    return run
+
+
+def _text_file(folder: Path) -> Path:
+    (folder / "notes.pt").write_text("not a checkpoint")
+    return folder / "notes.pt"
+
+
+for _name, _make in [
+    ("--low-level: a text file", _text_file),
+    ("--low-level: an encoder checkpoint", lambda folder: checkpoint("rep")),
+    ("--low-level: a 1-object world model for key-wall", lambda folder: checkpoint("wm")),
+]:
+    FAULTS.append(Fault("command line", _name, _cli_low_level(_make), ("--low-level",)))
 
 
 # ------------------------------------------------------------------ runner
