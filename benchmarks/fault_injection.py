@@ -901,12 +901,18 @@ def _channel_last() -> Any:
     _encoder()(_frames().movedim(-3, -1))
 
 
-@fault("encoders", "video model: float frames", ("uint8",))
+@fault("encoders", "video model: float frames in [0, 1]", None)
 def _video_float() -> Any:
     env = ObjectRearrangementEnv(1, seed=0)
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours.cpu()])
-    model = VideoPredictionModel(4, palette, VideoModelConfig.small())
-    model.predict(_frames().float() / 255, torch.zeros(64, 1, dtype=torch.int64))
+    torch.manual_seed(0)
+    model = VideoPredictionModel(4, palette, VideoModelConfig.small()).eval()
+    actions = torch.zeros(64, 1, dtype=torch.int64)
+    frames = _frames()
+    if not torch.equal(
+        model.predict(frames.float() / 255, actions), model.predict(frames, actions)
+    ):
+        raise Silent("other predictions for float frames than for the uint8 frames")
 
 
 @fault("encoders", "video model: action 4 of 4", ("action",))
@@ -915,6 +921,281 @@ def _video_action() -> Any:
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours.cpu()])
     model = VideoPredictionModel(4, palette, VideoModelConfig.small())
     model.predict(_frames(), torch.full((64, 1), 4))
+
+
+# ------------------------------------------------------------------ goals and policies
+def _tiny_dorp(env: Any) -> Any:
+    """A DORP policy of an untrained 1-one-hot encoder over ``env``'s play data."""
+    from dorp_rl.planners import CodeGraph
+    from dorp_rl.policies import make_dorp_policy
+
+    encoder = _encoder()
+    buffer = collect_play_data(type(env)(**_same_world(env), batch_size=(16,)), 256, seed=0)
+    graph = CodeGraph.from_play_data(buffer, encoder)
+    return make_dorp_policy(env, encoder, graph, num_candidates=8, planning_horizon=3, seed=0)
+
+
+def _same_world(env: Any) -> dict[str, Any]:
+    return {"num_objects": env.num_objects} if hasattr(env, "num_objects") else {}
+
+
+_ACTORS: dict[str, Callable[[Any], Any]] = {
+    "DORP policy": _tiny_dorp,
+    "VF-RS": lambda env: _rs(GroundTruthModelEnv(env)),
+    "random shooting": lambda env: RandomShootingPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), planning_horizon=3, num_candidates=8, seed=0
+    ),
+    "CEM": lambda env: CategoricalCEMPlanner(
+        GroundTruthModelEnv(env), PixelDistanceCost(), planning_horizon=3, num_candidates=8,
+        top_k=4, seed=0,
+    ),
+}  # fmt: skip
+
+_BAD_GOALS: dict[str, Callable[[Any], torch.Tensor]] = {
+    "a key-wall goal image": lambda td: KeyWallEnv(batch_size=(2,), seed=0).reset()["pixels"],
+    "a 2-object goal image": lambda td: ObjectRearrangementEnv(2, batch_size=(2,), seed=0).reset()[
+        "pixels"
+    ],
+    "an all-black goal image": lambda td: torch.zeros_like(td["goal_pixels"]),
+    "an all-NaN goal image": lambda td: torch.full(td["goal_pixels"].shape, math.nan),
+    "a float goal image in 0..255": lambda td: td["goal_pixels"].float(),
+}
+
+
+def _bad_goal(actor: str, goal: str) -> Callable[[], Any]:
+    def run() -> Any:
+        env = ObjectRearrangementEnv(1, batch_size=(2,), seed=0)
+        policy = _ACTORS[actor](env)
+        td = env.reset()
+        td["goal_pixels"] = _BAD_GOALS[goal](td)
+        policy(td)
+        raise Silent(f"planned towards {goal}")
+
+    return run
+
+
+for _actor in _ACTORS:
+    for _goal in _BAD_GOALS:
+        FAULTS.append(Fault("goals", f"{_actor}: {_goal}", _bad_goal(_actor, _goal), ("goal",)))
+
+
+def _dorp_with(**kwargs: Any) -> Callable[[], Any]:
+    def run() -> Any:
+        from dorp_rl.planners import CodeGraph
+        from dorp_rl.policies import make_dorp_policy
+
+        env = ObjectRearrangementEnv(1, batch_size=(2,), seed=0)
+        encoder = _encoder()
+        buffer = collect_play_data(ObjectRearrangementEnv(1, batch_size=(16,)), 256, seed=0)
+        graph = CodeGraph.from_play_data(buffer, encoder)
+        options = {"num_candidates": 8, "planning_horizon": 3, "seed": 0} | kwargs
+        make_dorp_policy(env, encoder, graph, **options)(env.reset())
+        raise Silent(f"planned with {kwargs}")
+
+    return run
+
+
+for _kwargs, _words in [
+    ({"goal_code_weight": math.nan}, ("goal_code_weight",)),
+    ({"waypoint_step_penalty": math.inf}, ("waypoint_step_penalty",)),
+    ({"action_persistence": 1.5}, ("action_persistence",)),
+    ({"waypoint_goal_weight": -1.0}, ("waypoint_goal_weight",)),
+    ({"bogus_option": 3}, ("bogus_option",)),
+]:
+    FAULTS.append(
+        Fault("goals", f"make_dorp_policy({_kwargs})", _dorp_with(**_kwargs), _words,
+              errors=(ValueError, TypeError))
+    )  # fmt: skip
+
+
+@fault("goals", "NegativeRewardCost: rewards after done", None)
+def _reward_after_done() -> Any:
+    from dorp_rl.planners import NegativeRewardCost
+
+    done = torch.tensor([False, True, False, False]).reshape(1, 1, 4, 1)
+    rollout = TensorDict(
+        {("next", "reward"): torch.ones(1, 1, 4, 1), ("next", "done"): done},
+        batch_size=(1, 1, 4),
+    )
+    cost = NegativeRewardCost()(rollout)["cost"][0, 0]
+    if cost[2:].abs().sum() != 0:
+        raise Silent(f"per-step costs {cost.tolist()} count the rewards after done")
+
+
+@fault("goals", "CodeMatchCost(onehots=(5,)) on a 1-one-hot encoder", ("onehots",))
+def _onehots_out_of_range() -> Any:
+    CodeMatchCost(_encoder(), onehots=(5,))
+
+
+# ------------------------------------------------------------------ graphs and tasks
+def _graph(objects: int = 1, encoder: Any = None) -> Any:
+    from dorp_rl.planners import CodeGraph
+
+    buffer = collect_play_data(ObjectRearrangementEnv(objects, batch_size=(16,)), 256, seed=0)
+    return CodeGraph.from_play_data(buffer, encoder or _encoder())
+
+
+@fault("graphs", "a 1-object encoder over 2-object play data", ("env",))
+def _foreign_graph() -> Any:
+    trainer = RepresentationTrainer(rep_config())
+    trainer.train()
+    _graph(2, trainer.encoder)
+    raise Silent("built a graph of codes for another env")
+
+
+for _name, _args, _words in [
+    ("shortest_path(0, -1, 0)", (0, -1, 0), ("start",)),
+    ("shortest_path(0, 0.5, 0)", (0, 0.5, 0), ("start",)),
+    ("shortest_path(0, 0, 99)", (0, 0, 99), ("goal",)),
+    ("shortest_path(7, 0, 0)", (7, 0, 0), ("group",)),
+]:
+    FAULTS.append(
+        Fault("graphs", _name, lambda a=_args: _graph().shortest_path(*a) and None, _words)
+    )
+
+
+@fault("graphs", "from_play_data(chunk_size=0)", ("chunk_size",))
+def _chunk_zero() -> Any:
+    from dorp_rl.planners import CodeGraph
+
+    buffer = collect_play_data(ObjectRearrangementEnv(1, batch_size=(16,)), 256, seed=0)
+    CodeGraph.from_play_data(buffer, _encoder(), chunk_size=0)
+
+
+@fault("graphs", "a graph file with an unknown config field", ("bogus_field",))
+def _graph_unknown_field() -> Any:
+    from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+    from dorp_rl.planners import CodeGraph
+
+    path = _graph().save(fresh("graph") / "graph.pt")
+    stored = load_checkpoint(path, kind="code_graph")
+    save_checkpoint(
+        path, kind="code_graph", config={**stored["config"], "bogus_field": 1},
+        env_config=stored.get("env_config") or {}, state=stored["state"], step=0,
+    )  # fmt: skip
+    CodeGraph.load(path)
+    raise Silent("loaded a graph with an unknown config field")
+
+
+def _tasks(num: int = 2) -> tuple[Any, Any]:
+    env = ObjectRearrangementEnv(1, batch_size=(), batch_locked=False, seed=0)
+    return env, make_task_set(env, num)
+
+
+def _lower_bound(state: Callable[[Any], Any], goal: Callable[[Any], Any]) -> Callable[[], Any]:
+    def run() -> Any:
+        env, tasks = _tasks(3)
+        env.lower_bound_steps(state(tasks), goal(tasks))
+        raise Silent("returned a bound")
+
+    return run
+
+
+FAULTS.append(
+    Fault("tasks", "lower_bound_steps: start and goal of other shapes",
+          _lower_bound(lambda t: t["state"][:1], lambda t: t["goal_state"]), ("shape",))
+)  # fmt: skip
+FAULTS.append(
+    Fault("tasks", "lower_bound_steps: a goal off the grid",
+          _lower_bound(lambda t: t["state"], lambda t: t["goal_state"] + 40), ("goal",))
+)  # fmt: skip
+
+
+def _evaluate_on(edit: Callable[[Any], Any]) -> Callable[[], Any]:
+    def run() -> Any:
+        env, tasks = _tasks()
+        result = evaluate_policy(env, _rs(GroundTruthModelEnv(env)), edit(tasks), max_steps=2)
+        raise Silent(f"success {result.get('success_rate')}")
+
+    return run
+
+
+def _lower_bounds(values: list[float]) -> Callable[[Any], Any]:
+    def edit(tasks: Any) -> Any:
+        tasks = tasks.clone()
+        tasks["lower_bound"] = torch.tensor(values)
+        return tasks
+
+    return edit
+
+
+for _name, _edit, _words in [
+    ("evaluate_policy on an empty task set", lambda t: t[:0], ("task",)),
+    ("evaluate_policy: a negative lower bound", _lower_bounds([-1, 3]), ("lower_bound",)),
+    ("evaluate_policy: a NaN lower bound", _lower_bounds([math.nan, 3.0]), ("lower_bound",)),
+]:
+    FAULTS.append(Fault("tasks", _name, _evaluate_on(_edit), _words))
+
+
+@fault("tasks", "a task whose start is its goal", None)
+def _start_is_goal() -> Any:
+    env, tasks = _tasks(1)
+    tasks = tasks.clone()
+    tasks["goal_state"] = tasks["state"].clone()
+    tasks["lower_bound"] = torch.zeros_like(tasks["lower_bound"])
+    result = evaluate_policy(env, _rs(GroundTruthModelEnv(env)), tasks, max_steps=3)
+    if result["success_rate"] != 1.0:
+        raise Silent(f"counted as failed (success {result['success_rate']})")
+
+
+@fault("tasks", "make_task_set('env', 4)", ("env",))
+def _task_set_of_a_string() -> Any:
+    make_task_set("env", 4)
+
+
+@fault("tasks", "evaluate_policy(env, 'random', tasks)", ("policy",))
+def _policy_string() -> Any:
+    env, tasks = _tasks()
+    evaluate_policy(env, "random", tasks, max_steps=2)
+
+
+@fault("tasks", "FuturePairSampler(1, 4) over one-step trajectories", ("offset",))
+def _unreachable_offset() -> Any:
+    from dorp_rl.data import FuturePairSampler, future_pairs
+
+    buffer = collect_play_data(
+        ObjectRearrangementEnv(1, batch_size=(4,)), 64, sampler=FuturePairSampler(1, 4),
+        batch_size=64, seed=0,
+    )  # fmt: skip
+    _, _, offset = future_pairs(buffer.sample())
+    raise Silent(f"sampled offsets up to {int(offset.max())} of 4, without a word")
+
+
+# ------------------------------------------------------------------ arguments
+for _name, _run, _words in [
+    ("env device='foo'", lambda: ObjectRearrangementEnv(1, device="foo").reset(), ("device",)),
+    ("env batch_size='8'", lambda: ObjectRearrangementEnv(1, batch_size="8").reset(),
+     ("batch_size",)),
+    ("env.rollout(0)", lambda: ObjectRearrangementEnv(1, seed=0).rollout(0), ("max_steps",)),
+    ("world-model config eval_frames=4", lambda: WorldModelTrainer(wm_config(eval_frames=4)),
+     ("eval_frames",)),
+]:  # fmt: skip
+    FAULTS.append(Fault("arguments", _name, _run, _words))
+
+if not torch.cuda.is_available():
+    for _name, _run in [
+        (
+            "env device='cuda' without CUDA",
+            lambda: ObjectRearrangementEnv(1, device="cuda").reset(),
+        ),
+        ("config device='cuda' without CUDA", lambda: rep_config(device="cuda")),
+    ]:
+        FAULTS.append(Fault("arguments", _name, _run, ("cuda",)))
+
+
+def _float_frames(dtype: torch.dtype) -> Callable[[], Any]:
+    def run() -> Any:
+        encoder, frames = _encoder(), _frames()
+        if not torch.equal(encoder.encode(frames.to(dtype) / 255), encoder.encode(frames)):
+            raise Silent(f"other codes for {dtype} frames than the uint8 frames")
+
+    return run
+
+
+for _dtype in (torch.float64, torch.float16):
+    FAULTS.append(
+        Fault("arguments", f"{_dtype} frames in [0, 1] to encode()", _float_frames(_dtype), None)
+    )  # fmt: skip
 
 
 # ------------------------------------------------------------------ command line
