@@ -27,6 +27,7 @@ Examples:
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 import operator
@@ -47,6 +48,7 @@ __all__ = [
     "FRAME_SHAPE",
     "BatchShapeError",
     "MissingKeyError",
+    "UnknownArgumentError",
     "SEED_MAX",
     "Choice",
     "Device",
@@ -60,14 +62,19 @@ __all__ = [
     "check_batch_size",
     "check_bool",
     "check_choice",
+    "check_device",
     "check_fields",
     "check_float",
     "check_frames",
     "check_int",
+    "check_keywords",
     "check_seed",
     "check_state_layout",
+    "check_task_frames",
     "derive_seed",
+    "frames_to_uint8",
     "frames_to_unit_float",
+    "keyword_names",
 ]
 
 
@@ -80,6 +87,10 @@ class MissingKeyError(KeyError, ValueError):
 
 class BatchShapeError(ValueError, RuntimeError):
     """A tensordict's batch shape does not fit the env (a ``ValueError``; torchrl raises ``RuntimeError``)."""
+
+
+class UnknownArgumentError(TypeError, ValueError):
+    """A keyword argument no callee takes (a ``TypeError``, as Python's own, and a ``ValueError``)."""
 
 
 # --------------------------------------------------------------------------- numbers
@@ -205,6 +216,76 @@ def check_batch_size(batch_size: Any, name: str = "batch_size") -> torch.Size:
     return torch.Size([_as_int(d) for d in dims])
 
 
+#: Device types a ``device=`` argument may name (``"cuda"`` and ``"mps"`` only where available).
+DEVICE_TYPES = ("cpu", "cuda", "mps")
+
+
+def check_device(
+    device: Any, name: str = "device", *, optional: bool = False
+) -> torch.device | None:
+    """``device`` as a :class:`torch.device`: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"mps"``.
+
+    Refuses names torch does not know (``"foo"``), other device types, and devices this
+    machine does not have (``"cuda"`` without CUDA, ``"cuda:3"`` with one GPU), which torch
+    would only report later with an ``AssertionError`` or a ``RuntimeError`` from deep
+    inside. ``None`` is taken when ``optional``.
+    """
+    if device is None and optional:
+        return None
+    accepted = "'cpu', 'cuda', 'cuda:N' or 'mps' (a torch.device or its name)"
+    if optional:
+        accepted += " or None"
+    if isinstance(device, bool) or not isinstance(device, (str, torch.device, int)):
+        raise ValueError(f"{name} must be {accepted}, got {device!r}.")
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"{name} must be {accepted}, got {device!r}.") from None
+    if parsed.type not in DEVICE_TYPES:
+        raise ValueError(f"{name} must be {accepted}, got {device!r}.")
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(
+                f"{name}={device!r} but CUDA is not available on this machine "
+                "(torch.cuda.is_available() is False): use 'cpu'."
+            )
+        count = torch.cuda.device_count()
+        if parsed.index is not None and parsed.index >= count:
+            raise ValueError(
+                f"{name}={device!r} but this machine has {count} CUDA device(s) "
+                f"(cuda:0 to cuda:{count - 1})."
+            )
+    if parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(
+            f"{name}={device!r} but MPS is not available on this machine "
+            "(torch.backends.mps.is_available() is False): use 'cpu'."
+        )
+    return parsed
+
+
+def keyword_names(function: Any) -> list[str]:
+    """The names of the arguments ``function`` (or a class's ``__init__``) takes by keyword."""
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    parameters = inspect.signature(function).parameters.values()
+    return [p.name for p in parameters if p.kind in kinds]
+
+
+def check_keywords(given: Iterable[str], accepted: Iterable[str], where: str) -> None:
+    """Refuses keyword arguments that ``where`` would pass on to a callee that does not take them.
+
+    Raises:
+        UnknownArgumentError: naming the unknown keywords and every accepted one (instead of
+            a bare ``TypeError`` from inside the callee, or a keyword silently dropped).
+    """
+    accepted = sorted(set(accepted))
+    unknown = sorted(set(given) - set(accepted))
+    if unknown:
+        raise UnknownArgumentError(
+            f"{where} got unknown keyword argument(s) {unknown}; the keywords it passes on "
+            f"are {accepted}."
+        )
+
+
 # --------------------------------------------------------------------------- config rules
 @dataclass(frozen=True)
 class Int:
@@ -313,15 +394,10 @@ class Seed:
 
 @dataclass(frozen=True)
 class Device:
-    """Rule of a torch device field, stored as a string (``"cpu"``, ``"cuda:0"``)."""
+    """Rule of a torch device field, stored as a string (``"cpu"``, ``"cuda:0"``); see :func:`check_device`."""
 
     def __call__(self, name: str, value: Any) -> str:
-        try:
-            return str(torch.device(value))
-        except (RuntimeError, TypeError) as err:
-            raise ValueError(
-                f"{name} must name a torch device (e.g. 'cpu'), got {value!r}."
-            ) from err
+        return str(check_device(value, name))
 
 
 def check_fields(obj: Any, rules: Mapping[str, Any], fields: Iterable[str]) -> None:
@@ -394,7 +470,16 @@ def check_frames(
         allowed = "uint8 (0-255) or floating point (0-1)" if floats else "uint8 (0-255)"
         raise ValueError(f"{name} must be {allowed}, got dtype {pixels.dtype}.")
     if pixels.numel():
-        low, high = torch.stack(torch.aminmax(pixels.detach())).tolist()  # one sync
+        # aminmax propagates NaN: one device synchronisation finds NaN, inf and 0..255.
+        values = pixels.detach()
+        if values.dtype in (torch.float16, torch.bfloat16):
+            values = values.float()
+        low, high = torch.stack(torch.aminmax(values)).tolist()
+        if math.isnan(low) or math.isnan(high):
+            raise ValueError(
+                f"{name} hold NaN: float frames must lie in [0, 1] (a frame of NaN is no "
+                "image; was it produced by a diverged model?)."
+            )
         if not (low >= 0.0 and high <= 1.0):
             raise ValueError(
                 f"{name} are floats with values in [{low:g}, {high:g}]: float frames must lie "
@@ -404,9 +489,104 @@ def check_frames(
 
 
 def frames_to_unit_float(pixels: Any, name: str = "pixels") -> torch.Tensor:
-    """Frames ``[*B, 3, 16, 16]`` (uint8, or floats in ``[0, 1]``) as floats in ``[0, 1]``."""
+    """Frames ``[*B, 3, 16, 16]`` (uint8, or floats of any precision in ``[0, 1]``) as
+    float32 in ``[0, 1]`` (the dtype of the models' weights)."""
     pixels = check_frames(pixels, name, floats=True)
-    return pixels.float() / 255.0 if pixels.dtype == torch.uint8 else pixels
+    if pixels.dtype == torch.uint8:
+        return pixels.float() / 255.0
+    return pixels.to(torch.float32)
+
+
+def frames_to_uint8(
+    pixels: Any,
+    name: str = "pixels",
+    *,
+    lead: str | Sequence[int] = "*B",
+    size: int | None = 16,
+) -> torch.Tensor:
+    """Frames (uint8, or floats of any precision in ``[0, 1]``) as uint8 ``[*B, 3, H, W]``.
+
+    Float frames are scaled by 255 and rounded, so ``frames.double() / 255`` gives back
+    exactly ``frames``. The envs draw, the planners compare and the palette models read
+    uint8 frames: converting where frames enter keeps every path on the same values (a
+    float goal compared with uint8 predictions would be off by a factor of 255).
+    ``lead`` and ``size`` as in :func:`check_frames`.
+    """
+    pixels = check_frames(pixels, name, floats=True, lead=lead, size=size)
+    if pixels.dtype == torch.uint8:
+        return pixels
+    return (pixels.to(torch.float32) * 255.0).round_().to(torch.uint8)
+
+
+def check_task_frames(
+    pixels: Any,
+    name: str,
+    env: Any,
+    *,
+    lead: str | Sequence[int] = "*B",
+    spec_key: Any = "pixels",
+) -> torch.Tensor:
+    """Frames that can belong to ``env``'s task, as uint8 (the one check of frames given to
+    a policy or a planner: goal images and current frames).
+
+    In order: the layout and values (:func:`frames_to_uint8`: uint8, or floats of any
+    precision in ``[0, 1]``; NaN and float frames in 0..255 are refused); the frame shape
+    and dtype of ``env``'s observation spec under ``spec_key`` (else ``"pixels"``); no
+    all-black frame (every env draws its objects or its agent, so an empty frame is a
+    missing or zeroed image); and, if ``env`` has one, its own ``check_frame(frames, name)``
+    (e.g. a grid world refuses frames no valid state of it draws: another environment's,
+    another number of objects). Reads the values (a few device synchronisations): call it
+    once per public call, never per imagined step.
+
+    Args:
+        pixels: frames ``[*B, 3, H, W]``.
+        name: the argument or key, for the messages.
+        env: the env (acting or planning) whose frames these must be.
+        lead: the leading dimensions (see :func:`check_frames`).
+        spec_key: the observation key whose spec describes these frames.
+
+    Returns:
+        the frames as uint8 (the tensor itself when it already is).
+    """
+    spec = None
+    observation_spec = getattr(env, "full_observation_spec", None)
+    if observation_spec is not None:
+        keys = set(observation_spec.keys(True, True))
+        for key in (spec_key, "pixels"):
+            if key in keys:
+                spec = observation_spec[key]
+                break
+    frames = frames_to_uint8(pixels, name, lead=lead, size=None)
+    describe = getattr(env, "describe_world", None)
+    owner = describe() if callable(describe) else type(env).__name__
+    if spec is not None:
+        frame_shape = tuple(spec.shape[len(getattr(env, "batch_size", ())) :])
+        if tuple(frames.shape[-3:]) != frame_shape:
+            raise ValueError(
+                f"{name} must have shape [{_lead_text(lead)}, {', '.join(map(str, frame_shape))}] "
+                f"(the frames of {owner}), got {list(frames.shape)}."
+            )
+        if spec.dtype != torch.uint8:
+            raise ValueError(
+                f"{name}: {owner} declares {spec.dtype} frames, the planners and policies "
+                "take uint8 frames (or floats in [0, 1])."
+            )
+    if frames.numel():
+        flat = frames.reshape(-1, frames.shape[-3:].numel())
+        black = flat.amax(-1) == 0
+        if bool(black.any()):
+            index = black.nonzero()[0].item()
+            first = list(torch.unravel_index(torch.tensor(index), frames.shape[:-3]))
+            raise ValueError(
+                f"{name} holds {int(black.sum())} all-black frame(s) (first at batch index "
+                f"{[int(i) for i in first]}): every frame of {owner} shows its objects or "
+                "agent on the black background, so an empty frame is a missing or zeroed "
+                "image, not a task's."
+            )
+    check_frame = getattr(env, "check_frame", None)
+    if callable(check_frame):
+        check_frame(frames, name)
+    return frames
 
 
 def check_action(

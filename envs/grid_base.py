@@ -25,6 +25,7 @@ from dorp_rl.validation import (
     check_action,
     check_batch_size,
     check_bool,
+    check_device,
     check_frames,
     check_int,
     check_seed,
@@ -73,6 +74,37 @@ def paint_layers(masks: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
     )  # [L + 1, 3]
     image = palette[top]  # [*B, H, W, 3]
     return image.movedim(-1, -3).contiguous()
+
+
+def colour_codes(frames: torch.Tensor) -> torch.Tensor:
+    """Each pixel's colour as one integer ``r << 16 | g << 8 | b``: uint8 ``[*B, 3, H, W]`` -> int32 ``[*B, H, W]``."""
+    c = frames.to(torch.int32)
+    return (c[..., 0, :, :] << 16) | (c[..., 1, :, :] << 8) | c[..., 2, :, :]
+
+
+def foreign_colours(frames: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
+    """bool ``[*B]``: which frames hold a colour outside ``colours`` (uint8 ``[K, 3]``)."""
+    allowed = colour_codes(colours.to(frames.device).t().reshape(3, -1, 1)).reshape(-1)
+    codes = colour_codes(frames).flatten(-2)  # [*B, H * W]
+    return ~torch.isin(codes, allowed).all(-1)
+
+
+def describe_foreign_colours(frame: torch.Tensor, colours: torch.Tensor) -> str:
+    """The colours of one frame ``[3, H, W]`` outside ``colours``, and those, for a message."""
+    found = frame.reshape(3, -1).t().unique(dim=0)
+    allowed = {tuple(c) for c in colours.tolist()}
+    extra = [c for c in found.tolist() if tuple(c) not in allowed]
+    return f"colours {extra} are not among its colours {colours.tolist()}"
+
+
+class CheckedRolloutLength:
+    """Mixin of the dorp-rl envs: ``rollout(max_steps)`` refuses ``max_steps < 1`` by name
+    (torchrl's own ``rollout(0)`` fails with ``list_of_tensordicts cannot be empty``)."""
+
+    def rollout(self, max_steps: int, *args, **kwargs) -> TensorDictBase:
+        """:meth:`torchrl.envs.EnvBase.rollout`, after checking ``max_steps`` (an integer >= 1)."""
+        max_steps = check_int("max_steps", max_steps, low=1)
+        return super().rollout(max_steps, *args, **kwargs)
 
 
 class _EmittedTensors:
@@ -130,7 +162,7 @@ def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
     return upscale_frames(frames, scale).movedim(-3, -1).cpu().numpy().copy()
 
 
-class GridWorldEnv(EnvBase):
+class GridWorldEnv(CheckedRolloutLength, EnvBase):
     """Base class of the 16x16 pixel environments (stateless, batched).
 
     Keys produced by ``reset`` and ``step``:
@@ -197,6 +229,7 @@ class GridWorldEnv(EnvBase):
         max_steps = check_int("max_steps", max_steps, low=1)
         seed = check_seed(seed, optional=True)
         terminate_on_success = check_bool("terminate_on_success", terminate_on_success)
+        device = check_device(device, optional=True)
         super().__init__(
             device=torch.device("cpu") if device is None else device, batch_size=batch_size
         )
@@ -292,6 +325,82 @@ class GridWorldEnv(EnvBase):
         environment fails with a message saying what differs.
         """
         return {"env": type(self).__name__}
+
+    # ------------------------------------------------------------------ #
+    # Which frames this world can show
+    # ------------------------------------------------------------------ #
+    def frame_colours(self) -> torch.Tensor | None:
+        """uint8 ``[K, 3]``: every colour the renderer draws, black first (``None``: unknown).
+
+        Read off :meth:`frame_part_table` (computed once); an env without one overrides it.
+        """
+        cached = self.__dict__.get("_frame_colours")
+        if cached is None:
+            table = self.frame_part_table()
+            if table is None:
+                return None
+            codes = colour_codes(table).unique()  # sorted: black (0) first if drawn
+            codes = torch.cat([codes.new_zeros(1), codes[codes != 0]])
+            cached = torch.stack([(codes >> 16) & 255, (codes >> 8) & 255, codes & 255], -1)
+            cached = cached.to(torch.uint8)
+            self.__dict__["_frame_colours"] = cached
+        return cached
+
+    def states_from_frames(self, frames: torch.Tensor) -> torch.Tensor | None:
+        """The state each frame shows, int64 ``[*B, *state_shape]`` (``None``: not readable).
+
+        A best guess read off uint8 frames ``[*B, 3, 16, 16]`` (where each object's colour
+        first appears); :meth:`invalid_frames` keeps only the frames that are exactly the
+        render of a valid state.
+        """
+        return None
+
+    def invalid_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        """bool ``[*B]``: which uint8 frames ``[*B, 3, 16, 16]`` no valid state of this env draws.
+
+        A frame with a colour the renderer never uses is refused; where
+        :meth:`states_from_frames` reads a state, so is any frame that is not exactly the
+        render of a valid state (a block missing, cut or doubled, another layout).
+        """
+        frames = frames.to(self.device)
+        bad = torch.zeros(frames.shape[:-3], dtype=torch.bool, device=self.device)
+        colours = self.frame_colours()
+        if colours is not None:
+            bad |= foreign_colours(frames, colours)
+        states = self.states_from_frames(frames)
+        if states is not None:
+            drawn = self.render_state(states.clamp_min(0))
+            bad |= (drawn != frames).flatten(-3).any(-1) | self.invalid_states(states)
+        return bad
+
+    def check_frame(self, frames: torch.Tensor, name: str = "pixels") -> None:
+        """Refuses frames that cannot come from this env (see :meth:`invalid_frames`).
+
+        Reads the values (a device synchronisation): the policies and planners call it
+        once per call on the goal and current frames, through
+        :func:`dorp_rl.validation.check_task_frames`.
+        """
+        frames = check_frames(frames, name, size=self.grid_size)
+        bad = self.invalid_frames(frames)
+        if not bool(bad.any()):
+            return
+        first = [int(i) for i in bad.nonzero()[0]] if bad.dim() else []
+        frame = frames.to(self.device)[tuple(first)]
+        colours = self.frame_colours()
+        if colours is not None and bool(foreign_colours(frame, colours)):
+            detail = describe_foreign_colours(frame, colours)
+        else:
+            detail = "its colours are the env's, but no valid configuration draws it"
+        raise ValueError(
+            f"{name} holds {int(bad.sum())} frame(s) that no valid state of "
+            f"{self.describe_world()} draws (first at batch index {first}: {detail}). Is it "
+            "a frame of another environment or setting (another layout, another number of "
+            "objects)?"
+        )
+
+    def describe_world(self) -> str:
+        """A short name of this world for messages (the class name; subclasses add options)."""
+        return type(self).__name__
 
     # ------------------------------------------------------------------ #
     # Checks with errors that say what was expected

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
+from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, colour_codes, paint_layers
 
 WALL_COLOUR = (128, 128, 128)  # grey
 DOOR_COLOUR = (150, 75, 0)  # brown
@@ -190,6 +190,17 @@ class KeyRoomEnv(GridWorldEnv):
     def frame_part_table(self) -> torch.Tensor:
         """uint8 ``[512, 3, 16, 16]``: the frame of every (cell, has-key) state."""
         return self._frame_table
+
+    def states_from_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        """int64 ``[*B, 3]``: the agent's pixel (first red pixel) and whether the key is gone."""
+        codes = colour_codes(frames.to(self.device))  # [*B, 16, 16]
+        agent = codes == colour_codes(torch.tensor(AGENT_COLOUR, dtype=torch.uint8).view(3, 1, 1))
+        row = agent.any(-1).to(torch.int64).argmax(-1)
+        col = agent.any(-2).to(torch.int64).argmax(-1)
+        key_code = int(colour_codes(torch.tensor(KEY_COLOUR, dtype=torch.uint8).view(3, 1, 1)))
+        key_row, key_col = (int(x) for x in self.key_cell)
+        has_key = (codes[..., key_row, key_col] != key_code).to(torch.int64)
+        return torch.stack([row, col, has_key], -1)
 
     # ------------------------------------------------------------------ #
     def _state_index(self, state: torch.Tensor) -> torch.Tensor:

@@ -34,8 +34,21 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
-from dorp_rl.validation import check_action, check_frames, check_int, check_state_layout
+from dorp_rl.envs.grid_base import (
+    GRID_SIZE,
+    CheckedRolloutLength,
+    GridWorldEnv,
+    describe_foreign_colours,
+    foreign_colours,
+)
+from dorp_rl.validation import (
+    check_action,
+    check_device,
+    check_frames,
+    check_int,
+    check_state_layout,
+    frames_to_uint8,
+)
 
 _FRAME = (3, GRID_SIZE, GRID_SIZE)
 _FRAME_BYTES = 3 * GRID_SIZE * GRID_SIZE
@@ -69,13 +82,14 @@ def check_planning_action(
     return check_action(action, num_actions, shape=shape)
 
 
-class _PlanningEnvBase(EnvBase):
+class _PlanningEnvBase(CheckedRolloutLength, EnvBase):
     """Specs and flags shared by the planning envs (``batch_size=()``, any leading shape)."""
 
     _supports_set_state = True
 
     def __init__(self, num_actions: int, device: torch.device | str | None) -> None:
         num_actions = check_int("num_actions", num_actions, low=1)
+        device = check_device(device, optional=True)
         super().__init__(device=torch.device("cpu") if device is None else device, batch_size=())
         self.__dict__["_batch_locked"] = False
         self.num_actions = num_actions
@@ -177,6 +191,14 @@ class GroundTruthModelEnv(_PlanningEnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.true_env._set_seed(seed)
 
+    def check_frame(self, frames: torch.Tensor, name: str = "pixels") -> None:
+        """Refuses frames the wrapped env cannot show (:meth:`GridWorldEnv.check_frame`)."""
+        self.true_env.check_frame(frames, name)
+
+    def describe_world(self) -> str:
+        """The wrapped env's world, for messages."""
+        return self.true_env.describe_world()
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         env = self.true_env
         shape = tensordict.batch_size if tensordict is not None else torch.Size([])
@@ -196,7 +218,9 @@ class GroundTruthModelEnv(_PlanningEnvBase):
             )
             goal_pixels = env.render_state(goal_state)
         else:
-            goal_pixels = check_frames(goal_pixels, "goal_pixels").expand(*shape, *_FRAME).clone()
+            goal_pixels = (
+                frames_to_uint8(goal_pixels, "goal_pixels").expand(*shape, *_FRAME).clone()
+            )
         return self._outputs(shape, env.render_state(state), goal_pixels, reward=False, state=state)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -606,6 +630,26 @@ class WorldModelEnv(_PlanningEnvBase):
     def _set_seed(self, seed: int | None) -> None:
         """Nothing to seed: a stochastic model draws from torch's global generator."""
 
+    def check_frame(self, frames: torch.Tensor, name: str = "pixels") -> None:
+        """Refuses frames with colours outside the model's ``palette`` (if it has one).
+
+        A palette model maps any other colour to its nearest palette colour, so a frame of
+        another environment would be planned with as a misread frame of this one.
+        """
+        palette = getattr(self.model, "palette", None)
+        if not isinstance(palette, torch.Tensor):
+            return
+        frames = check_frames(frames, name)
+        bad = foreign_colours(frames, palette)
+        if bool(bad.any()):
+            first = [int(i) for i in bad.nonzero()[0]] if bad.dim() else []
+            detail = describe_foreign_colours(frames[tuple(first)], palette)
+            raise ValueError(
+                f"{name} holds {int(bad.sum())} frame(s) the world model cannot show (first "
+                f"at batch index {first}: {detail}, the palette it was trained on). Is it a "
+                "frame of another environment or setting?"
+            )
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = tensordict.batch_size if tensordict is not None else torch.Size([])
         given = tensordict if (kwargs.get("set_state", False) and tensordict is not None) else None
@@ -616,13 +660,14 @@ class WorldModelEnv(_PlanningEnvBase):
             frames[key] = (
                 black.clone()
                 if value is None
-                else check_frames(value, key).expand(*shape, *_FRAME).clone()
+                else frames_to_uint8(value, key).expand(*shape, *_FRAME).clone()
             )
         return self._outputs(shape, frames["pixels"], frames["goal_pixels"], reward=False)
 
     def predict_frames(self, pixels: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]``, int ``[*B, 1]``."""
-        pixels = check_frames(pixels, "pixels")
+        """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]`` (or floats in ``[0, 1]``),
+        int ``[*B, 1]`` -> uint8 ``[*B, 3, 16, 16]``."""
+        pixels = frames_to_uint8(pixels, "pixels")
         shape = pixels.shape[:-3]
         action = check_planning_action(action, self.num_actions, shape)
         flat_pixels = pixels.reshape(-1, *_FRAME)

@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import torch
 
-from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
+from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, colour_codes, paint_layers
 from dorp_rl.validation import check_int
 
 #: Block colours in object order (the authors' first five, then two more).
@@ -312,6 +312,26 @@ class ObjectRearrangementEnv(GridWorldEnv):
             words = words.sum(1)
         frames = words.reshape(-1).view(torch.uint8)
         return frames.view(*state.shape[:-2], 3, GRID_SIZE, GRID_SIZE)
+
+    def states_from_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        """int64 ``[*B, k, 2]``: the first row and column holding each block's colour.
+
+        A block whose colour is missing reads as (0, 0); :meth:`invalid_frames` then finds
+        that the frame is no render of the state read.
+        """
+        codes = colour_codes(frames.to(self.device))  # [*B, 16, 16]
+        mine = colour_codes(self.colours.t().reshape(3, -1, 1)).reshape(-1, 1, 1)  # [k, 1, 1]
+        masks = codes.unsqueeze(-3) == mine  # [*B, k, 16, 16]
+        rows = masks.any(-1).to(torch.int64).argmax(-1)
+        cols = masks.any(-2).to(torch.int64).argmax(-1)
+        return torch.stack([rows, cols], -1)
+
+    def frame_colours(self) -> torch.Tensor:
+        """uint8 ``[k + 1, 3]``: black, then the blocks' colours."""
+        return torch.cat([self.colours.new_zeros(1, 3), self.colours])
+
+    def describe_world(self) -> str:
+        return f"{type(self).__name__} with {self.num_objects} object(s)"
 
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Sum over blocks of the Manhattan distance to the goal corner."""

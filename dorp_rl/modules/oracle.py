@@ -18,8 +18,7 @@ from torch import nn
 from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
 from dorp_rl.envs.key_rooms import AGENT_COLOUR, KEY_COLOUR, KeyRoomEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
-from dorp_rl.modules.encoder import check_pixels
-from dorp_rl.validation import check_int
+from dorp_rl.validation import check_int, frames_to_uint8
 
 
 class OracleCodeEncoder(nn.Module):
@@ -27,8 +26,8 @@ class OracleCodeEncoder(nn.Module):
 
     Rearrangement: one one-hot per block, ``code = (row // s) * ceil(16 / s) + col // s``
     for the block's top-left cell and ``s = cell_size``. Key rooms: the agent's region the
-    same way, and a 2-way key bit (1 once the key is taken). Frames must be uint8 renders
-    of ``env``'s kind.
+    same way, and a 2-way key bit (1 once the key is taken). Frames must be renders of
+    ``env``'s kind: uint8, or floats in ``[0, 1]`` (read as ``round(255 x)``).
 
     Args:
         env: the environment whose frames are encoded (its colours and object count).
@@ -67,10 +66,7 @@ class OracleCodeEncoder(nn.Module):
         self.register_buffer("colours", colours)
 
     def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        check_pixels(pixels)
-        if pixels.dtype != torch.uint8:
-            raise ValueError(f"OracleCodeEncoder needs uint8 frames, got {pixels.dtype}.")
-        frames = pixels.to(torch.int64)  # [*B, 3, H, W]
+        frames = frames_to_uint8(pixels).to(torch.int64)  # [*B, 3, H, W]
         colours = self.colours.to(frames.device)
         masks = (frames.unsqueeze(-4) == colours.view(-1, 3, 1, 1)).all(-3)  # [*B, K, H, W]
         rows = masks.any(-1).to(torch.int64).argmax(-1)  # first row holding the colour

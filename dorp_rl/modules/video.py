@@ -43,7 +43,16 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from dorp_rl.config import ConfigMixin
-from dorp_rl.validation import Choice, Flag, Float, Int, Ints, check_action, check_frames, check_int
+from dorp_rl.validation import (
+    Choice,
+    Flag,
+    Float,
+    Int,
+    Ints,
+    check_action,
+    check_int,
+    frames_to_uint8,
+)
 
 FRAME_SHAPE = (3, 16, 16)
 
@@ -76,7 +85,7 @@ def palette_from_frames(frames: torch.Tensor, max_colours: int = 64) -> torch.Te
         >>> palette_from_frames(frames).tolist()
         [[0, 0, 0], [255, 0, 0]]
     """
-    frames = check_frames(frames, "frames", size=None)
+    frames = frames_to_uint8(frames, "frames", size=None)
     codes = _pack_rgb(frames.movedim(-3, -1).reshape(-1, 3)).unique()
     if codes.numel() > max_colours:
         raise ValueError(
@@ -299,7 +308,9 @@ class VideoPredictionModel(nn.Module):
 
     # ------------------------------------------------------------------ checks
     def _check_pixels(self, pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
-        return check_frames(pixels, name, lead="N")
+        """Frames ``[N, 3, 16, 16]`` as uint8: uint8 ones as they are, floats in ``[0, 1]``
+        (any precision) scaled by 255 and rounded (palette colours are exact bytes)."""
+        return frames_to_uint8(pixels, name, lead="N")
 
     def _check_action(
         self, action: torch.Tensor, shape: tuple[int, ...], name: str = "action"
@@ -474,7 +485,7 @@ class VideoPredictionModel(nn.Module):
         """Per-pixel palette logits of the next frame.
 
         Args:
-            pixels: uint8 ``[N, 3, 16, 16]``, the current frames.
+            pixels: the current frames ``[N, 3, 16, 16]``: uint8, or floats in ``[0, 1]``.
             action: int64 ``[N, 1]`` in ``[0, num_actions)``.
             z: float ``[N, D]`` latent; ``None`` uses the prior mean (deterministic mode).
 
@@ -498,10 +509,10 @@ class VideoPredictionModel(nn.Module):
         deterministic: bool = True,
         generator: torch.Generator | None = None,
     ) -> torch.Tensor:
-        """The next frames: uint8 ``[N, 3, 16, 16]`` and int64 ``[N, 1]`` -> uint8 ``[N, 3, 16, 16]``.
+        """The next frames: ``[N, 3, 16, 16]`` and int64 ``[N, 1]`` -> uint8 ``[N, 3, 16, 16]``.
 
         Args:
-            pixels: current frames.
+            pixels: current frames: uint8, or floats in ``[0, 1]`` (any precision).
             action: one action per frame, in ``[0, num_actions)``.
             deterministic: use the prior mean of ``z`` (else draw ``z`` from the prior).
             generator: random generator for the draws (default: torch's global one).

@@ -86,7 +86,7 @@ from dorp_rl.planners.costs import (
     RolloutCost,
     check_step_aggregation,
 )
-from dorp_rl.validation import check_int, check_seed
+from dorp_rl.validation import check_int, check_seed, check_task_frames
 
 __all__ = [
     "EXECUTIONS",
@@ -232,6 +232,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 )
         self._env_in_keys = self._env_input_keys()
         self.in_keys = list(dict.fromkeys([*self._env_in_keys, *self._root_keys, *self.state_keys]))
+        self._frame_keys = self._find_frame_keys()
         self.out_keys = [self.action_key, *self.state_keys]
         self.generator = torch.Generator(device=env.device)
         self.set_seed(seed)
@@ -296,6 +297,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         batch = td.batch_size
         flat = td.reshape(-1) if td.batch_dims != 1 else td
         self._check_inputs(flat)
+        flat = self._checked_frames(flat)
         rows = flat.batch_size[0]
         device = self.generator.device
         h = self.planning_horizon
@@ -528,6 +530,46 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                     "(e.g. another number of objects). Build the planning env from the "
                     "acting env."
                 )
+
+    def _find_frame_keys(self) -> list[NestedKey]:
+        """Root keys read as frames: the planning env's uint8 image observations the
+        planner reads, and the keys its cost declares (``root_frame_keys``: a goal image,
+        the start frame)."""
+        spec = self.env.full_observation_spec
+        keys = [
+            key
+            for key in spec.keys(True, True)
+            if key in self.in_keys and spec[key].dtype == torch.uint8 and len(spec[key].shape) >= 3
+        ]
+        modules = self.cost.modules() if isinstance(self.cost, nn.Module) else [self.cost]
+        for module in modules:
+            keys += [unravel_key(k) for k in getattr(module, "root_frame_keys", ())]
+        return [k for k in dict.fromkeys(keys) if not (isinstance(k, tuple) and k[0] == "next")]
+
+    def _checked_frames(self, flat: TensorDictBase) -> TensorDictBase:
+        """The acting rows with their frames checked (:func:`~dorp_rl.validation.check_task_frames`
+        against the planning env) and float frames in ``[0, 1]`` turned into uint8.
+
+        Once per call, before any rollout: a goal image of another environment, an
+        all-black or NaN frame, or float frames in 0..255 are refused instead of planned
+        with. Converted frames go into a shallow copy (the caller's tensordict is left as
+        given), so the costs and the planning env see uint8 frames whatever the input.
+        """
+        rows = flat.batch_size[0]
+        converted = {}
+        for key in self._frame_keys:
+            value = flat.get(key, None)
+            if not isinstance(value, torch.Tensor):
+                continue
+            frames = check_task_frames(value, str(key), self.env, lead=(rows,), spec_key=key)
+            if frames is not value:
+                converted[key] = frames.to(value.device)
+        if not converted:
+            return flat
+        flat = flat.copy()
+        for key, frames in converted.items():
+            flat.set(key, frames)
+        return flat
 
     def _check_cost_keys(self, td: TensorDictBase) -> None:
         present = set(td.keys(True, True))

@@ -51,6 +51,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
+from dorp_rl.validation import check_float, check_int
 
 __all__ = [
     "STEP_AGGREGATIONS",
@@ -151,6 +152,9 @@ class RolloutCost(TensorDictModuleBase):
         self.in_keys = []
         self.out_keys = [self.out_key]
         self.step_aggregation = check_step_aggregation(step_aggregation)
+        #: root keys the cost reads as frames (a goal image, the start frame): planners
+        #: check them against the planning env once per call and hand them over as uint8
+        self.root_frame_keys: list[NestedKey] = []
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         """The per-step cost, float ``[*B, N, H]``, of a rollout ``[*B, N, H]``."""
@@ -241,11 +245,15 @@ class PixelDistanceCost(RolloutCost):
         blur_sigmas: Sequence[float] = (),
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
-        if int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
-        sigmas = [float(x) for x in blur_sigmas]
-        if any(not math.isfinite(x) or x <= 0 for x in sigmas):
-            raise ValueError(f"blur_sigmas must be positive widths, got {list(blur_sigmas)}.")
+        chunk_size = check_int("chunk_size", chunk_size, low=1)
+        if isinstance(blur_sigmas, (str, bytes)) or not isinstance(blur_sigmas, Sequence):
+            raise ValueError(
+                f"blur_sigmas must be a sequence of positive widths, got {blur_sigmas!r}."
+            )
+        sigmas = [
+            check_float(f"blur_sigmas[{i}]", x, low=0.0, low_open=True)
+            for i, x in enumerate(blur_sigmas)
+        ]
         self.blur_sigmas = tuple(sigmas)
         for i, sigma in enumerate(sigmas):
             radius = min(15, math.ceil(3 * sigma))
@@ -255,6 +263,7 @@ class PixelDistanceCost(RolloutCost):
         self.pixels_key = unravel_key(pixels_key)
         self.chunk_size = int(chunk_size)
         self.in_keys = [self.pixels_key, self.goal_key]
+        self.root_frame_keys = [self.goal_key]
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         return self._per_step_cost(rollout, None)
@@ -539,24 +548,22 @@ class CodeMatchCost(RolloutCost):
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         if not callable(encoder):
             raise ValueError(f"encoder must be callable, got {type(encoder).__name__}.")
-        if int(cache_size) < 0:
-            raise ValueError(f"cache_size must be >= 0, got {cache_size}.")
-        self.cache = _EncodingCache(int(cache_size))
-        if not 0.0 <= float(tie_break) < 0.5:
-            raise ValueError(f"tie_break must be in [0, 0.5), got {tie_break}.")
-        if int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
+        cache_size = check_int("cache_size", cache_size, low=0)
+        self.cache = _EncodingCache(cache_size)
+        self.tie_break = check_float("tie_break", tie_break, low=0.0, high=0.5, high_open=True)
+        chunk_size = check_int("chunk_size", chunk_size, low=1)
         self.encoder = encoder
         self.target_key = unravel_key(target_key)
         self.pixels_key = unravel_key(pixels_key)
         self.start_pixels_key = unravel_key(start_pixels_key)
-        self.tie_break = float(tie_break)
-        step_penalty = float(step_penalty)
-        if not 0.0 <= step_penalty < 0.02:
-            raise ValueError(
-                f"step_penalty must be in [0, 0.02) (so that a match at step 25 still costs "
-                f"less than 0.5), got {step_penalty}."
+        try:
+            step_penalty = check_float(
+                "step_penalty", step_penalty, low=0.0, high=0.02, high_open=True
             )
+        except ValueError as err:
+            raise ValueError(
+                f"{err} (so that a match at step 25 still costs less than 0.5)"
+            ) from None
         self.step_penalty = step_penalty
         self.chunk_size = int(chunk_size)
         self.onehots_key: NestedKey | None = None
@@ -566,13 +573,35 @@ class CodeMatchCost(RolloutCost):
         ):
             self.onehots_key = unravel_key(onehots)
         elif onehots is not None:
-            self.onehots = [int(i) for i in onehots]
-            if not self.onehots:
-                raise ValueError("onehots must name at least one one-hot (or be None for all).")
+            self.onehots = self._check_onehots(onehots, encoder)
         in_keys = [self.pixels_key, self.start_pixels_key, self.target_key]
         if self.onehots_key is not None:
             in_keys.append(self.onehots_key)
         self.in_keys = in_keys
+        self.root_frame_keys = [self.start_pixels_key]
+
+    @staticmethod
+    def _check_onehots(onehots: Sequence[int], encoder: nn.Module) -> list[int]:
+        """``onehots`` as distinct indices of the encoder's one-hots (its ``code_sizes``)."""
+        if isinstance(onehots, (str, bytes)) or not isinstance(onehots, Sequence):
+            raise ValueError(
+                f"onehots must be None, a sequence of one-hot indices or a mask key, got "
+                f"{onehots!r}."
+            )
+        sizes = getattr(encoder, "code_sizes", None)
+        count = len(sizes) if sizes is not None else None
+        high = None if count is None else count - 1
+        chosen = [check_int(f"onehots[{i}]", v, low=0) for i, v in enumerate(onehots)]
+        if not chosen:
+            raise ValueError("onehots must name at least one one-hot (or be None for all).")
+        if high is not None and any(i > high for i in chosen):
+            raise ValueError(
+                f"onehots must be indices of the encoder's {count} one-hot(s) (0 to {high}, "
+                f"code_sizes {tuple(sizes)}), got {tuple(onehots)}."
+            )
+        if len(set(chosen)) != len(chosen):
+            raise ValueError(f"onehots must name each one-hot once, got {tuple(onehots)}.")
+        return chosen
 
     @torch.no_grad()
     def _encode(
@@ -794,7 +823,11 @@ class WeightedCostSum(RolloutCost):
             if isinstance(weight, (str, tuple)):
                 self.weights[key] = unravel_key(weight)
                 continue
-            if not isinstance(weight, (int, float)) or not math.isfinite(float(weight)):
+            if (
+                isinstance(weight, bool)
+                or not isinstance(weight, (int, float))
+                or not math.isfinite(float(weight))
+            ):
                 raise ValueError(
                     f"the weight of {key!r} must be a finite number or the key of a per-row "
                     f"weight, got {weight!r}."
@@ -836,8 +869,15 @@ class WeightedCostSum(RolloutCost):
 class NegativeRewardCost(RolloutCost):
     """Minus the planning env's reward at each step (for reward-defining model envs).
 
+    Rewards after the first ``done`` of a candidate do not count (cost 0), as in
+    torchrl's own ``CEMPlanner`` and ``MPPIPlanner``: the imagined rollout runs for the
+    whole horizon, but an episode that ended earns nothing more. The reward of the step
+    that sets ``done`` counts.
+
     Args:
         reward_key: the reward in the rollout, ``[*B, N, H]`` or ``[*B, N, H, 1]``.
+        done_key: the done flag in the rollout (same shapes); ``None``: the planning env
+            never ends an episode and every reward counts.
         out_key: where the per-step cost ``[*B, N, H]`` is written.
         step_aggregation: how planners fold the steps (default ``"sum"``: the return).
 
@@ -845,25 +885,39 @@ class NegativeRewardCost(RolloutCost):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from dorp_rl.planners import NegativeRewardCost
-        >>> rollout = TensorDict({("next", "reward"): torch.ones(2, 5, 4, 1)}, batch_size=(2, 5, 4))
+        >>> done = torch.tensor([False, True, False, False]).expand(2, 5, 4).unsqueeze(-1)
+        >>> rollout = TensorDict(
+        ...     {("next", "reward"): torch.ones(2, 5, 4, 1), ("next", "done"): done},
+        ...     batch_size=(2, 5, 4),
+        ... )
         >>> NegativeRewardCost()(rollout)["cost"][0, 0]
-        tensor([-1., -1., -1., -1.])
+        tensor([-1., -1.,  0.,  0.])
     """
 
     def __init__(
         self,
         reward_key: NestedKey = ("next", "reward"),
         *,
+        done_key: NestedKey | None = ("next", "done"),
         out_key: NestedKey = "cost",
         step_aggregation: str = "sum",
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         self.reward_key = unravel_key(reward_key)
-        self.in_keys = [self.reward_key]
+        self.done_key = None if done_key is None else unravel_key(done_key)
+        self.in_keys = [self.reward_key] + ([] if self.done_key is None else [self.done_key])
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
-        reward = get_rollout_key(rollout, self.reward_key, type(self).__name__)
-        return -reward.reshape(rollout.batch_size).to(torch.float32)
+        name = type(self).__name__
+        reward = get_rollout_key(rollout, self.reward_key, name)
+        cost = -reward.reshape(rollout.batch_size).to(torch.float32)
+        if self.done_key is not None:
+            done = get_rollout_key(rollout, self.done_key, name)
+            done = done.reshape(rollout.batch_size).to(torch.int64)
+            # Steps after the first done along the horizon (the last batch dimension).
+            ended = done.cumsum(-1) > done
+            cost = cost.masked_fill(ended, 0.0)
+        return cost
 
     def extra_repr(self) -> str:
-        return f"reward_key={self.reward_key!r}, {super().extra_repr()}"
+        return f"reward_key={self.reward_key!r}, done_key={self.done_key!r}, {super().extra_repr()}"

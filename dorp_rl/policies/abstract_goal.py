@@ -81,7 +81,17 @@ from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.planners.costs import CodeMatchCost, PixelDistanceCost, WeightedCostSum
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
-from dorp_rl.validation import MissingKeyError, check_frames
+from dorp_rl.validation import (
+    MissingKeyError,
+    check_bool,
+    check_float,
+    check_int,
+    check_keywords,
+    check_seed,
+    check_task_frames,
+    derive_seed,
+    keyword_names,
+)
 
 #: Values of ``dorp_mode``.
 MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
@@ -233,10 +243,16 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 f"the goal planner's cost must read {goal_pixels_key!r} (PixelDistanceCost); "
                 f"it reads {goal_planner.in_keys}."
             )
-        if int(waypoint_budget) != waypoint_budget or int(waypoint_budget) < 1:
-            raise ValueError(f"waypoint_budget must be an integer >= 1, got {waypoint_budget}.")
-        if int(max_removed_edges) != max_removed_edges or int(max_removed_edges) < 0:
-            raise ValueError(f"max_removed_edges must be an integer >= 0, got {max_removed_edges}.")
+        waypoint_budget = check_int("waypoint_budget", waypoint_budget, low=1)
+        max_removed_edges = check_int("max_removed_edges", max_removed_edges, low=0)
+        goal_budget = check_int("goal_budget", goal_budget, low=1, optional=True)
+        max_misses = check_int("max_misses", max_misses, low=1, optional=True)
+        miss_threshold = check_float("miss_threshold", miss_threshold)
+        forget_blocked_edges = check_bool("forget_blocked_edges", forget_blocked_edges)
+        max_reentries = check_int("max_reentries", max_reentries, low=0)
+        replan_on_miss = check_bool("replan_on_miss", replan_on_miss)
+        goal_code_weight = check_float("goal_code_weight", goal_code_weight, low=0.0, optional=True)
+        goal_patience = check_int("goal_patience", goal_patience, low=1, optional=True)
         if isinstance(order, str):
             if order not in ORDERS:
                 raise ValueError(f"order must be one of {ORDERS} or group indices, got {order!r}.")
@@ -252,23 +268,19 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.graph = graph
         self.waypoint_planner = waypoint_planner
         self.goal_planner = goal_planner
-        if goal_budget is not None and (int(goal_budget) != goal_budget or goal_budget < 1):
-            raise ValueError(f"goal_budget must be an integer >= 1 or None, got {goal_budget}.")
-        self.waypoint_budget = int(waypoint_budget)
-        self.goal_budget = None if goal_budget is None else int(goal_budget)
-        if max_misses is not None and (int(max_misses) != max_misses or max_misses < 1):
-            raise ValueError(f"max_misses must be an integer >= 1 or None, got {max_misses}.")
-        self.max_misses = None if max_misses is None else int(max_misses)
-        self.miss_threshold = float(miss_threshold)
-        self.forget_blocked_edges = bool(forget_blocked_edges)
-        if reenter not in (True, False, "goal"):
+        self.waypoint_budget = waypoint_budget
+        self.goal_budget = goal_budget
+        self.max_misses = max_misses
+        self.miss_threshold = miss_threshold
+        self.forget_blocked_edges = forget_blocked_edges
+        if isinstance(reenter, bool) or type(reenter).__name__ == "bool_":
+            reenter = bool(reenter)
+        elif reenter != "goal":
             raise ValueError(f"reenter must be True, False or 'goal', got {reenter!r}.")
         self.reenter = reenter
         self._reenter_hops = reenter is True
-        if int(max_reentries) != max_reentries or int(max_reentries) < 0:
-            raise ValueError(f"max_reentries must be an integer >= 0, got {max_reentries}.")
-        self.max_reentries = int(max_reentries)
-        self.replan_on_miss = bool(replan_on_miss)
+        self.max_reentries = max_reentries
+        self.replan_on_miss = replan_on_miss
         reads_weight = "goal_code_weight" in goal_planner.in_keys
         if goal_code_weight is not None and not reads_weight:
             raise ValueError(
@@ -281,13 +293,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 "the goal planner's cost reads 'goal_code_weight': give goal_code_weight, "
                 "the weight the policy writes there."
             )
-        if goal_patience is not None:
-            if int(goal_patience) != goal_patience or goal_patience < 1:
-                raise ValueError(
-                    f"goal_patience must be an integer >= 1 or None, got {goal_patience}."
-                )
-            if goal_code_weight is None:
-                goal_patience = None  # nothing to relax
+        if goal_patience is not None and goal_code_weight is None:
+            goal_patience = None  # nothing to relax
         self.goal_code_weight = None if goal_code_weight is None else float(goal_code_weight)
         self.goal_patience = None if goal_patience is None else int(goal_patience)
         self.max_removed_edges = int(max_removed_edges)
@@ -390,8 +397,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
 
     def set_seed(self, seed: int | None) -> None:
         """Reseeds both planners (the goal planner with ``seed + 1``)."""
+        seed = check_seed(seed, optional=True)
         self.waypoint_planner.set_seed(seed)
-        self.goal_planner.set_seed(None if seed is None else seed + 1)
+        self.goal_planner.set_seed(None if seed is None else derive_seed(seed, 1))
 
     # ------------------------------------------------------------------ #
     # Acting
@@ -495,6 +503,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             index = rows_mask.nonzero().squeeze(-1)
             if index.numel():
                 sub = flat[index.to(flat.device)].clone(False)
+                # The checked uint8 frames (float frames in [0, 1] converted once, here).
+                sub.set(self.pixels_key, pixels[index].to(flat.device))
+                sub.set(self.goal_pixels_key, goal_pixels[index].to(flat.device))
                 for key in (
                     "code",
                     "goal_code",
@@ -809,12 +820,16 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         return code.to(torch.int64).cpu()
 
     def _frames(self, td: TensorDictBase, key: str) -> torch.Tensor:
+        """The frames under ``key`` as uint8 ``[rows, 3, 16, 16]`` on the CPU, checked once per
+        call against the planning env (:func:`~dorp_rl.validation.check_task_frames`)."""
         value = td.get(key, None)
         if value is None:
             raise MissingKeyError(
-                f"AbstractGoalPolicy needs {key!r} in the tensordict (uint8 [*B, 3, 16, 16])."
+                f"AbstractGoalPolicy needs {key!r} in the tensordict (uint8 [*B, 3, 16, 16], or "
+                "floats in [0, 1])."
             )
-        return check_frames(value, key, lead=tuple(td.batch_size)).cpu()
+        env = self.waypoint_planner.env
+        return check_task_frames(value, key, env, lead=tuple(td.batch_size)).cpu()
 
     def _read(self, td: TensorDictBase, key: str) -> torch.Tensor:
         rows = td.batch_size[0]
@@ -888,8 +903,7 @@ def make_waypoint_cost(
         >>> type(cost).__name__
         'TensorDictSequential'
     """
-    if waypoint_goal_weight < 0:
-        raise ValueError(f"waypoint_goal_weight must be >= 0, got {waypoint_goal_weight}.")
+    waypoint_goal_weight = check_float("waypoint_goal_weight", waypoint_goal_weight, low=0.0)
     alone = waypoint_goal_weight == 0
     code_cost = CodeMatchCost(
         encoder,
@@ -1002,6 +1016,17 @@ def make_dorp_policy(
     """
     from dorp_rl.trainers import load_encoder, load_video_model
 
+    seed = check_seed(seed, optional=True)
+    goal_code_weight = check_float("goal_code_weight", goal_code_weight, low=0.0)
+    waypoint_goal_weight = check_float(
+        "waypoint_goal_weight", waypoint_goal_weight, low=0.0, optional=True
+    )
+    # The planners' own keywords, less those this function sets itself.
+    passed_on = (
+        set(keyword_names(RandomShootingPlanner)) | set(keyword_names(CategoricalCEMPlanner))
+    ) - {"env", "cost", "execution", "key_prefix", "seed", "action_persistence"}
+    passed_on -= {"planning_horizon", "num_candidates", "action_repeat"}
+    check_keywords(planner_kwargs, passed_on, "make_dorp_policy (for its planners)")
     if reenter is None:
         reenter = isinstance(env, KeyRoomEnv)
     if replan_on_miss is None:
@@ -1091,7 +1116,7 @@ def make_dorp_policy(
         planning_env,
         goal_cost,
         **shape,
-        seed=None if seed is None else seed + 1,
+        seed=None if seed is None else derive_seed(seed, 1),
         key_prefix="goal_planner_",
         **shared,
         **(cem_only if goal_kind == "cem" else rs_only),

@@ -20,6 +20,7 @@ from dorp_rl.planners.base import DiscreteMPCPlanner
 from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.costs import PixelDistanceCost
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
+from dorp_rl.validation import check_keywords, keyword_names
 
 #: Defaults of each variant (the paper: 1000 sequences of 14 steps; CEM top 2 % = 20
 #: elites, 3 optimisation steps).
@@ -90,9 +91,11 @@ class VisualForesightPolicy(TensorDictModuleBase):
         if variant not in VARIANT_DEFAULTS:
             raise ValueError(f"variant must be one of {sorted(VARIANT_DEFAULTS)}, got {variant!r}.")
         self.variant = variant
+        planner_cls = RandomShootingPlanner if variant == "rs" else CategoricalCEMPlanner
+        accepted = set(keyword_names(planner_cls)) - {"env", "cost"}
+        check_keywords(planner_kwargs, accepted, f"VisualForesightPolicy({variant!r})")
         kwargs = {**VARIANT_DEFAULTS[variant], **planner_kwargs}
         cost = PixelDistanceCost(goal_key=goal_key, step_aggregation=step_aggregation)
-        planner_cls = RandomShootingPlanner if variant == "rs" else CategoricalCEMPlanner
         self.planner: DiscreteMPCPlanner = planner_cls(planning_env, cost, **kwargs)
         self.in_keys = list(self.planner.in_keys)
         self.out_keys = list(self.planner.out_keys)
