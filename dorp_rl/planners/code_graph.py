@@ -33,8 +33,9 @@ Edge removal
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,12 +43,134 @@ import torch
 from torch import nn
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
+from dorp_rl.config import ConfigMixin, config_differences, format_differences
+from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.progress import progress_bar
+from dorp_rl.validation import Int, Ints, check_int
 
 #: Groups of at most this many nodes get a dense all-pairs distance table.
 DEFAULT_DENSE_LIMIT = 1024
 _UNREACHABLE = -1
+
+
+def _index_groups(name: str, value: Any) -> tuple[tuple[int, ...], ...]:
+    """Rule of :attr:`CodeGraphConfig.groups`: a sequence of sequences of one-hot indices."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        raise ValueError(f"{name} must be a list of index groups, got {value!r}.")
+    return tuple(Ints(low=0, min_length=0)(f"{name}[{g}]", group) for g, group in enumerate(value))
+
+
+def _fingerprint(name: str, value: Any) -> str:
+    """Rule of :attr:`CodeGraphConfig.fingerprint`: a string (``""``: unknown encoder)."""
+    if not isinstance(value, str):
+        raise ValueError(f"{name} must be a string, got {value!r}.")
+    return value
+
+
+@dataclasses.dataclass
+class CodeGraphConfig(ConfigMixin):
+    """What a saved :class:`CodeGraph` stores besides its tensors (:meth:`CodeGraph.config`).
+
+    A config dict with a field this class lacks (a file of another version, or edited)
+    is refused by :meth:`~dorp_rl.config.ConfigMixin.from_dict`, as encoder and
+    world-model checkpoints refuse theirs.
+    """
+
+    FIELD_RULES = {
+        "code_sizes": Ints(low=1),
+        "groups": _index_groups,
+        "fingerprint": _fingerprint,
+        "dense_limit": Int(low=0),
+    }
+
+    code_sizes: tuple[int, ...]
+    """codes per one-hot"""
+    groups: tuple[tuple[int, ...], ...]
+    """one-hot indices of every group"""
+    fingerprint: str = ""
+    """:func:`encoder_fingerprint` of the encoder that made the codes (``""``: unknown)"""
+    dense_limit: int = DEFAULT_DENSE_LIMIT
+    """groups with at most this many nodes get a distance table"""
+
+
+def _describe_env(env_config: Mapping[str, Any]) -> str:
+    """``"ObjectRearrangementEnv with num_objects=2"``, ``"KeyWallEnv"``: an env config, short."""
+    name = str(env_config.get("env", "an unnamed environment"))
+    if "num_objects" in env_config:
+        return f"{name} with num_objects={env_config['num_objects']}"
+    return name
+
+
+def _expected_code_layout(env_config: Mapping[str, Any]) -> tuple[int, str] | None:
+    """One-hots the codes of an env's frames have, and what they are (``None``: unknown env).
+
+    The library's encoders (trained, :class:`~dorp_rl.modules.OracleCodeEncoder`) give
+    one one-hot per block in rearrangement, and an agent one-hot plus a 2-way key bit in
+    the key rooms (whose config names their ``layout``).
+    """
+    if "num_objects" in env_config:
+        k = env_config["num_objects"]
+        return (k, f"{k} one-hot(s), one per object") if isinstance(k, int) else None
+    if "layout" in env_config:
+        return 2, "an agent one-hot and a 2-way key bit"
+    return None
+
+
+def _encoder_setting(sizes: tuple[int, ...]) -> str:
+    """The setting a code layout belongs to, in words (for error messages)."""
+    if len(sizes) == 2 and sizes[1] == 2:
+        return "a key room (an agent one-hot and a 2-way key bit) or 2-object rearrangement"
+    return f"ObjectRearrangementEnv with num_objects={len(sizes)}"
+
+
+def check_encoder_fits_play_data(buffer: Any, encoder: nn.Module) -> None:
+    """Refuses an encoder made for another environment than the one of ``buffer``'s play data.
+
+    The play data's environment is the ``env_config`` of ``buffer.metadata``
+    (:func:`~dorp_rl.data.collect_play_data`, :func:`~dorp_rl.data.load_play_data`). An
+    encoder that records its own (an ``env_config`` attribute) must record the same
+    environment; any encoder must give the code layout of that environment (one one-hot
+    per object in rearrangement, an agent one-hot and a 2-way key bit in the key rooms):
+    a 1-object encoder's codes of 2-object frames would build a graph of nothing.
+    Buffers without metadata (a TensorDict of transitions) are not checked.
+
+    Raises:
+        ValueError: naming both environments.
+    """
+    metadata = getattr(buffer, "metadata", None)
+    play = metadata.get("env_config") if isinstance(metadata, Mapping) else None
+    if not isinstance(play, Mapping):
+        return
+    own = getattr(encoder, "env_config", None)
+    if isinstance(own, Mapping):
+        diff = config_differences(dict(own), dict(play))
+        if diff:
+            raise ValueError(
+                f"the encoder was trained on {_describe_env(own)}, but the play data come "
+                f"from {_describe_env(play)} ({format_differences(diff, 'encoder', 'play data')}"
+                "): use an encoder trained on the play data's environment."
+            )
+    layout = _expected_code_layout(play)
+    sizes = tuple(int(z) for z in encoder.code_sizes)
+    if layout is None:
+        return
+    count, what = layout
+    key_room = "layout" in play
+    fits = len(sizes) == count and (not key_room or sizes[1] == 2)
+    key_bit = getattr(encoder, "has_key_bit", None)  # the oracle says what it encodes
+    if fits and isinstance(key_bit, bool) and key_bit != key_room:
+        setting = "a key room" if key_bit else f"ObjectRearrangementEnv with num_objects={count}"
+        raise ValueError(
+            f"the encoder encodes frames of {setting}, but the play data come from "
+            f"{_describe_env(play)}: use an encoder made for the play data's environment."
+        )
+    if not fits:
+        raise ValueError(
+            f"the encoder gives codes of sizes {sizes}, the codes of {_encoder_setting(sizes)}, "
+            f"but the play data come from {_describe_env(play)}, whose codes are {what}: "
+            "use an encoder trained on the play data's environment."
+        )
 
 
 def encoder_fingerprint(encoder: nn.Module) -> str:
@@ -119,19 +242,20 @@ def encode_transitions(
             ``[N]`` holding ``pixels`` and ``("next", "pixels")``.
         encoder: a :class:`~dorp_rl.modules.DiscreteCodeEncoder` (``encode`` and
             ``code_sizes``), run in eval mode.
-        chunk_size: transitions encoded at a time.
+        chunk_size: transitions encoded at a time (an integer >= 1).
         progress: show a tqdm bar.
 
     Returns:
         ``(codes, next_codes)``, the codes of ``pixels`` and of ``("next", "pixels")``.
+
+    Raises:
+        ValueError: a bad ``chunk_size``, an object that is no encoder, an encoder made
+            for another environment than the play data's
+            (:func:`check_encoder_fits_play_data`), an empty buffer or missing frames.
     """
-    if getattr(encoder, "code_sizes", None) is None or not callable(
-        getattr(encoder, "encode", None)
-    ):
-        raise ValueError(
-            f"encoder must have code_sizes and encode() (a DiscreteCodeEncoder), got "
-            f"{type(encoder).__name__}."
-        )
+    chunk_size = check_int("chunk_size", chunk_size, low=1)
+    _check_is_encoder(encoder)
+    check_encoder_fits_play_data(buffer, encoder)
     storage = getattr(buffer, "storage", None)
     n = len(buffer)
     if n < 1:
@@ -155,6 +279,16 @@ def encode_transitions(
     if bar is not None:
         bar.close()
     return torch.cat(codes), torch.cat(next_codes)
+
+
+def _check_is_encoder(encoder: Any) -> None:
+    if getattr(encoder, "code_sizes", None) is None or not callable(
+        getattr(encoder, "encode", None)
+    ):
+        raise ValueError(
+            f"encoder must have code_sizes and encode() (a DiscreteCodeEncoder), got "
+            f"{type(encoder).__name__}."
+        )
 
 
 class CodeGraph(nn.Module):
@@ -205,14 +339,16 @@ class CodeGraph(nn.Module):
         dense_limit: int = DEFAULT_DENSE_LIMIT,
     ) -> None:
         super().__init__()
-        sizes = [int(z) for z in code_sizes]
-        if not sizes or min(sizes) < 1:
-            raise ValueError(f"code_sizes must be a non-empty list of sizes >= 1, got {sizes}.")
+        sizes = list(Ints(low=1)("code_sizes", code_sizes))
         self.code_sizes = tuple(sizes)
         self.groups = resolve_groups(groups, len(sizes))
-        self.fingerprint = str(fingerprint)
+        self.fingerprint = _fingerprint("fingerprint", fingerprint)
+        if env_config is not None and not isinstance(env_config, Mapping):
+            raise ValueError(
+                f"env_config must be a dict (env.config()) or None, got {env_config!r}."
+            )
         self.env_config = dict(env_config) if env_config is not None else None
-        self.dense_limit = int(dense_limit)
+        self.dense_limit = check_int("dense_limit", dense_limit, low=0)
         g = len(self.groups)
         members = torch.full((g, max(len(m) for m in self.groups)), -1, dtype=torch.int64)
         radix = torch.zeros_like(members)
@@ -391,8 +527,14 @@ class CodeGraph(nn.Module):
 
         Raises:
             ValueError: ``transitions`` that do not hold one code pair per transition of
-                ``buffer`` with the encoder's one-hots.
+                ``buffer`` with the encoder's one-hots, a ``chunk_size`` that is not an
+                integer >= 1, or an encoder made for another environment than the play
+                data's (:func:`check_encoder_fits_play_data`; the message names both).
         """
+        chunk_size = check_int("chunk_size", chunk_size, low=1)
+        dense_limit = check_int("dense_limit", dense_limit, low=0)
+        _check_is_encoder(encoder)
+        check_encoder_fits_play_data(buffer, encoder)
         if transitions is None:
             codes, next_codes = encode_transitions(
                 buffer, encoder, chunk_size=chunk_size, progress=progress
@@ -426,15 +568,18 @@ class CodeGraph(nn.Module):
 
     def num_nodes(self, group: int) -> int:
         """Nodes (distinct codes seen) of ``group``."""
+        group = self._check_group(group)
         return self._offsets[group + 1] - self._offsets[group]
 
     def num_edges(self, group: int) -> int:
         """Undirected edges of ``group``."""
+        group = self._check_group(group)
         lo, hi = self._offsets[group], self._offsets[group + 1]
         return int(self.indptr[hi] - self.indptr[lo]) // 2
 
     def group_of(self, onehot: int) -> int:
-        """The group holding one-hot ``onehot``."""
+        """The group holding one-hot ``onehot`` (an integer in ``[0, C)``)."""
+        onehot = check_int("onehot", onehot, low=0, high=len(self.code_sizes) - 1)
         for g, members in enumerate(self.groups):
             if onehot in members:
                 return g
@@ -442,16 +587,26 @@ class CodeGraph(nn.Module):
 
     def group_keys(self, code: torch.Tensor, group: int) -> torch.Tensor:
         """Joint key ``[*B]`` of ``group``'s one-hots in codes ``[*B, C]``."""
+        return self._group_keys(self._check_code(code, "code"), self._check_group(group))
+
+    def _group_keys(self, code: torch.Tensor, group: int) -> torch.Tensor:
         members = self.groups[group]
         radix = self.group_radix[group, : len(members)]
         return (code[..., members].to(radix.device) * radix).sum(-1)
 
     def node_of(self, code: torch.Tensor, group: int) -> torch.Tensor:
-        """Global node id ``[*B]`` of codes ``[*B, C]`` in ``group``; -1 where never seen."""
-        code = self._check_code(code, "code")
+        """Global node id ``[*B]`` of codes ``[*B, C]`` in ``group``; -1 where never seen.
+
+        Raises:
+            ValueError: a ``group`` that is not an integer in ``[0, num_groups)``, or codes
+                that are not integers ``[*B, C]`` within :attr:`code_sizes`.
+        """
+        return self._node_of(self._check_code(code, "code"), self._check_group(group))
+
+    def _node_of(self, code: torch.Tensor, group: int) -> torch.Tensor:
         lo, hi = self._offsets[group], self._offsets[group + 1]
         keys = self.node_keys[lo:hi]
-        wanted = self.group_keys(code, group)
+        wanted = self._group_keys(code, group)
         if hi == lo:
             return torch.full_like(wanted, _UNREACHABLE)
         pos = torch.searchsorted(keys, wanted).clamp_max(hi - lo - 1)
@@ -460,7 +615,7 @@ class CodeGraph(nn.Module):
 
     def node_code(self, node: int | torch.Tensor) -> torch.Tensor:
         """Codes of the group's one-hots at global node ``node`` (int64 ``[len(group)]``)."""
-        node = int(node)
+        node = self._check_node(node, "node")
         group = self._group_of_node(node)
         members = self.groups[group]
         key = int(self.node_keys[node])
@@ -472,20 +627,19 @@ class CodeGraph(nn.Module):
 
     def neighbours(self, node: int) -> torch.Tensor:
         """Global ids of the nodes joined to ``node``."""
+        node = self._check_node(node, "node")
         return self.indices[self.indptr[node] : self.indptr[node + 1]]
 
     def edge_id(self, a: int, b: int) -> int:
         """Id of the directed edge ``a -> b`` (-1 if there is none)."""
+        a, b = self._check_node(a, "a"), self._check_node(b, "b")
         lo, hi = int(self.indptr[a]), int(self.indptr[a + 1])
         hits = (self.indices[lo:hi] == b).nonzero()
         return lo + int(hits[0]) if hits.numel() else _UNREACHABLE
 
     def group_of_edge(self, edge: int | torch.Tensor) -> torch.Tensor:
         """Group index of each edge id (any shape); -1 for the ``-1`` (no edge) entries."""
-        edge = torch.as_tensor(edge, dtype=torch.int64)
-        total = int(self.indices.shape[0])
-        if ((edge < -1) | (edge >= total)).any():
-            raise ValueError(f"edge ids must lie in -1..{total - 1}, got {edge.tolist()}.")
+        edge = self._check_edge_ids(edge, "edge")
         source = self.edge_source[edge.clamp(min=0)]
         offsets = torch.as_tensor(self._offsets[1:-1], dtype=torch.int64)
         group = torch.bucketize(source, offsets, right=True)
@@ -510,8 +664,11 @@ class CodeGraph(nn.Module):
         Returns:
             int64 ``[num_nodes(group)]``, indexed by ``node - node_offsets[group]``.
         """
+        goal = self._check_node(goal, "goal")
         group = self._group_of_node(goal)
         lo, hi = self._offsets[group], self._offsets[group + 1]
+        if stop_at is not None:
+            stop_at = self._check_node(stop_at, "stop_at", group)
         removed = self._removed(removed)
         table = self._table_offsets[group]
         if table >= 0 and removed.numel() == 0:
@@ -559,6 +716,7 @@ class CodeGraph(nn.Module):
             to ``goal``; ``(-1, -1, -1)`` when the goal cannot be reached, ``(node, -1,
             0)`` when ``node == goal``.
         """
+        node, goal = self._check_node(node, "node"), self._check_node(goal, "goal")
         if self._group_of_node(node) != self._group_of_node(goal):
             raise ValueError(f"nodes {node} and {goal} belong to different groups.")
         if node == goal:
@@ -596,11 +754,18 @@ class CodeGraph(nn.Module):
     ) -> list[int]:
         """Global node ids of a shortest path in ``group`` (start and goal included).
 
-        ``start`` and ``goal`` are codes ``[C]`` or global node ids. Returns ``[]`` when no
-        path exists (including when either code was never seen in the play data).
+        ``start`` and ``goal`` are codes ``[C]`` or global node ids of ``group``. Returns
+        ``[]`` when no path exists (including when either code was never seen in the play
+        data).
+
+        Raises:
+            ValueError: a ``group`` that is not an integer in ``[0, num_groups)``, a node id
+                that is not an integer node of ``group``, or a code outside
+                :attr:`code_sizes` (the message names the argument and its range).
         """
-        a = self._as_node(start, group)
-        b = self._as_node(goal, group)
+        group = self._check_group(group)
+        a = self._as_node(start, group, "start")
+        b = self._as_node(goal, group, "goal")
         if a < 0 or b < 0:
             return []
         removed = self._removed(removed)
@@ -617,13 +782,16 @@ class CodeGraph(nn.Module):
     # Persistence
     # ------------------------------------------------------------------ #
     def config(self) -> dict[str, Any]:
-        """What identifies this graph: code sizes, groups, encoder fingerprint, limits."""
-        return {
-            "code_sizes": list(self.code_sizes),
-            "groups": [list(g) for g in self.groups],
-            "fingerprint": self.fingerprint,
-            "dense_limit": self.dense_limit,
-        }
+        """What identifies this graph: code sizes, groups, encoder fingerprint, limits.
+
+        The :class:`CodeGraphConfig` fields, as plain lists and numbers.
+        """
+        return CodeGraphConfig(
+            code_sizes=self.code_sizes,
+            groups=tuple(tuple(g) for g in self.groups),
+            fingerprint=self.fingerprint,
+            dense_limit=self.dense_limit,
+        ).to_dict()
 
     def save(self, path: str | Path) -> Path:
         """Writes the graph with the library's checkpoint format (kind ``"code_graph"``)."""
@@ -653,29 +821,53 @@ class CodeGraph(nn.Module):
             env_config: if given, the play data must come from this environment.
 
         Raises:
-            ValueError: a corrupted file, another kind of checkpoint, another
-                environment, or another encoder (the message says which).
+            ValueError: a corrupted or incomplete file
+                (:class:`~dorp_rl.integrity.IntegrityError`), another kind of checkpoint,
+                a config with a field :class:`CodeGraphConfig` does not have (a file of
+                another version, or edited), another environment, or another encoder (the
+                message says which).
         """
         payload = load_checkpoint(path, kind="code_graph", env_config=env_config)
         cfg, state = payload["config"], payload["state"]
         names = ("node_keys", "node_offsets", "node_counts", "indptr", "indices", "edge_counts")
         missing = [k for k in names if k not in state]
-        if missing or not isinstance(cfg, dict) or "code_sizes" not in cfg:
-            raise ValueError(f"code graph {path} is incomplete: missing {missing or 'config'}.")
+        if not isinstance(cfg, dict):
+            missing.append("config")
+        else:
+            missing += [k for k in ("code_sizes", "groups") if k not in cfg]
+        if missing:
+            raise IntegrityError(f"code graph {path} is incomplete: missing {missing}.")
+        try:
+            config = CodeGraphConfig.from_dict(cfg)
+        except ValueError as err:
+            raise ValueError(f"code graph {path} cannot be read: {err}") from None
         graph = cls(
-            cfg["code_sizes"],
-            cfg["groups"],
+            config.code_sizes,
+            config.groups,
             **{k: state[k] for k in names},
-            fingerprint=cfg.get("fingerprint", ""),
+            fingerprint=config.fingerprint,
             env_config=payload.get("env_config") or None,
-            dense_limit=cfg.get("dense_limit", DEFAULT_DENSE_LIMIT),
+            dense_limit=config.dense_limit,
         )
         if encoder is not None:
             graph.check_encoder(encoder, source=str(path))
         return graph
 
     def check_encoder(self, encoder: nn.Module, source: str = "the graph") -> None:
-        """Raises ``ValueError`` unless ``encoder`` has this graph's code sizes (and weights)."""
+        """Raises ``ValueError`` unless ``encoder`` has this graph's code sizes (and weights).
+
+        An encoder that records its environment (an ``env_config`` attribute) must also
+        record the one of the graph's play data.
+        """
+        own, mine = getattr(encoder, "env_config", None), self.env_config
+        if isinstance(own, Mapping) and mine is not None:
+            diff = config_differences(dict(own), mine)
+            if diff:
+                raise ValueError(
+                    f"{source} was built from play data of {_describe_env(mine)}, but the "
+                    f"encoder was trained on {_describe_env(own)} "
+                    f"({format_differences(diff, 'encoder', 'graph')})."
+                )
         sizes = tuple(int(z) for z in getattr(encoder, "code_sizes", ()))
         if sizes != self.code_sizes:
             raise ValueError(
@@ -730,29 +922,84 @@ class CodeGraph(nn.Module):
                 return g
         raise AssertionError("unreachable")
 
-    def _as_node(self, value: torch.Tensor | int, group: int) -> int:
-        if isinstance(value, torch.Tensor) and value.dim() == 1:
-            return int(self.node_of(value, group))
-        node = int(value)
-        if node >= 0 and self._group_of_node(node) != group:
-            raise ValueError(f"node {node} is not in group {group}.")
-        return node
+    def _as_node(self, value: torch.Tensor | int, group: int, name: str) -> int:
+        """A code ``[C]`` (its node, -1 if never seen) or a node id of ``group``, as a node id."""
+        if isinstance(value, torch.Tensor) and value.dim() >= 1:
+            if value.dim() != 1:
+                raise ValueError(
+                    f"{name} must be a code [{len(self.code_sizes)}] or a node id, got a "
+                    f"tensor of shape {list(value.shape)}."
+                )
+            return int(self._node_of(self._check_code(value, name), group))
+        return self._check_node(value, name, group)
+
+    def _check_group(self, group: Any) -> int:
+        """``group`` as an int in ``[0, num_groups)`` (bools and floats refused)."""
+        return check_int("group", group, low=0, high=self.num_groups - 1)
+
+    def _check_node(self, node: Any, name: str, group: int | None = None) -> int:
+        """``node`` as an int node id of the graph (and of ``group`` if given)."""
+        if group is None:
+            return check_int(name, node, low=0, high=self._offsets[-1] - 1)
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        try:
+            return check_int(name, node, low=lo, high=hi - 1)
+        except ValueError:
+            raise ValueError(
+                f"{name} must be a node id of group {group} (an integer in [{lo}, {hi - 1}]) "
+                f"or a code [{len(self.code_sizes)}], got {node!r}."
+            ) from None
+
+    def _check_edge_ids(self, edge: Any, name: str) -> torch.Tensor:
+        """Integer edge ids (any shape) in ``-1..E-1`` as an int64 CPU tensor."""
+        if isinstance(edge, torch.Tensor):
+            if edge.dtype.is_floating_point or edge.dtype.is_complex or edge.dtype == torch.bool:
+                raise ValueError(f"{name} ids must be integers, got {_describe(edge)}.")
+            edge = edge.to(torch.int64).cpu()
+        else:
+            edge = torch.tensor(check_int(name, edge), dtype=torch.int64)
+        total = int(self.indices.shape[0])
+        if edge.numel() and (int(edge.min()) < -1 or int(edge.max()) >= total):
+            raise ValueError(f"{name} ids must lie in -1..{total - 1}, got {edge.tolist()}.")
+        return edge
 
     def _removed(self, removed: torch.Tensor | None) -> torch.Tensor:
+        """Removed edge ids as a 1-d CPU tensor (entries < 0, padding, dropped)."""
         if removed is None:
             return torch.zeros(0, dtype=torch.int64)
-        removed = removed.reshape(-1).to(torch.int64).cpu()
+        if not isinstance(removed, torch.Tensor):
+            raise ValueError(
+                f"removed must be an integer tensor of edge ids or None, got {_describe(removed)}."
+            )
+        removed = self._check_edge_ids(removed, "removed").reshape(-1)
         return removed[removed >= 0]
 
     def _check_code(self, code: torch.Tensor, name: str) -> torch.Tensor:
-        if not isinstance(code, torch.Tensor) or code.dtype.is_floating_point:
+        """Integer codes ``[*B, C]`` within :attr:`code_sizes`, as int64 (one sync)."""
+        if (
+            not isinstance(code, torch.Tensor)
+            or code.dtype.is_floating_point
+            or code.dtype.is_complex
+            or code.dtype == torch.bool
+        ):
             raise ValueError(f"{name} must be an integer tensor [*B, C], got {_describe(code)}.")
         if code.shape[-1:] != (len(self.code_sizes),):
             raise ValueError(
                 f"{name} must have {len(self.code_sizes)} codes (one per one-hot of "
                 f"{self.code_sizes}), got shape {list(code.shape)}."
             )
-        return code.to(torch.int64)
+        code = code.to(torch.int64)
+        if code.numel():
+            sizes = torch.tensor(self.code_sizes, device=code.device)
+            bad = (code < 0) | (code >= sizes)
+            if bool(bad.any()):
+                column = int(bad.reshape(-1, len(self.code_sizes)).any(0).nonzero()[0])
+                value = int(code[..., column][bad[..., column]][0])
+                raise ValueError(
+                    f"{name} holds code {value} for one-hot {column}, which has codes "
+                    f"0..{self.code_sizes[column] - 1} (code_sizes {self.code_sizes})."
+                )
+        return code
 
 
 def _radix(sizes: Sequence[int]) -> torch.Tensor:
