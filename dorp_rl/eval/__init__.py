@@ -14,7 +14,12 @@ from dorp_rl.eval.diagnostics import (
 from dorp_rl.eval.parallel import BACKENDS, EvalSpec, evaluate_parallel
 from dorp_rl.eval.results import RESULT_COLUMNS, format_table, result_row, write_results
 from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting
-from dorp_rl.eval.tasks import evaluate_policy, make_task_set, seed_policy
+from dorp_rl.eval.tasks import (
+    check_task_set,
+    evaluate_policy,
+    make_task_set,
+    seed_policy,
+)
 from dorp_rl.eval.world_model import open_loop_accuracy
 
 __all__ = [
@@ -30,6 +35,7 @@ __all__ = [
     "result_row",
     "write_results",
     "best_assignment",
+    "check_task_set",
     "code_information",
     "connected_fraction",
     "encode_pixels",

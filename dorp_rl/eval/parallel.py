@@ -60,7 +60,14 @@ from tensordict import TensorDict, TensorDictBase
 
 from dorp_rl.envs.grid_base import GridWorldEnv
 from dorp_rl.eval.settings import SETTINGS
-from dorp_rl.eval.tasks import _ChunkFile, check_rollout_batch, evaluate_policy, summarize_chunks
+from dorp_rl.eval.tasks import (
+    _ChunkFile,
+    check_env,
+    check_rollout_batch,
+    check_task_set,
+    evaluate_policy,
+    summarize_chunks,
+)
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
 
@@ -372,7 +379,8 @@ def evaluate_parallel(
             backend (e.g. :meth:`EvalSpec.make_env`, a module-level function or a
             ``functools.partial`` of one).
         make_policy: builds the policy for that env (e.g. :meth:`EvalSpec.make_policy`).
-        tasks: from :func:`~dorp_rl.eval.make_task_set`, ``[num_tasks]``.
+        tasks: from :func:`~dorp_rl.eval.make_task_set`, ``[num_tasks]`` with
+            ``num_tasks >= 1`` (checked with :func:`~dorp_rl.eval.check_task_set`).
         seed: the policy is reseeded with ``seed + k`` before chunk ``k``.
         max_steps: step limit per task (default: the env's).
         tasks_per_rollout: tasks per chunk (one batched rollout); the last chunk may be
@@ -394,8 +402,9 @@ def evaluate_parallel(
 
     Raises:
         ValueError: ``workers < 1``, an unknown backend, an ``address`` without the Ray
-            backend, bad ``tasks_per_rollout``/``max_steps``/``seed``, an env whose batch
-            size does not fit ``tasks_per_rollout``, or factories that do not pickle.
+            backend, bad ``tasks_per_rollout``/``max_steps``/``seed``, an empty or bad
+            task set, an env whose batch size does not fit ``tasks_per_rollout``, or
+            factories that are not callable or do not pickle.
         ImportError: ``backend="ray"`` without Ray installed.
 
     Examples:
@@ -417,11 +426,14 @@ def evaluate_parallel(
     tasks_per_rollout = check_int("tasks_per_rollout", tasks_per_rollout, low=1)
     seed = check_seed(seed)
     report_keys = tuple(report_keys)
-    for key in ("state", "goal_state"):
-        if key not in tasks.keys():
+    for name, factory in (("make_env", make_env), ("make_policy", make_policy)):
+        if not callable(factory):
             raise ValueError(
-                f"tasks must hold {key!r} (see make_task_set), got {list(tasks.keys())}."
+                f"{name} must be a callable that builds the "
+                f"{'acting env' if name == 'make_env' else 'policy for an env'} (e.g. "
+                f"EvalSpec(...).{name}), got {type(factory).__name__} {factory!r:.60}."
             )
+    tasks = check_task_set(tasks)
     n = tasks.shape[0]
     chunks = -(-n // tasks_per_rollout)
     if backend == "local" and min(workers, chunks) == 1:
@@ -440,9 +452,10 @@ def evaluate_parallel(
         return {**result, "workers": 1, "backend": backend}
 
     # Check the env here, before any worker starts, and resolve the step limit.
-    env = make_env()
+    env = check_env(make_env(), "the env of make_env()")
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
     check_rollout_batch(env, tasks_per_rollout, name="the env of make_env()")
+    check_task_set(tasks, env)
     del env
     record = _ChunkFile.open(resume_file, tasks, limit, tasks_per_rollout, seed, report_keys)
     by_chunk: dict[int, dict[str, Any]] = {} if record is None else dict(record.chunks)

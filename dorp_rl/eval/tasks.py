@@ -44,11 +44,97 @@ def seed_policy(policy: Any, seed: int) -> None:
         torch.manual_seed(seed)
 
 
+def check_env(env: Any, name: str = "env") -> GridWorldEnv:
+    """``env`` if it is a dorp_rl :class:`~dorp_rl.envs.GridWorldEnv`, else ``ValueError`` naming ``name``."""
+    if not isinstance(env, GridWorldEnv):
+        raise ValueError(
+            f"{name} must be a dorp_rl GridWorldEnv (e.g. ObjectRearrangementEnv(num_objects=2) "
+            f"or make_env('key-wall')), got {type(env).__name__} {env!r:.60}."
+        )
+    return env
+
+
+def check_policy(policy: Any, name: str = "policy") -> Callable[[TensorDictBase], TensorDictBase]:
+    """``policy`` if it is callable (a TensorDict module or function), else ``ValueError``."""
+    if not callable(policy):
+        raise ValueError(
+            f"{name} must be a TensorDict policy: a module or callable that takes the "
+            "tensordict of a step and writes its 'action' (e.g. env.rand_action, "
+            f"make_dorp_policy(...), VisualForesightPolicy(...)), got {type(policy).__name__} "
+            f"{policy!r:.60}."
+        )
+    return policy
+
+
+def check_task_set(
+    tasks: Any, env: GridWorldEnv | None = None, name: str = "tasks"
+) -> TensorDictBase:
+    """Checks a task set (:func:`make_task_set`) before anything runs on it; returns it.
+
+    A task set is a TensorDict ``[num_tasks]`` (``num_tasks >= 1``) holding int64
+    ``state`` and ``goal_state``; its optional ``lower_bound`` holds one finite number
+    ``>= 0`` per task (steps cannot be negative, and a NaN bound would be averaged into
+    ``mean_lower_bound``). With ``env``, starts and goals must be states of ``env``: its
+    state shape, on the grid and by its rules (:meth:`~GridWorldEnv.check_state`).
+
+    Raises:
+        ValueError: naming ``name``, the entry and what it must be.
+    """
+    if not isinstance(tasks, TensorDictBase):
+        raise ValueError(
+            f"{name} must be a TensorDict of tasks (make_task_set), got {type(tasks).__name__}."
+        )
+    if tasks.batch_dims != 1:
+        raise ValueError(
+            f"{name} must have one batch dimension [num_tasks], got batch_size "
+            f"{list(tasks.batch_size)}."
+        )
+    for key in ("state", "goal_state"):
+        if key not in tasks.keys():
+            raise ValueError(
+                f"{name} must hold {key!r} (see make_task_set), got {list(tasks.keys())}."
+            )
+    if tasks.shape[0] == 0:
+        raise ValueError(
+            f"{name} is empty: an evaluation needs at least one task (make_task_set(env, n) "
+            "with n >= 1)."
+        )
+    if "lower_bound" in tasks.keys():
+        bound = tasks.get("lower_bound")
+        if bound.dtype == torch.bool or bound.dtype.is_complex:
+            raise ValueError(
+                f"{name}['lower_bound'] must hold numbers of steps, got dtype {bound.dtype}."
+            )
+        if tuple(bound.shape) != (tasks.shape[0],):
+            raise ValueError(
+                f"{name}['lower_bound'] must have shape [{tasks.shape[0]}] (one per task), got "
+                f"{list(bound.shape)}."
+            )
+        bad = ~torch.isfinite(bound.double()) | (bound < 0)
+        if bool(bad.any()):
+            first = int(bad.nonzero()[0])
+            raise ValueError(
+                f"{name}['lower_bound'] must hold finite step counts >= 0 (a -1 is a goal the "
+                f"env cannot reach), got {bound[first].item()} at task {first}."
+            )
+    if env is not None:
+        shape = (tasks.shape[0], *env.state_shape)
+        for key in ("state", "goal_state"):
+            value = env.check_state(tasks.get(key), f"{name}[{key!r}]")
+            if tuple(value.shape) != shape:
+                raise ValueError(
+                    f"{name}[{key!r}] must have shape {list(shape)} ([num_tasks, "
+                    f"*state_shape] of {type(env).__name__}), got {list(value.shape)}."
+                )
+    return tasks
+
+
 def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDict:
     """``num_tasks`` start/goal pairs drawn with ``seed`` from ``env``'s distributions.
 
     Tasks whose start already equals the goal are redrawn. The env's own generator is
-    left as it was.
+    left as it was. The task set is checked (:func:`check_task_set`) before it is
+    returned: a lower bound the env gives as negative (an unreachable goal) is refused.
 
     Returns:
         TensorDict ``[num_tasks]`` with ``state``, ``goal_state`` (int64) and
@@ -61,6 +147,7 @@ def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDic
         >>> tasks["state"].shape, bool((tasks["lower_bound"] > 0).all())
         (torch.Size([5, 2, 2]), True)
     """
+    env = check_env(env)
     num_tasks = check_int("num_tasks", num_tasks, low=1)
     seed = check_seed(seed)
     saved = env.rng.get_state()
@@ -78,12 +165,18 @@ def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDic
             raise RuntimeError("could not draw goals different from their starts.")
     finally:
         env.rng.set_state(saved)
-    return TensorDict(
+    tasks = TensorDict(
         state=state,
         goal_state=goal,
         lower_bound=env.lower_bound_steps(state, goal).reshape(shape).to(torch.int64),
         batch_size=shape,
     )
+    try:
+        return check_task_set(tasks)
+    except ValueError as err:
+        raise ValueError(
+            f"make_task_set: the tasks drawn from {type(env).__name__} are no task set: {err}"
+        ) from None
 
 
 def check_rollout_batch(env: GridWorldEnv, tasks_per_rollout: int, name: str = "env") -> None:
@@ -123,8 +216,12 @@ def evaluate_policy(
         env: the acting env; it must take ``tasks_per_rollout`` rows (an env with
             ``batch_size=(n,)`` needs ``tasks_per_rollout == n``; ``batch_size=()``
             with ``batch_locked=False`` takes any).
-        policy: a TensorDict policy (e.g. a planner-based policy).
-        tasks: from :func:`make_task_set`.
+        policy: a TensorDict policy: a module or callable that takes a step's
+            tensordict and writes its ``action`` (e.g. a planner-based policy, or
+            ``env.rand_action``).
+        tasks: from :func:`make_task_set`, at least one task (checked with
+            :func:`check_task_set`: the starts and goals must be states of ``env``,
+            lower bounds finite and ``>= 0``).
         max_steps: step limit per task (default: ``env.max_steps``).
         tasks_per_rollout: tasks per batched rollout.
         progress: show a tqdm bar over tasks.
@@ -143,9 +240,12 @@ def evaluate_policy(
             and report keys, and refuses a different evaluation). ``seconds`` then
             includes the earlier runs.
 
+    A task whose start already is its goal is solved at step 0, whatever the policy
+    does next (success is checked before the first action).
+
     Returns:
-        ``success`` (bool list per task), ``steps`` (int list: steps until success, or
-        the limit), ``success_rate``, ``mean_steps`` (over successful tasks, ``nan`` if
+        ``success`` (bool list per task), ``steps`` (int list: steps until success, 0
+        for a task solved at its start, or the limit), ``success_rate``, ``mean_steps`` (over successful tasks, ``nan`` if
         none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``,
         and one list per entry of ``report_keys``.
 
@@ -160,14 +260,12 @@ def evaluate_policy(
         >>> result["num_tasks"], len(result["success"]), max(result["steps"]) <= 20
         (4, 4, True)
     """
+    env = check_env(env)
+    policy = check_policy(policy)
     limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
     tasks_per_rollout = check_int("tasks_per_rollout", tasks_per_rollout, low=1)
     seed = check_seed(seed, optional=True)
-    for key in ("state", "goal_state"):
-        if key not in tasks.keys():
-            raise ValueError(
-                f"tasks must hold {key!r} (see make_task_set), got {list(tasks.keys())}."
-            )
+    tasks = check_task_set(tasks, env)
     n = tasks.shape[0]
     check_rollout_batch(env, tasks_per_rollout)
     if resume_file is not None and seed is None:
@@ -248,6 +346,9 @@ def _run_chunk(
         state=chunk["state"], goal_state=chunk["goal_state"], batch_size=chunk.shape
     ).to(env.device)
     td = env.reset(given, set_state=True)
+    # A task that starts at its goal is solved before any action (the first one may move
+    # a block away from it).
+    at_goal = td["success"].reshape(-1)[:rows].cpu()
 
     def tick(_env: Any, step: TensorDictBase) -> None:
         # The bar moves as tasks finish, not only per chunk, so it can tell time left.
@@ -256,7 +357,8 @@ def _run_chunk(
             bar.update(finished - bar.n)
 
     rollout = env.rollout(
-        limit,
+        # All solved at the start: one step gives the policy's report values at step 0.
+        1 if bool(at_goal.all()) else limit,
         policy,
         None if bar is None else tick,
         tensordict=td,
@@ -273,11 +375,17 @@ def _run_chunk(
         torch.full_like(done[:, 0], t - 1, dtype=torch.int64),
     )
     won_at_end = won.gather(-1, first_done[:, None]).squeeze(-1) & done.any(-1)
-    success = [bool(won_at_end[row]) for row in range(rows)]
-    result: dict[str, list] = {
-        "success": success,
-        "steps": [int(first_done[row]) + 1 if success[row] else limit for row in range(rows)],
-    }
+    won_at_end = won_at_end.cpu()
+    success = [bool(at_goal[row] or won_at_end[row]) for row in range(rows)]
+    steps = [
+        0 if at_goal[row] else int(first_done[row]) + 1 if success[row] else limit
+        for row in range(rows)
+    ]
+    # Reported values: at the step the task ended (the first, for a task solved at 0).
+    first_done = torch.where(
+        at_goal.to(first_done.device), torch.zeros_like(first_done), first_done
+    )
+    result: dict[str, list] = {"success": success, "steps": steps}
     for key in report_keys:
         if key not in rollout.keys(True, True):
             raise MissingKeyError(
@@ -407,6 +515,8 @@ def summarize(
     (lists in task order, one entry per row of ``tasks``)."""
     success, steps = list(success), list(steps)
     n = tasks.shape[0]
+    if n == 0:
+        raise ValueError("no tasks to summarize: an evaluation needs at least one task.")
     if len(success) != n or len(steps) != n:
         raise ValueError(
             f"expected one success and one steps entry per task ({n}), "
