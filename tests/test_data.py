@@ -561,11 +561,17 @@ def test_future_pair_offsets_cover_the_range(short_data):
     assert (counts > 0.7 * 3000 / 5).all(), counts.tolist()
 
 
-def test_future_pair_offsets_beyond_trajectories_are_not_drawn(short_data):
-    buffer = rebuffer(short_data, FuturePairSampler(8, 40), 500)
-    sample = buffer.sample()
+def test_future_pair_offsets_beyond_trajectories_are_refused(short_data):
+    """A max_offset no stored trajectory reaches is refused, naming the offset and the
+    longest trajectory (it used to draw the shorter offsets only, without a word)."""
+    with pytest.raises(ValueError, match=rf"offset 40 needs 40 .* holds {SHORT_LENGTH}\b"):
+        rebuffer(short_data, FuturePairSampler(8, 40), 500).sample()
+    with pytest.raises(ValueError, match=rf"offset {SHORT_LENGTH + 1} .* holds {SHORT_LENGTH}\b"):
+        rebuffer(short_data, FuturePairSampler(1, SHORT_LENGTH + 1), 500).sample()
+    # Up to the trajectory length, every offset of the range is drawn, the longest too.
+    sample = rebuffer(short_data, FuturePairSampler(8, SHORT_LENGTH), 500).sample()
     offset = sample[:, 0]["offset"]
-    assert int(offset.min()) >= 8 and int(offset.max()) <= SHORT_LENGTH
+    assert set(offset.tolist()) == set(range(8, SHORT_LENGTH + 1))
     traj = short_data["traj_id"].reshape(-1)
     assert torch.equal(traj[sample["index"][:, 0]], traj[sample["index"][:, 1]])
 
@@ -594,8 +600,10 @@ def test_future_pairs_on_rearrangement_data(rearrangement_buffer):
     anchor, future, offset = future_pairs(one.sample())
     assert (offset == 1).all()
     assert anchor.shape == (32, 3, 16, 16)
-    with pytest.raises(ValueError, match="too short"):
-        rebuffer(data, FuturePairSampler(min_offset=2, max_offset=4), 8).sample()
+    # One-step trajectories: FuturePairSampler(1, 4) is refused, not silently k = 1.
+    for low in (1, 2):
+        with pytest.raises(ValueError, match=r"offset 4 needs 4 .* holds 1\b"):
+            rebuffer(data, FuturePairSampler(min_offset=low, max_offset=4), 8).sample()
 
 
 @pytest.mark.parametrize(("low", "high"), [(0, 3), (-1, None), (0, None), (3, 2), (5, 1)])
@@ -651,13 +659,13 @@ def test_samplers_follow_overwritten_storage():
         assert len(buffer) == 40
         with pytest.raises(ValueError):
             buffer.sample()
-        buffer.extend(synthetic([3, 9, 9, 9, 9, 1], first_id=200))
+        buffer.extend(synthetic([3, 10, 10, 10, 6, 1], first_id=200))
         sample = buffer.sample()
         index = sample["index"]
         assert (sample["traj_id"] == sample["traj_id"][:, :1]).all()
         step = sample["step_count"].squeeze(-1)
         assert torch.equal(step[:, -1] - step[:, 0], index[:, -1] - index[:, 0])
-        assert set(sample["traj_id"].unique().tolist()) <= {201, 202, 203, 204}
+        assert set(sample["traj_id"].unique().tolist()) == {201, 202, 203}  # 204 is too short
 
 
 def test_samplers_name_missing_keys():

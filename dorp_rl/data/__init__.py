@@ -5,9 +5,11 @@ from dorp_rl.data.play import (
     PLAY_KEYS,
     UniformRandomPolicy,
     check_play_buffer,
+    check_sampler_fits,
     collect_play_data,
     load_play_data,
     play_env,
+    play_segment_length,
 )
 from dorp_rl.data.samplers import (
     EventWindowSampler,
@@ -29,7 +31,9 @@ __all__ = [
     "PLAY_KEYS",
     "UniformRandomPolicy",
     "check_play_buffer",
+    "check_sampler_fits",
     "collect_play_data",
     "load_play_data",
     "play_env",
+    "play_segment_length",
 ]

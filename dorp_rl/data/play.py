@@ -123,6 +123,71 @@ def play_env(env: GridWorldEnv, trajectory_length: int | None = None) -> GridWor
     return out
 
 
+def _steps_per_batch(num_frames: int, num_envs: int, trajectory_length: int) -> int:
+    """Steps of each env per collector batch: whole trajectories, or all the frames asked."""
+    per_env = math.ceil(num_frames / num_envs)
+    return max(1, min(trajectory_length if trajectory_length > 1 else 64, per_env))
+
+
+def play_segment_length(num_frames: int, num_envs: int, trajectory_length: int) -> int:
+    """Longest run of consecutive steps of one trajectory that :func:`collect_play_data` stores.
+
+    The ``num_envs`` envs run side by side and each collector batch is stored env by
+    env, so a trajectory is stored whole only when every env steps through it in one
+    batch: with few frames (``num_frames < num_envs * trajectory_length``) each env
+    stores ``ceil(num_frames / num_envs)`` consecutive steps. Windows and pairs
+    (:class:`~dorp_rl.data.SequenceSampler`, :class:`~dorp_rl.data.FuturePairSampler`)
+    never span more than this.
+
+    Examples:
+        >>> from dorp_rl.data import play_segment_length
+        >>> play_segment_length(100_000, 64, 16), play_segment_length(32, 16, 4)
+        (16, 2)
+    """
+    num_frames = check_int("num_frames", num_frames, low=1)
+    num_envs = check_int("num_envs", num_envs, low=1)
+    trajectory_length = check_int("trajectory_length", trajectory_length, low=1)
+    if trajectory_length == 1:
+        return 1
+    return _steps_per_batch(num_frames, num_envs, trajectory_length)
+
+
+def check_sampler_fits(
+    sampler: Any,
+    num_frames: int,
+    num_envs: int,
+    trajectory_length: int,
+    what: str = "the play data",
+) -> None:
+    """Refuses a sampler whose windows or pairs are longer than any stored trajectory.
+
+    ``sampler.window_length`` (the transitions of one trajectory a sample spans:
+    ``max_offset`` of a :class:`~dorp_rl.data.FuturePairSampler`, ``horizon`` of a
+    :class:`~dorp_rl.data.SequenceSampler`) must be at most :func:`play_segment_length`;
+    samplers without it are not checked.
+
+    Raises:
+        ValueError: naming the sampler's length, the trajectories and what to change.
+    """
+    needed = getattr(sampler, "window_length", None)
+    if not isinstance(needed, int):
+        return
+    longest = play_segment_length(num_frames, num_envs, trajectory_length)
+    if needed > longest:
+        per_env = math.ceil(num_frames / num_envs)
+        cause = (
+            f"its trajectories are {trajectory_length} step(s) long"
+            if longest == trajectory_length
+            else f"num_frames={num_frames} over {num_envs} envs side by side stores "
+            f"{per_env} consecutive steps of each trajectory (of {trajectory_length})"
+        )
+        raise ValueError(
+            f"sampler {type(sampler).__name__} spans {needed} consecutive transitions of one "
+            f"trajectory, but in {what} {cause}: no sample fits. Use a shorter window or "
+            "offset, longer trajectories (trajectory_length) or more num_frames."
+        )
+
+
 def _metadata(env: GridWorldEnv, num_frames: int, seed: int, trajectory_length: int) -> dict:
     return {
         "format_version": _FORMAT_VERSION,
@@ -343,6 +408,9 @@ def load_play_data(
             f"{directory / _STORAGE} are missing)."
         )
     if not legacy:
+        check_sampler_fits(
+            sampler, num_frames, metadata["num_envs"], metadata["trajectory_length"], what
+        )
         verify_manifest(directory, metadata["files"], what)
     _check_tensor_files(directory, tensors, what)
     data = _map_tensors(directory, tensors, num_frames, what)
@@ -413,7 +481,9 @@ def collect_play_data(
             another collection raises ``ValueError`` naming the differing fields.
         seed: seeds both the env and the exploration policy: same seed, same data.
         trajectory_length: overrides the env's play trajectory length.
-        sampler: sampler of the returned buffer (default: uniform over transitions).
+        sampler: sampler of the returned buffer (default: uniform over transitions);
+            one whose windows or pairs no stored trajectory holds is refused before
+            collecting (:func:`check_sampler_fits`).
         batch_size: default sample size of the returned buffer.
         progress: show a tqdm bar.
         wait: when another process is collecting into ``directory``: ``False`` raises
@@ -439,6 +509,9 @@ def collect_play_data(
     batch_size = check_int("batch_size", batch_size, low=1, optional=True)
     collect_env = play_env(env, trajectory_length)
     metadata = _metadata(collect_env, num_frames, seed, collect_env.max_steps)
+    check_sampler_fits(
+        sampler, num_frames, metadata["num_envs"], metadata["trajectory_length"], "this collection"
+    )
     if directory is None:
         buffer = _collect(collect_env, num_frames, seed, None, sampler, batch_size, progress)
         buffer.metadata = metadata
@@ -473,7 +546,7 @@ def _collect(
     length = collect_env.max_steps
     num_envs = int(collect_env.batch_size.numel())
     # Whole trajectories per collector batch keep each walk contiguous in storage.
-    steps_per_batch = max(1, min(length if length > 1 else 64, math.ceil(num_frames / num_envs)))
+    steps_per_batch = _steps_per_batch(num_frames, num_envs, length)
     frames_per_batch = num_envs * steps_per_batch
     total_frames = math.ceil(num_frames / frames_per_batch) * frames_per_batch
 

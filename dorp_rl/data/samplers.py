@@ -51,12 +51,7 @@ class _WindowSampler(Sampler):
             if n < length:
                 starts = torch.empty(0, dtype=torch.int64)
             else:
-                for key in (self.traj_key, self.step_key):
-                    if key not in storage[:1].keys():
-                        raise MissingKeyError(
-                            f"{type(self).__name__} needs the key {key!r} in the stored data "
-                            "(collect_play_data writes 'traj_id' and 'step_count')."
-                        )
+                self._check_keys(storage)
                 traj = _column(storage, self.traj_key)
                 step = _column(storage, self.step_key)
                 last = torch.arange(length - 1, n)
@@ -65,6 +60,44 @@ class _WindowSampler(Sampler):
                 starts = first[ok]
             self._cache[length] = starts
         return self._cache[length]
+
+    def _check_keys(self, storage: Storage) -> None:
+        for key in (self.traj_key, self.step_key):
+            if key not in storage[:1].keys():
+                raise MissingKeyError(
+                    f"{type(self).__name__} needs the key {key!r} in the stored data "
+                    "(collect_play_data writes 'traj_id' and 'step_count')."
+                )
+
+    #: transitions of one trajectory a sample spans (set by subclasses)
+    window_length: int = 1
+
+    def longest_run(self, storage: Storage) -> int:
+        """Longest run of consecutive stored transitions of one trajectory (0 if empty).
+
+        The longest window this sampler could draw: for error messages, one pass over
+        the ``traj_id`` and ``step_count`` columns.
+        """
+        n = len(storage)
+        if n == 0:
+            return 0
+        self._check_keys(storage)
+        traj = _column(storage, self.traj_key)
+        step = _column(storage, self.step_key)
+        breaks = ((traj[1:] != traj[:-1]) | (step[1:] - step[:-1] != 1)).nonzero().squeeze(-1)
+        edges = torch.cat([torch.tensor([-1]), breaks, torch.tensor([n - 1])])
+        return int(edges.diff().max())
+
+    def _too_long(self, storage: Storage, what: str) -> ValueError:
+        """The error of a window no stored trajectory holds, with the longest run there is."""
+        longest = self.longest_run(storage)
+        return ValueError(
+            f"{what} needs {self.window_length} consecutive transitions of one trajectory, but "
+            f"the longest trajectory among the {len(storage)} stored transitions holds "
+            f"{longest}: lower it to at most {longest}, or collect longer trajectories "
+            "(collect_play_data(..., trajectory_length=...), and enough num_frames for each "
+            "env to store one)."
+        )
 
     def _draw(self, starts: torch.Tensor, count: int) -> torch.Tensor:
         pick = torch.randint(len(starts), (count,), generator=self._rng)
@@ -96,7 +129,9 @@ class FuturePairSampler(_WindowSampler):
     ``"offset"`` in the sample. :func:`future_pairs` unpacks a sample.
 
     With the paper's rearrangement play data (one-step trajectories) only ``k = 1``
-    exists; asking for offsets no trajectory is long enough for raises ``ValueError``.
+    exists. Sampling raises ``ValueError`` when no stored trajectory is long enough for
+    ``max_offset`` (naming the offset and the longest trajectory): pairs would otherwise
+    silently come from the shorter offsets only.
 
     Args:
         min_offset: smallest ``k`` (>= 1).
@@ -131,19 +166,20 @@ class FuturePairSampler(_WindowSampler):
                 f"min_offset={min_offset}, max_offset={max_offset}."
             )
         self.min_offset, self.max_offset = min_offset, max_offset
+        self.window_length = max_offset
 
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:
             raise RuntimeError("Cannot sample from an empty storage.")
+        # A trajectory that holds a pair of offset max_offset holds every shorter one.
+        if len(self.valid_starts(storage, self.max_offset)) == 0:
+            raise self._too_long(
+                storage,
+                f"FuturePairSampler(min_offset={self.min_offset}, max_offset={self.max_offset}): "
+                f"a pair of offset {self.max_offset}",
+            )
         offsets = torch.arange(self.min_offset, self.max_offset + 1)
         starts = {int(k): self.valid_starts(storage, int(k)) for k in offsets}
-        usable = torch.tensor([len(starts[int(k)]) > 0 for k in offsets])
-        if not usable.any():
-            raise ValueError(
-                f"no pair with offset in [{self.min_offset}, {self.max_offset}] fits inside a "
-                f"trajectory of the {len(storage)} stored transitions (trajectories too short)."
-            )
-        offsets = offsets[usable]
         k = offsets[torch.randint(len(offsets), (batch_size,), generator=self._rng)]
         first = torch.empty(batch_size, dtype=torch.int64)
         for value in offsets.tolist():
@@ -179,16 +215,15 @@ class SequenceSampler(_WindowSampler):
     ) -> None:
         super().__init__(traj_key, step_key)
         self.horizon = check_int("horizon", horizon, low=1)
+        self.window_length = self.horizon
 
     def sample(self, storage: Storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:
             raise RuntimeError("Cannot sample from an empty storage.")
         starts = self.valid_starts(storage, self.horizon)
         if len(starts) == 0:
-            raise ValueError(
-                f"no window of {self.horizon} consecutive transitions lies inside one trajectory "
-                f"of the {len(storage)} stored ones; collect longer trajectories "
-                "(collect_play_data(..., trajectory_length=...)) or lower the horizon."
+            raise self._too_long(
+                storage, f"{type(self).__name__}: a window of horizon={self.horizon}"
             )
         first = self._draw(starts, batch_size)
         return first.unsqueeze(-1) + torch.arange(self.horizon), {}
