@@ -18,6 +18,7 @@ from dorp_rl.data import (
     SequenceSampler,
     check_play_buffer,
     collect_play_data,
+    play_segment_length,
 )
 from dorp_rl.envs import GridWorldEnv, make_env
 from dorp_rl.eval.world_model import open_loop_accuracy
@@ -171,6 +172,20 @@ class WorldModelConfig(TrainerConfig):
                 f"trajectory_length ({self.trajectory_length}) must be >= horizon "
                 f"({self.horizon}): windows never cross a trajectory boundary."
             )
+        for name, what in (
+            ("num_frames", "training play data"),
+            ("eval_frames", "held-out play data"),
+        ):
+            frames = getattr(self, name)
+            if play_segment_length(frames, self.num_envs, self.trajectory_length) < self.horizon:
+                least = (self.horizon - 1) * self.num_envs + 1
+                raise ValueError(
+                    f"{name} ({frames}) must be at least {least} for windows of horizon "
+                    f"{self.horizon}: the {what} are collected by num_envs={self.num_envs} envs "
+                    f"side by side, each storing ceil({name} / num_envs) = "
+                    f"{math.ceil(frames / self.num_envs)} consecutive steps of its trajectory, "
+                    f"and a window needs {self.horizon} (or lower num_envs or horizon)."
+                )
 
     def model_config(self) -> VideoModelConfig:
         """The video model this config trains (a copy of ``model``)."""
