@@ -18,6 +18,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from unittest import mock
 
 import pytest
 import torch
@@ -30,6 +31,7 @@ from dorp_rl.trainers import (
     load_encoder,
     load_video_model,
 )
+from dorp_rl.trainers.base import NoCheckpointWarning
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -40,6 +42,13 @@ def state_of(module: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 def same(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def logged(out_dir: str | Path, name: str = "loss_cpc") -> list[tuple[int, str]]:
+    """The (step, value) rows of one scalar in a run's CSV logs, in the order written."""
+    path = Path(out_dir) / "logs" / "scalars" / f"{name}.csv"
+    rows = [line.split(",") for line in path.read_text().splitlines()]
+    return [(int(step), value) for step, value in rows]
 
 
 @pytest.fixture(scope="module")
@@ -237,9 +246,13 @@ def test_resume_takes_bookkeeping_changes_silently_and_num_steps_with_a_warning(
     resumed = RepresentationTrainer(
         representation_config("part", num_steps=10, checkpoint_every=3, log_every=2)
     )
-    with pytest.warns(UserWarning, match=r"num_steps=10 \(checkpoint 5\)") as caught:
-        resumed.train(resume=True)
+    with (
+        pytest.warns(UserWarning, match=r"num_steps=10 \(checkpoint 5\)") as caught,
+        mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as step,
+    ):
+        result = resumed.train(resume=True)
     assert not any("checkpoint_every" in str(w.message) for w in caught)
+    assert result["resumed_from_step"] == 5 and step.call_count == 5  # steps 6-10 only
     assert same(state_of(resumed.encoder), state_of(full.encoder))
 
 
@@ -270,10 +283,58 @@ def test_a_run_killed_mid_training_resumes_to_the_uninterrupted_weights(represen
     killed_at = load_checkpoint(checkpoint)["step"]
     assert 3 <= killed_at < 60  # killed mid-run, with a complete checkpoint on disk
     resumed = RepresentationTrainer(cfg)
-    resumed.train(resume=True)
+    with mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as step:
+        result = resumed.train(resume=True)
     full = RepresentationTrainer(
         representation_config("full", num_steps=60, checkpoint_every=3, log_every=3)
     )
     full.train()
-    assert resumed.step == 60
+    # It went on from the checkpoint the kill left: that step reported, the later ones trained.
+    assert resumed.resumed_from_step == result["resumed_from_step"] == killed_at
+    assert step.call_count == 60 - killed_at and resumed.step == 60
+    assert logged(cfg.out_dir, "resumed_from") == [(killed_at, f"{float(killed_at)}")]
     assert same(state_of(resumed.encoder), state_of(full.encoder))
+    # The log holds the full run's rows: the steps up to the checkpoint once (not trained
+    # again), then the resumed ones; only a step logged after the checkpoint, before the
+    # kill, may be there twice. Every row has the uninterrupted run's value.
+    rows, expected = logged(cfg.out_dir), dict(logged(full.config.out_dir))
+    before, after = list(range(3, killed_at + 1, 3)), list(range(killed_at + 3, 61, 3))
+    assert [step for step, _ in rows] in (before + after, before + after[:1] + after)
+    assert all(value == expected[step] for step, value in rows)
+    assert set(expected) == set(range(3, 61, 3))
+
+
+# ---------------------------------------------------------------- a resume with nothing to resume
+@pytest.mark.parametrize("kind", ["representation", "world_model"])
+def test_a_resume_without_a_checkpoint_says_so_and_trains_from_step_0(
+    kind, representation_config, world_model_config
+):
+    def make(name: str):
+        if kind == "representation":
+            return RepresentationTrainer(representation_config(name, num_steps=4))
+        return WorldModelTrainer(world_model_config(name, num_steps=4))
+
+    fresh = make("fresh")
+    fresh.train()
+    assert fresh.resumed_from_step is None  # not a resume
+    trainer = make("resumed")
+    with (
+        pytest.warns(NoCheckpointWarning, match=r"found no checkpoint at .*last\.pt.*step 0"),
+        mock.patch.object(trainer, "train_step", wraps=trainer.train_step) as step,
+    ):
+        result = trainer.train(resume=True)
+    assert trainer.resumed_from_step is None and result["resumed_from_step"] is None
+    assert step.call_count == 4
+    model = trainer.encoder if kind == "representation" else trainer.model
+    other = fresh.encoder if kind == "representation" else fresh.model
+    assert same(state_of(model), state_of(other))
+    # A second resume finds the finished run's checkpoint: nothing to train, its step reported.
+    again = make("resumed")
+    with (
+        mock.patch.object(again, "train_step", wraps=again.train_step) as step,
+        warnings.catch_warnings(),
+    ):
+        warnings.simplefilter("error", NoCheckpointWarning)
+        result = again.train(resume=True)
+    assert again.resumed_from_step == result["resumed_from_step"] == 4
+    assert step.call_count == 0 and result["step"] == 4

@@ -8,6 +8,8 @@ at its step.
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from unittest import mock
 
 import pytest
 import torch
@@ -34,6 +36,13 @@ def parameters(module: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 def same(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def logged(out_dir: str | Path, name: str = "loss_cpc") -> list[tuple[int, str]]:
+    """The (step, value) rows of one scalar in a run's CSV logs, in the order written."""
+    path = Path(out_dir) / "logs" / "scalars" / f"{name}.csv"
+    rows = [line.split(",") for line in path.read_text().splitlines()]
+    return [(int(step), value) for step, value in rows]
 
 
 def model_of(trainer) -> torch.nn.Module:
@@ -71,9 +80,15 @@ def test_a_huge_learning_rate_stops_with_the_step(kind, representation_config, w
         trainer.train()
     assert isinstance(info.value, ValueError)
     assert "lr=1000000000.0" in str(info.value)
-    if trainer.saved_step is not None:  # the checkpoints written before it are finite
-        assert f"(step {trainer.saved_step}), is kept" in str(info.value)
-        assert load_checkpoint(trainer.checkpoint_path)["step"] == trainer.saved_step
+    # The first update already makes the next step diverge; with checkpoint_every=1 the
+    # step before it was saved, is named as kept, and still loads with finite weights.
+    diverged = trainer.step + 1
+    assert f"diverged at step {diverged}:" in str(info.value)
+    assert diverged >= 2 and trainer.saved_step == trainer.step
+    assert f"(step {trainer.saved_step}), is kept" in str(info.value)
+    assert load_checkpoint(trainer.checkpoint_path)["step"] == trainer.saved_step
+    loader = load_encoder if kind == "representation" else load_video_model
+    assert all(torch.isfinite(p).all() for p in loader(trainer.checkpoint_path).parameters())
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -109,8 +124,9 @@ def test_a_non_finite_gradient_stops_before_the_update(representation_config):
         return grad
 
     parameter.register_hook(hook)
-    with pytest.raises(TrainingDivergedError, match="step 3: the gradient norm is"):
+    with pytest.raises(TrainingDivergedError, match="step 3: the gradient norm is") as info:
         trainer.train()
+    assert "no checkpoint had been written yet" in str(info.value)
     assert same(parameters(trainer.encoder), before)
     assert not trainer.checkpoint_path.exists()
 
@@ -143,9 +159,16 @@ def test_resume_after_a_divergence_continues_from_the_good_checkpoint(representa
     with pytest.raises(TrainingDivergedError):
         broken.train()
     resumed = RepresentationTrainer(representation_config("run", num_steps=8, checkpoint_every=4))
-    resumed.train(resume=True)  # a transient fault (here: the poisoned step) is retried
-    assert resumed.step == 8
+    with mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as step:
+        result = resumed.train(resume=True)  # a transient fault (the poisoned step) is retried
+    # It went on from the good checkpoint (step 4): steps 5-8 trained, 1-4 not again.
+    assert resumed.resumed_from_step == result["resumed_from_step"] == 4
+    assert step.call_count == 4 and resumed.step == 8
     assert same(weights(resumed.encoder), weights(full.encoder))
+    # The log (log_every=2) has steps 2 and 4 from the broken run (it stopped before logging
+    # step 6), then 6 and 8 from the resume: each once, with the uninterrupted run's values.
+    assert logged(resumed.config.out_dir) == logged(full.config.out_dir)
+    assert [step for step, _ in logged(resumed.config.out_dir)] == [2, 4, 6, 8]
 
 
 def test_clipping_can_be_turned_off_with_inf(world_model_config):

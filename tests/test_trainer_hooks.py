@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 from typing import Any
+from unittest import mock
 
 import pytest
 import torch
@@ -113,8 +114,14 @@ def test_a_flat_representation_checkpoint_loads_and_resumes(tmp_path, tiny_confi
     encoder = load_encoder(part.checkpoint_path, part_cfg.make_env())
     assert same_weights(encoder, part.encoder.eval())
     resumed = RepresentationTrainer(tiny_configs.representation(tmp_path / "part"))
-    with pytest.warns(UserWarning, match=r"num_steps=10 \(checkpoint 5\)"):
-        resumed.train(resume=True)
+    with (
+        pytest.warns(UserWarning, match=r"num_steps=10 \(checkpoint 5\)"),
+        mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as step,
+    ):
+        result = resumed.train(resume=True)
+    # It went on from the flat checkpoint's step 5: only steps 6-10 trained here.
+    assert resumed.resumed_from_step == result["resumed_from_step"] == 5
+    assert step.call_count == 5
     assert resumed.step == 10 and same_weights(resumed.encoder, full.encoder)
 
 
@@ -137,7 +144,11 @@ def test_a_flat_world_model_checkpoint_loads_and_resumes(tmp_path, tiny_configs)
     model = load_video_model(part.checkpoint_path, part_cfg.make_env())
     assert same_weights(model, part.model.eval())
     resumed = WorldModelTrainer(tiny_configs.world_model(tmp_path / "part"))
-    resumed.train(resume=True)
+    with mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as counted:
+        result = resumed.train(resume=True)
+    # It went on from the flat checkpoint's step 4: only steps 5 and 6 trained here.
+    assert resumed.resumed_from_step == result["resumed_from_step"] == 4
+    assert counted.call_count == 2
     assert resumed.step == 6 and same_weights(resumed.model, full.model)
 
 
@@ -225,10 +236,16 @@ def test_hook_state_is_checkpointed_and_resumed(tmp_path, tiny_configs):
     }
     resumed = WorldModelTrainer(tiny_configs.world_model(tmp_path / "wm", num_steps=5))
     hook = resumed.register_hook("count", CountingHook())
-    with warnings.catch_warnings():
+    with (
+        warnings.catch_warnings(),
+        mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as step,
+    ):
         warnings.simplefilter("ignore", UserWarning)  # num_steps changed on resume
         resumed.train(resume=True)
+    # Steps 1-3 come from the checkpointed state, 4 and 5 from this run (a fresh run of 5
+    # steps would give the same list, so the steps trained here are counted too).
     assert hook.seen == [1, 2, 3, 4, 5]
+    assert resumed.resumed_from_step == 3 and step.call_count == 2
 
 
 class ThreadsHook(TrainerHook):

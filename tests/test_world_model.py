@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from unittest import mock
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -260,10 +262,16 @@ def test_resume_equals_uninterrupted_run(tmp_path) -> None:
         first.train_step()
     first.save()
     resumed = WorldModelTrainer(tiny_config(tmp_path / "b"))
-    resumed.train(resume=True)
-    assert resumed.step == 6
+    with mock.patch.object(resumed, "train_step", wraps=resumed.train_step) as step:
+        result = resumed.train(resume=True)
+    # It went on from the checkpoint: step 3 reported, only steps 4-6 trained here.
+    assert resumed.resumed_from_step == result["resumed_from_step"] == 3
+    assert step.call_count == 3 and resumed.step == result["step"] == 6
     for name, value in full.model.state_dict().items():
         assert torch.equal(value, resumed.model.state_dict()[name]), name
+    # Evaluations (eval_every=3) at 3 and 6 in both runs; the resumed one only made the one at 6.
+    assert [row["step"] for row in full.evaluations] == [3, 6]
+    assert [row["step"] for row in resumed.evaluations] == [6]
 
 
 def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:

@@ -178,6 +178,10 @@ class TrainingDivergedError(ValueError):
     """Training produced a non-finite loss, gradient or weight; nothing was saved after it."""
 
 
+class NoCheckpointWarning(UserWarning):
+    """``train(resume=True)`` found no checkpoint to continue from, so it trained from step 0."""
+
+
 class OfflineTrainer:
     """Base class of :class:`RepresentationTrainer` and :class:`WorldModelTrainer`: training from a play buffer.
 
@@ -194,7 +198,11 @@ class OfflineTrainer:
     - one checkpoint format (:func:`~dorp_rl.checkpoint.save_checkpoint`): config,
       env config, state dicts, step, the torch and data RNG states, and
       :meth:`extra_state`; ``train(resume=True)`` continues from the last checkpoint
-      and ends exactly where an uninterrupted run with the same seed would. A resume
+      and ends exactly where an uninterrupted run with the same seed would. It reports
+      where it went on from: :attr:`resumed_from_step` (also ``"resumed_from_step"`` in
+      the result of :meth:`train`, and a ``resumed_from`` scalar in the logs) is the
+      checkpoint's step; a resume that finds no checkpoint says so with a
+      :class:`NoCheckpointWarning` and leaves it ``None`` (the run starts at step 0). A resume
       refuses a config that differs from the checkpoint's in a field that changes the
       result (the message lists them); :attr:`resume_adjustable_fields` (e.g.
       ``num_steps``) are taken with a warning, :attr:`bookkeeping_fields` silently;
@@ -240,6 +248,10 @@ class OfflineTrainer:
         self.step = 0
         #: step of the last checkpoint written or loaded under :attr:`checkpoint_path`
         self.saved_step: int | None = None
+        #: step of the checkpoint the last ``train(resume=True)`` went on from; ``None``
+        #: before any resume, after ``train()`` without resume, and after a resume that
+        #: found no checkpoint (it trained from step 0, with a :class:`NoCheckpointWarning`)
+        self.resumed_from_step: int | None = None
         self.history: list[dict[str, float]] = []
         #: the scalar results of every evaluation, with the step it was made at
         self.evaluations: list[dict[str, float]] = []
@@ -485,9 +497,13 @@ class OfflineTrainer:
     def train(self, resume: bool = False) -> dict[str, Any]:
         """Trains until :meth:`done` and returns the last metrics and evaluation.
 
+        The result holds ``step`` (the last step), ``resumed_from_step`` (see
+        :attr:`resumed_from_step`), ``metrics`` (of the last step) and ``evaluation``.
+
         Args:
-            resume: continue from ``<out_dir>/checkpoints/last.pt`` if it exists (its
-                config must match, see :meth:`check_resume_config`).
+            resume: continue from ``<out_dir>/checkpoints/last.pt`` (its config must
+                match, see :meth:`check_resume_config`); without that file training
+                starts from step 0 with a :class:`NoCheckpointWarning`.
 
         Raises:
             TrainingDivergedError: a non-finite loss, gradient or weight (names the step).
@@ -508,9 +524,19 @@ class OfflineTrainer:
 
     def _train(self, resume: bool) -> dict[str, Any]:
         cfg = self.config
+        self.resumed_from_step = None
         if resume and self.checkpoint_path.exists():
             self._restore(self.read_checkpoint(resume=True))
-            self.saved_step = self.step
+            self.saved_step = self.resumed_from_step = self.step
+            self.logger.log_scalar("resumed_from", float(self.step), step=self.step)
+        elif resume:
+            warnings.warn(
+                f"train(resume=True) found no checkpoint at {self.checkpoint_path}: "
+                f"{self.kind} training starts from step {self.step}, not from a checkpoint "
+                "(resumed_from_step is None).",
+                NoCheckpointWarning,
+                stacklevel=3,
+            )
         total = self.planned_steps
         bar = progress_bar(cfg.progress, total=total, initial=min(self.step, total), desc=self.kind)
         metrics: dict[str, float] = {}
@@ -540,4 +566,9 @@ class OfflineTrainer:
         self.save()
         if evaluated_at != self.step and self.evaluate_at_end:
             self._evaluate_and_log()
-        return {"step": self.step, "metrics": metrics, "evaluation": self.last_evaluation}
+        return {
+            "step": self.step,
+            "resumed_from_step": self.resumed_from_step,
+            "metrics": metrics,
+            "evaluation": self.last_evaluation,
+        }
