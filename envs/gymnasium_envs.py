@@ -57,6 +57,13 @@ class GymnasiumGridEnv(gymnasium.Env):
             raise ValueError(f"env_name must be one of {sorted(ENV_CLASSES)}, got {env_name!r}.")
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
+        for name in ("batch_size", "batch_locked"):
+            if name in env_kwargs:
+                raise ValueError(
+                    f"{name}={env_kwargs[name]!r}: a gymnasium env is one env (batch_size=()); "
+                    "for a batch use gymnasium.vector or the torch env "
+                    f"dorp_rl.envs.{ENV_CLASSES[env_name].__name__}(batch_size=...)."
+                )
         self.env = ENV_CLASSES[env_name](batch_size=(), **env_kwargs)
         self.render_mode = render_mode
         self.render_scale = check_int("render_scale", render_scale, low=1)

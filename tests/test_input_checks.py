@@ -15,26 +15,40 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
 
 import dorp_rl.envs  # noqa: F401  (registers the gymnasium ids)
 from dorp_rl.data import UniformRandomPolicy, collect_play_data
 from dorp_rl.envs import (
     GroundTruthModelEnv,
+    KeyCorridorEnv,
     KeyWallEnv,
     ObjectRearrangementEnv,
     WorldModelEnv,
+    make_env,
 )
 from dorp_rl.eval import evaluate_policy, make_task_set
-from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel
-from dorp_rl.planners import CodeMatchCost, RandomShootingPlanner
+from dorp_rl.planners import (
+    CategoricalCEMPlanner,
+    CodeGraph,
+    CodeMatchCost,
+    NegativeRewardCost,
+    RandomShootingPlanner,
+    WeightedCostSum,
+)
 from dorp_rl.planners.costs import PixelDistanceCost
-from dorp_rl.policies import VisualForesightPolicy
+from dorp_rl.policies import AbstractGoalPolicy, VisualForesightPolicy, make_dorp_policy
+from dorp_rl.trainers import RepresentationConfig
 from dorp_rl.validation import (
     SEED_MAX,
     BatchShapeError,
     MissingKeyError,
+    UnknownArgumentError,
     check_batch_size,
+    check_device,
     check_float,
     check_int,
     check_seed,
@@ -378,3 +392,307 @@ def test_numpy_frames_are_taken(encoder, frames):
 def test_other_frames_are_refused_by_name(encoder, frames, pixels, message):
     with pytest.raises(ValueError, match=message):
         encoder(pixels(frames))
+
+
+# ---------------------------------------------------------------- weights, budgets, probabilities
+@pytest.fixture(scope="module")
+def dorp_parts():
+    env = ObjectRearrangementEnv(1, batch_size=(2,), seed=0)
+    oracle = OracleCodeEncoder(env)
+    graph = CodeGraph.from_play_data(collect_play_data(env, 1000, seed=0), oracle)
+    return env, oracle, graph
+
+
+SMALL = {"planning_horizon": 3, "num_candidates": 16}
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"goal_code_weight": math.nan}, r"goal_code_weight must be a finite number >= 0"),
+        ({"goal_code_weight": -1.0}, r"goal_code_weight must be >= 0"),
+        ({"waypoint_goal_weight": math.nan}, r"waypoint_goal_weight must be a finite number"),
+        ({"waypoint_goal_weight": -0.1}, r"waypoint_goal_weight must be >= 0"),
+        (
+            {"waypoint_step_penalty": math.nan},
+            r"step_penalty must be a finite number in \[0, 0.02\)",
+        ),
+        ({"waypoint_step_penalty": 0.5}, r"step_penalty must be in \[0, 0.02\)"),
+        ({"goal_blur_sigmas": (1.0, math.nan)}, r"blur_sigmas\[1\] must be a finite number > 0"),
+        ({"waypoint_budget": math.nan}, r"waypoint_budget must be an integer >= 1"),
+        ({"waypoint_budget": 0}, r"waypoint_budget must be >= 1"),
+        ({"max_removed_edges": -1}, r"max_removed_edges must be >= 0"),
+        ({"goal_budget": math.inf}, r"goal_budget must be an integer >= 1 or None"),
+        ({"max_misses": 0}, r"max_misses must be >= 1"),
+        ({"goal_patience": 2.5}, r"goal_patience must be an integer >= 1 or None"),
+        ({"max_reentries": -1}, r"max_reentries must be >= 0"),
+        ({"forget_blocked_edges": "no"}, r"forget_blocked_edges must be True or False"),
+        (
+            {"action_persistence": math.nan},
+            r"action_persistence must be a finite number in \[0, 1\)",
+        ),
+        ({"action_persistence": 1.0}, r"action_persistence must be in \[0, 1\)"),
+        ({"num_candidates": math.nan}, r"num_candidates must be an integer >= 1"),
+        ({"planning_horizon": 0}, r"planning_horizon must be >= 1"),
+        ({"seed": "0"}, r"seed must be"),
+        ({"planner": "cem", "top_k": 0}, r"top_k must be in \[1, 16\]"),
+        (
+            {"planner": "cem", "smoothing": math.nan, "top_k": 4},
+            r"smoothing must be a finite number",
+        ),
+        (
+            {"planner": "cem", "warm_start_mix": 1.5, "top_k": 4},
+            r"warm_start_mix must be in \[0, 1\]",
+        ),
+        (
+            {"planner": "cem", "min_probability": math.nan, "top_k": 4},
+            r"min_probability must be a finite",
+        ),
+    ],
+)
+def test_make_dorp_policy_checks_every_weight_budget_and_probability(dorp_parts, kwargs, message):
+    env, oracle, graph = dorp_parts
+    with pytest.raises(ValueError, match=message):
+        make_dorp_policy(env, oracle, graph, **(SMALL | kwargs))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"miss_threshold": math.nan}, r"miss_threshold must be a finite number"),
+        ({"goal_code_weight": math.inf}, r"goal_code_weight must be a finite number >= 0"),
+        ({"waypoint_budget": -3}, r"waypoint_budget must be >= 1"),
+        ({"replan_on_miss": 1}, r"replan_on_miss must be True or False"),
+    ],
+)
+def test_abstract_goal_policy_checks_its_numbers(dorp_parts, kwargs, message):
+    env, oracle, graph = dorp_parts
+    built = make_dorp_policy(env, oracle, graph, **SMALL)
+    options = {"goal_code_weight": 100.0} | kwargs
+    with pytest.raises(ValueError, match=message):
+        AbstractGoalPolicy(oracle, graph, built.waypoint_planner, built.goal_planner, **options)
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (
+            lambda p: RandomShootingPlanner(p, PixelDistanceCost(), action_persistence=math.nan),
+            "action_persistence",
+        ),
+        (lambda p: VisualForesightPolicy(p, "rs", action_persistence=-0.5), "action_persistence"),
+        (lambda p: VisualForesightPolicy(p, "cem", num_candidates=math.inf), "num_candidates"),
+        (lambda p: CategoricalCEMPlanner(p, PixelDistanceCost(), smoothing=math.nan), "smoothing"),
+        (lambda p: VisualForesightPolicy(p, "cem", warm_start_mix=math.nan), "warm_start_mix"),
+        (lambda p: PixelDistanceCost(blur_sigmas=(math.inf,)), r"blur_sigmas\[0\]"),
+        (lambda p: WeightedCostSum({"a": math.nan}), "the weight of 'a'"),
+    ],
+)
+def test_the_planners_check_their_numbers_for_finiteness(make, message):
+    planning = GroundTruthModelEnv(ObjectRearrangementEnv(1, seed=0))
+    with pytest.raises(ValueError, match=message):
+        make(planning)
+
+
+# ---------------------------------------------------------------- unknown keywords
+@pytest.mark.parametrize(
+    ("call", "unknown", "listed"),
+    [
+        (lambda e, o, g: make_dorp_policy(e, o, g, horizon=5, **SMALL), "horizon", "top_k"),
+        (
+            lambda e, o, g: make_dorp_policy(e, o, g, execution="receding", **SMALL),
+            "execution",
+            "optim_steps",
+        ),
+        (
+            lambda e, o, g: VisualForesightPolicy(GroundTruthModelEnv(e), "rs", optim_steps=3),
+            "optim_steps",
+            "action_persistence",
+        ),
+        (
+            lambda e, o, g: VisualForesightPolicy(GroundTruthModelEnv(e), "cem", topk=3),
+            "topk",
+            "top_k",
+        ),
+    ],
+    ids=["dorp-typo", "dorp-reserved", "vf-rs-cem-only", "vf-cem-typo"],
+)
+def test_an_unknown_planner_keyword_is_named_with_the_accepted_ones(
+    dorp_parts, call, unknown, listed
+):
+    env, oracle, graph = dorp_parts
+    with pytest.raises(UnknownArgumentError, match=rf"\['{unknown}'\].*'{listed}'") as info:
+        call(env, oracle, graph)
+    assert isinstance(info.value, TypeError) and isinstance(info.value, ValueError)
+
+
+# ---------------------------------------------------------------- CodeMatchCost one-hots
+@pytest.mark.parametrize(
+    ("onehots", "message"),
+    [
+        ((5,), r"onehots must be indices of the encoder's 1 one-hot\(s\) \(0 to 0"),
+        ([1], r"onehots must be indices of the encoder's 1 one-hot\(s\)"),
+        ((-1,), r"onehots\[0\] must be >= 0"),
+        ((0, 0), "each one-hot once"),
+        ((0.5,), r"onehots\[0\] must be an integer"),
+    ],
+)
+@pytest.mark.parametrize("kind", ["oracle", "learned"])
+def test_code_match_cost_refuses_one_hots_the_encoder_lacks(onehots, message, kind):
+    if kind == "oracle":
+        encoder = OracleCodeEncoder(ObjectRearrangementEnv(1, seed=0))
+    else:
+        encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(8,)))
+    with pytest.raises(ValueError, match=message):
+        CodeMatchCost(encoder, onehots=onehots)
+    assert CodeMatchCost(encoder, onehots=(0,)).onehots == [0]
+
+
+# ---------------------------------------------------------------- rewards after done
+class EndsEarly(EnvBase):
+    """A planning env whose episode ends when action 1 is taken first.
+
+    Step 0: action 0 earns 1 (the episode goes on, earning nothing more), action 1 earns 0
+    and ends the episode. Every later step of an ended episode earns 10: a planner that
+    counted rewards after ``done`` would end the episode at once.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(batch_size=())
+        self.__dict__["_batch_locked"] = False
+        self.observation_spec = Composite(
+            t=Unbounded(shape=(1,), dtype=torch.int64),
+            over=Categorical(2, shape=(1,), dtype=torch.bool),
+        )
+        self.action_spec = Categorical(2, shape=(1,), dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(1,), dtype=torch.float32)
+
+    def _reset(self, td=None, **kwargs):
+        shape = td.batch_size if td is not None else torch.Size([])
+        zeros = torch.zeros(*shape, 1, dtype=torch.int64)
+        return TensorDict(
+            t=zeros, over=zeros.bool(), done=zeros.bool(), terminated=zeros.bool(), batch_size=shape
+        )
+
+    def _step(self, td):
+        t, over, action = td["t"], td["over"], td["action"]
+        first = t == 0
+        over = torch.where(first, action == 1, over)
+        reward = torch.where(first, (action == 0).float(), over.float() * 10)
+        return TensorDict(
+            t=t + 1,
+            over=over,
+            reward=reward,
+            done=over,
+            terminated=over.clone(),
+            batch_size=td.batch_size,
+        )
+
+    def _set_seed(self, seed):
+        pass
+
+
+def test_negative_reward_cost_ignores_rewards_after_done():
+    done = torch.tensor([False, True, False, True]).expand(2, 3, 4).unsqueeze(-1)
+    rollout = TensorDict(
+        {("next", "reward"): torch.ones(2, 3, 4, 1) * 2, ("next", "done"): done},
+        batch_size=(2, 3, 4),
+    )
+    cost = NegativeRewardCost()(rollout)["cost"]
+    assert cost[0, 0].tolist() == [-2.0, -2.0, 0.0, 0.0]  # the done step counts, later ones not
+    unmasked = NegativeRewardCost(done_key=None)(rollout)["cost"]
+    assert unmasked[0, 0].tolist() == [-2.0] * 4
+
+
+@pytest.mark.parametrize("planner_cls", [RandomShootingPlanner, CategoricalCEMPlanner])
+def test_a_planner_on_rewards_does_not_count_rewards_after_an_early_done(planner_cls):
+    env = EndsEarly()
+    planner = planner_cls(env, NegativeRewardCost(), planning_horizon=4, num_candidates=32, seed=0)
+    out = planner(env.reset(TensorDict(batch_size=(3,))))
+    assert out["action"].squeeze(-1).tolist() == [0, 0, 0]  # go on: 1, not end for 0 + 30
+    assert out["planner_cost"].squeeze(-1).tolist() == [-1.0, -1.0, -1.0]
+
+
+# ---------------------------------------------------------------- devices
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda d: ObjectRearrangementEnv(1, device=d),
+        lambda d: KeyWallEnv(device=d),
+        lambda d: WorldModelEnv(_Still(), 4, device=d),
+        lambda d: RepresentationConfig.rearrangement(1, device=d),
+        lambda d: check_device(d),
+    ],
+    ids=["rearrangement", "key-wall", "world-model-env", "config", "helper"],
+)
+def test_a_device_that_does_not_exist_is_refused_by_name(make, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"device must be 'cpu', 'cuda', 'cuda:N' or 'mps'.*'foo'"):
+        make("foo")
+    with pytest.raises(ValueError, match=r"device='cuda' but CUDA is not available"):
+        make("cuda")
+    with pytest.raises(ValueError, match=r"device must be .*got 'meta'"):
+        make("meta")
+
+
+def test_a_cuda_index_beyond_the_machine_is_refused(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match=r"device='cuda:3' but this machine has 1 CUDA device"):
+        check_device("cuda:3")
+    assert check_device("cuda:0") == torch.device("cuda:0")
+
+
+def test_dorp_collect_with_a_cuda_device_and_no_cuda_is_a_usage_error(
+    tmp_path, monkeypatch, capsys
+):
+    from dorp_rl.cli import main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    argv = ["collect", "--setting", "1obj", "--root", str(tmp_path), "--codes.device", "cuda"]
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    assert "CUDA is not available" in " ".join(capsys.readouterr().err.split())
+    assert not any(tmp_path.iterdir())
+
+
+class _Still:
+    def predict(self, pixels, action, deterministic=True):
+        return pixels.clone()
+
+
+# ---------------------------------------------------------------- rollout lengths, batch sizes
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: ObjectRearrangementEnv(1, batch_size=(2,), seed=0),
+        lambda: KeyWallEnv(seed=0),
+        lambda: GroundTruthModelEnv(KeyWallEnv(seed=0)),
+        lambda: WorldModelEnv(_Still(), 4),
+    ],
+    ids=["rearrangement", "key-wall", "ground-truth-model", "world-model"],
+)
+@pytest.mark.parametrize(
+    ("steps", "message"), [(0, "must be >= 1"), (-2, "must be >= 1"), (2.5, "must be an integer")]
+)
+def test_a_rollout_of_no_steps_names_max_steps(make, steps, message):
+    env = make()
+    with pytest.raises(ValueError, match=rf"max_steps {message}"):
+        env.rollout(steps)
+    assert env.rollout(2).shape[-1] == 2
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda b: ObjectRearrangementEnv(1, batch_size=b),
+        lambda b: KeyCorridorEnv(batch_size=b),
+        lambda b: make_env("key-wall", batch_size=b),
+        lambda b: gymnasium.make("dorp_rl/KeyWall-v0", batch_size=b),
+    ],
+    ids=["rearrangement", "key-corridor", "make_env", "gymnasium"],
+)
+def test_a_batch_size_given_as_a_string_is_refused_by_name(make):
+    with pytest.raises(ValueError, match=r"batch_size.*'8'"):
+        make("8")

@@ -568,8 +568,9 @@ class CodeMatchCost(RolloutCost):
         self.chunk_size = int(chunk_size)
         self.onehots_key: NestedKey | None = None
         self.onehots: list[int] | None = None
-        if isinstance(onehots, (str, tuple)) and not (
-            isinstance(onehots, tuple) and all(isinstance(i, int) for i in onehots)
+        # A key is a string or a tuple of strings (nested); anything else is indices.
+        if isinstance(onehots, str) or (
+            isinstance(onehots, tuple) and onehots and all(isinstance(i, str) for i in onehots)
         ):
             self.onehots_key = unravel_key(onehots)
         elif onehots is not None:
