@@ -61,7 +61,14 @@ def test_gymnasium_check_env(env_id, kwargs):
     for key in ("pixels", "goal_pixels"):
         assert obs[key].shape == (16, 16, 3) and obs[key].dtype == np.uint8
     assert info["state"].dtype == np.int64
-    assert isinstance(info["lower_bound_steps"], int) and info["lower_bound_steps"] >= 0
+    assert isinstance(info["lower_bound_steps"], int)
+    # The bound of a task one move away is 1, of a task already solved 0.
+    case = CASE_IDS[CASES.index((env_id, kwargs))]
+    start, goal, _, _ = ONE_MOVE_AWAY[case]
+    _, info = env.reset(seed=0, options={"state": start, "goal_state": goal})
+    assert info["lower_bound_steps"] == 1
+    _, info = env.reset(seed=0, options={"state": goal, "goal_state": goal})
+    assert info["lower_bound_steps"] == 0
 
 
 @pytest.mark.parametrize(("env_id", "kwargs"), CASES, ids=CASE_IDS)

@@ -164,8 +164,13 @@ def test_code_match_cost_on_chosen_onehots():
     # Start (0, 0); target code 2 on one-hot 0; one-hot 1 must stay at 0.
     rollout = code_rollout((0, 0), [(1, 0), (2, 1), (2, 0), (2, 0)], target=(2, 3))
     cost = CodeMatchCost(CornerEncoder(), onehots=[0], step_penalty=0.0)(rollout)["cost"][0, 0]
-    assert cost[0] > 0.99 and cost[1] > 0.99  # not there / other one-hot changed
-    assert -1e-3 <= cost[2] <= 0 and torch.isclose(cost[2], cost[3])
+    # Per step: (1 on a miss, 0 on a match) - tie_break (1e-3) x the mean probability of
+    # the wanted codes (CornerEncoder: 0.925 on its code, 0.025 on the others).
+    # Not there / the other one-hot changed: one wanted code of two has its 0.925.
+    assert cost[0].item() == pytest.approx(1 - 1e-3 * 0.475)
+    assert cost[1].item() == pytest.approx(1 - 1e-3 * 0.475)
+    # A match, both wanted codes at 0.925.
+    assert cost[2].item() == pytest.approx(-1e-3 * 0.925) and cost[3] == cost[2]
     # With a step penalty the earlier of two matching steps is the cheaper, by more
     # than any confidence difference; misses are not penalised.
     cost = CodeMatchCost(CornerEncoder(), onehots=[0], step_penalty=2e-3)(rollout)["cost"][0, 0]
@@ -512,9 +517,25 @@ def test_code_match_cost_with_the_real_encoder_runs_in_a_planner():
         top_k=4,
         seed=0,
     )
-    out = planner(td)
-    assert ((out["action"] >= 0) & (out["action"] < 8)).all()
-    assert ((out["planner_cost"] >= -1e-3) & (out["planner_cost"] <= 1)).all()
+    out = planner(td.clone())
+    plan = out["planner_plan"]  # [2, 4] env steps: two decisions, each repeated twice
+    assert torch.equal(plan[:, 0::2], plan[:, 1::2]) and torch.equal(out["action"], plan[:, :1])
+    # The reported cost is the cost of the plan's own frames (the best of its steps),
+    # rolled out here with the true dynamics.
+    states, frames = td["state"], []
+    for t in range(4):
+        states = env.transition(states, plan[:, t])
+        frames.append(env.render_state(states))
+    rollout = TensorDict(
+        {
+            "pixels": td["pixels"][:, None, None].expand(2, 1, 4, 3, 16, 16),
+            "subgoal_code": td["subgoal_code"][:, None, None].expand(2, 1, 4, 2),
+            ("next", "pixels"): torch.stack(frames, 1)[:, None],
+        },
+        batch_size=(2, 1, 4),
+    )
+    own = CodeMatchCost(encoder, onehots=[1])(rollout)["cost"][:, 0]
+    assert torch.allclose(out["planner_cost"][:, 0], own.min(-1).values)
     assert encoder.training  # the cost restores the encoder's mode
 
 

@@ -324,8 +324,12 @@ def test_code_match_cost_draws_only_frames_its_cache_misses():
     first = _run_cost_imagined(planner.cost, rollout, frames)["cost"]
     drawn_first = sum(drawn)
     distinct = frames.distinct()[2].max() + 1
-    # An empty cache: every distinct frame once, but for the 3 start frames, encoded first.
-    assert distinct - 3 <= drawn_first <= distinct < 3 * 100 * 4
+    # An empty cache: every distinct imagined frame once, except those equal to one of the
+    # 3 start frames, which are encoded first (a blocked move keeps a start frame).
+    imagined = {tuple(s) for s in frames.states.flatten(0, 2).flatten(1).tolist()}
+    starts = {tuple(s) for s in td["state"].flatten(1).tolist()}
+    assert len(imagined) == distinct < 3 * 100 * 4 and starts & imagined
+    assert drawn_first == len(imagined - starts)
     drawn.clear()
     rollout, frames = planner.imagine_states(td, decisions)
     again = _run_cost_imagined(planner.cost, rollout, frames)["cost"]

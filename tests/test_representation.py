@@ -212,9 +212,25 @@ def _loss(gumbel_side="positive", **kwargs) -> CPCLoss:
     return CPCLoss(encoder, DDDPSimilarity(16), gumbel_side=gumbel_side, **kwargs)
 
 
+def _capture(loss: CPCLoss) -> dict[str, torch.Tensor]:
+    """Records what the loss's encoder and similarity return on its next call."""
+    seen: dict[str, torch.Tensor] = {}
+    encode = loss.encoder.logits_and_maps
+
+    def logits_and_maps(pixels):
+        out = encode(pixels)
+        seen["logits"], seen["maps"] = (t.detach() for t in out)
+        return out
+
+    loss.encoder.logits_and_maps = logits_and_maps
+    loss.similarity.register_forward_hook(lambda m, i, o: seen.update(scores=o.detach()))
+    return seen
+
+
 @pytest.mark.parametrize("side", ["positive", "anchor"])
 def test_gradients_reach_extractor_through_gumbel_path(side):
     loss = _loss(side)
+    seen = _capture(loss)
     pixels = _pixels(8)
     out = loss(TensorDict(pixels=pixels, future_pixels=_pixels(8, seed=1), batch_size=[8]))
     out["loss_cpc"].backward()
@@ -224,19 +240,41 @@ def test_gradients_reach_extractor_through_gumbel_path(side):
     assert math.isclose(
         float(out["mi_lower_bound"]), math.log(8) - float(out["loss_cpc"].detach()), rel_tol=1e-5
     )
-    assert 0 <= float(out["accuracy"]) <= 1 and 1 <= float(out["codes_in_batch"]) <= 8
+    # accuracy: share of anchors whose highest score is their own future (the diagonal);
+    # codes_in_batch: distinct anchor codes per one-hot, averaged (min: the fewest).
+    own = seen["scores"].argmax(1) == torch.arange(8)
+    assert float(out["accuracy"]) == pytest.approx(float(own.float().mean()))
+    codes = seen["logits"][:8].argmax(-1)  # the anchors' codes, [8, 2]
+    used = [len(set(codes[:, c].tolist())) for c in range(2)]
+    assert float(out["codes_in_batch"]) == pytest.approx(sum(used) / 2)
+    assert float(out["min_codes_in_batch"]) == min(used)
 
 
 def test_loss_optional_terms_and_keys():
+    from dorp_rl.objectives.cpc import change_imbalance, change_overlap
+
     loss = _loss(usage_weight=0.1, exclusivity_weight=0.1)
+    seen = _capture(loss)
     loss.set_keys(pixels="obs", future_pixels=("next", "obs"))
     td = TensorDict(
         obs=_pixels(6), next=TensorDict(obs=_pixels(6, 1), batch_size=[6]), batch_size=[6]
     )
     out = loss(td)
     assert {"loss_cpc", "loss_usage", "loss_exclusivity"} <= set(out.keys())
-    assert float(out["loss_usage"].detach()) >= 0
-    assert float(out["loss_exclusivity"].detach()) >= 0
+    # usage: weight x the mean, over one-hots, of log 8 minus the entropy of the anchors'
+    # mean code distribution (0 only if every code is used equally).
+    mean_probs = seen["logits"][:6].softmax(-1).mean(0)  # [2, 8]
+    entropy = -(mean_probs * mean_probs.log()).sum(-1)
+    usage = 0.1 * (math.log(8) - entropy).mean()
+    assert float(out["loss_usage"].detach()) == pytest.approx(float(usage), rel=1e-5)
+    assert float(usage) > 1e-4
+    # exclusivity: weight x (overlap + imbalance) of how much each one-hot's map changes
+    # from the anchor (obs) to its future (next obs).
+    maps = seen["maps"]
+    change = (maps[:6] - maps[6:]).abs().flatten(-2).sum(-1)  # [6, 2]
+    expected = 0.1 * (change_overlap(change) + change_imbalance(change))
+    assert float(out["loss_exclusivity"].detach()) == pytest.approx(float(expected), rel=1e-5)
+    assert float(expected) > 1e-4
 
 
 def test_sparsity_term_shrinks_the_object_maps():

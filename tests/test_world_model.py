@@ -98,14 +98,26 @@ def test_stochastic_mode_uses_the_latent_and_is_seeded(
     z = torch.randn(64, 3) * 5
     # the latent reaches the prediction (FiLM and input channels)
     assert not torch.allclose(model.logits(pixels, action, z), model.logits(pixels, action))
-    a = model.predict(
-        pixels, action, deterministic=False, generator=torch.Generator().manual_seed(3)
-    )
-    b = model.predict(
-        pixels, action, deterministic=False, generator=torch.Generator().manual_seed(3)
-    )
-    assert torch.equal(a, b)
-    assert torch.equal(model.predict(pixels, action), model.predict(pixels, action))
+    with torch.no_grad():  # a prior std of about 20, so that draws change the frames
+        model.prior_net.head.bias[3:] = 20.0
+
+    def draw(seed: int) -> torch.Tensor:
+        generator = torch.Generator().manual_seed(seed)
+        return model.predict(pixels, action, deterministic=False, generator=generator)
+
+    a, b, other = draw(3), draw(3), draw(4)
+    assert torch.equal(a, b) and not torch.equal(a, other)
+    # A draw is the prior mean plus std times the generator's normal noise; the
+    # deterministic mode decodes the mean itself.
+    mean, std = model.prior(model.frame_probs(pixels), action)
+    assert std.min() > 19.0
+    noise = torch.randn(mean.shape, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        drawn = model.frames_from_logits(model.logits(pixels, action, mean + std * noise))
+        at_mean = model.frames_from_logits(model.logits(pixels, action, mean))
+    assert torch.equal(a, drawn)
+    deterministic = model.predict(pixels, action)
+    assert torch.equal(deterministic, at_mean) and not torch.equal(deterministic, a)
 
 
 def test_advection_moves_each_colour_by_its_own_kernel(
@@ -228,8 +240,17 @@ def test_open_loop_accuracy_matches_a_manual_count(
     assert result["horizon"] == 4 and result["num_sequences"] == 64
     assert torch.allclose(torch.tensor(result["exact_accuracy"]), exact)
     assert result["exact_accuracy_last"] == pytest.approx(float(exact[-1]))
-    # a frame equal to the truth has zero error: the copy model is exact where nothing moved
-    assert all(0.0 <= m <= 1.0 for m in result["pixel_mse"])
+    # The untrained model copies its first frame at every step: it is exact (zero error)
+    # where the true frame has not changed, and its mean squared error on values in [0, 1]
+    # is that of the first frame against the truth.
+    first = windows[:, 0]["pixels"]
+    assert torch.equal(frames, first[:, None].expand_as(frames))
+    truth = windows["next", "pixels"]
+    unchanged = (truth == first[:, None]).flatten(2).all(-1).float().mean(0)
+    assert torch.equal(exact, unchanged) and 0 < float(unchanged[0]) < 1
+    error = ((first[:, None].double() - truth.double()) / 255).pow(2).flatten(2).mean(-1)
+    assert torch.allclose(torch.tensor(result["pixel_mse"], dtype=torch.float64), error.mean(0))
+    assert (error[(truth == first[:, None]).flatten(2).all(-1)] == 0).all()
     with pytest.raises(ValueError, match=r"\[N, H\]"):
         open_loop_accuracy(model, windows[:, 0])
 
@@ -375,7 +396,11 @@ def test_trainer_with_event_share_samples_and_evaluates_event_windows(tmp_path) 
     assert (windows["next", "state"][..., 2] != windows["state"][..., 2]).any(-1).all()
     evaluation = trainer.train()["evaluation"]
     assert evaluation["event_num_sequences"] == 12
-    assert 0.0 <= evaluation["event_exact_accuracy_step4"] <= 1.0
+    # The event accuracies are the trained model's exact frames on those windows, by step.
+    frames = trainer.model.eval().rollout(windows[:, 0]["pixels"], windows["action"])
+    exact = (frames == windows["next", "pixels"]).flatten(2).all(-1).double().mean(0)
+    for h in (1, 2, 4):
+        assert evaluation[f"event_exact_accuracy_step{h}"] == pytest.approx(float(exact[h - 1]))
     uniform = WorldModelTrainer(cfg.replace(event_share=0.0, out_dir=str(tmp_path / "u")))
     assert type(uniform.buffer.sampler) is SequenceSampler and uniform.eval_event_windows is None
 
