@@ -61,7 +61,7 @@ def bad_values(rule) -> list:
     if isinstance(rule, Seed):
         return [(-1, "[0, "), (1.5, "integer"), (2**63, "[0, ")]
     if isinstance(rule, Device):
-        return [("gpu0", "torch device")]
+        return [("gpu0", "torch.device")]
     if isinstance(rule, Ints):
         low = 1 if rule.low is None else rule.low
         out = [((low, low - 1), f">= {low}"), ((low, 2.5), "integer")]
@@ -129,8 +129,8 @@ def test_defaults_presets_and_round_trips_are_valid(cls):
         (RepresentationConfig, {"num_envs": 0}, "num_envs must be >= 1"),
         (RepresentationConfig, {"seed": -1}, "seed must be in [0, "),
         (WorldModelConfig, {"seed": -1}, "seed must be in [0, "),
-        (RepresentationConfig, {"lr": math.nan}, "lr must be a finite number >= 0"),
-        (RepresentationConfig, {"lr": -1.0}, "lr must be >= 0"),
+        (RepresentationConfig, {"lr": math.nan}, "lr must be a finite number > 0"),
+        (RepresentationConfig, {"lr": -1.0}, "lr must be > 0"),
         (WorldModelConfig, {"lr": math.nan}, "lr must be a finite number >= 0"),
         (RepresentationConfig, {"max_offset": 4}, "max_offset <= the play trajectory length"),
     ],
@@ -139,6 +139,130 @@ def test_common_mistakes_name_the_field(cls, changes, message):
     with pytest.raises(ValueError) as info:
         dataclasses.replace(cls(), **changes)
     assert message in str(info.value)
+
+
+# ---------------------------------------------------------------- bounds pinned by hand
+# The sweep above reads each bound from FIELD_RULES, so a wrong bound there passes it.
+# These are written out from what each field means: (config, field, the literal value
+# just outside its range, the text the refusal holds, the literal boundary or inside
+# values that must be taken).
+R, W, E, V = RepresentationConfig, WorldModelConfig, EncoderConfig, VideoModelConfig
+PINNED = [
+    # learning: a step must change the weights, a batch hold a pair and its negatives
+    (R, "lr", 0.0, "lr must be > 0", [1e-9, 1e-3]),
+    (R, "batch_size", 1, "batch_size must be >= 2", [2]),  # CPC needs a negative
+    (W, "batch_size", 0, "batch_size must be >= 1", [1]),
+    (R, "num_steps", 0, "num_steps must be >= 1", [1]),
+    (W, "num_steps", 0, "num_steps must be >= 1", [1]),
+    (W, "grad_clip", 0.0, "grad_clip must be > 0", [1e-6, math.inf]),
+    (W, "lr_final", -1e-9, "lr_final must be >= 0", [0.0]),
+    # temperatures divide logits
+    (R, "gumbel_temperature", 0.0, "gumbel_temperature must be > 0", [1e-3]),
+    (R, "ce_temperature", 0.0, "ce_temperature must be > 0", [1e-3]),
+    (R, "gumbel_temperature_start", 0.0, "gumbel_temperature_start must be > 0", [1e-3]),
+    (R, "alpha", 0.999, "alpha must be >= 1", [1.0]),
+    # weights of loss terms are not negative
+    (R, "usage_weight", -1e-9, "usage_weight must be >= 0", [0.0]),
+    (R, "exclusivity_weight", -1e-9, "exclusivity_weight must be >= 0", [0.0]),
+    (R, "sparsity_weight", -1e-9, "sparsity_weight must be >= 0", [0.0]),
+    (R, "motion_weight", -1e-9, "motion_weight must be >= 0", [0.0]),
+    (W, "kl_weight", -1e-9, "kl_weight must be >= 0", [0.0]),
+    (W, "free_bits", -1e-9, "free_bits must be >= 0", [0.0]),
+    # probabilities and shares
+    (W, "event_share", -0.01, "event_share must be in [0, 1)", [0.0, 0.99]),
+    (W, "event_share", 1.0, "event_share must be in [0, 1)", []),  # event windows only
+    (W, "deterministic_fraction", -0.01, "deterministic_fraction must be in [0, 1]", [0.0]),
+    (W, "deterministic_fraction", 1.01, "deterministic_fraction must be in [0, 1]", [1.0]),
+    (W, "open_loop_ramp", -0.01, "open_loop_ramp must be in [0, 1]", [0.0]),
+    (W, "open_loop_ramp", 1.01, "open_loop_ramp must be in [0, 1]", [1.0]),
+    # windows, offsets and play data
+    (W, "horizon", 0, "horizon must be >= 1", [1]),
+    (W, "trajectory_length", 0, "trajectory_length must be >= 1", []),
+    (R, "trajectory_length", 0, "trajectory_length must be >= 1", [1, None]),
+    (R, "min_offset", 0, "min_offset must be >= 1", [1]),
+    (R, "max_offset", 0, "max_offset must be >= 1", [1]),
+    (R, "num_frames", 0, "num_frames must be >= 1", [1]),
+    (R, "num_envs", 0, "num_envs must be >= 1", [1]),
+    (W, "num_envs", 0, "num_envs must be >= 1", [1]),
+    (W, "eval_frames", 0, "eval_frames must be >= 1", []),
+    (W, "eval_sequences", 0, "eval_sequences must be >= 1", [1]),
+    (R, "num_objects", 0, "num_objects must be", [1, 8]),
+    (R, "num_objects", 9, "num_objects must be", []),  # the palette has 8 colours
+    # bookkeeping
+    (R, "seed", -1, "seed must be in [0, ", [0, 2**63 - 1]),
+    (R, "seed", 2**63, "seed must be in [0, ", []),
+    (W, "seed", -1, "seed must be in [0, ", [0]),
+    (R, "log_every", 0, "log_every must be >= 1", [1]),
+    (R, "checkpoint_every", 0, "checkpoint_every must be >= 1", [1]),
+    (W, "eval_every", 0, "eval_every must be >= 1", [1]),
+    (R, "diagnostics_every", 0, "diagnostics_every must be >= 1", [1]),
+    (R, "max_restarts", -1, "max_restarts must be >= 0", [0]),
+    (R, "num_candidates", 0, "num_candidates must be >= 1", [1]),
+    # model sizes: a one-hot needs two codes to say anything
+    (E, "code_sizes", (1,), "code_sizes[0] must be", [(2,)]),
+    (E, "code_sizes", (8, 1), "code_sizes[1] must be", [(2, 2)]),
+    (E, "channels", 0, "channels must be >= 1", [1]),
+    (E, "input_scale", 0.0, "input_scale must be > 0", [1e-3]),
+    (V, "channels", 0, "channels must be >= 1", [1]),
+    (V, "latent_dim", -1, "latent_dim must be >= 0", [0]),
+    (V, "dilations", (0,), "dilations[0] must be", [(1,)]),
+]
+
+
+def _config(cls, **changes):
+    base = cls.default() if cls is VideoModelConfig else cls()
+    return dataclasses.replace(base, **changes)
+
+
+@pytest.mark.parametrize(
+    ("cls", "name", "outside", "message", "inside"),
+    PINNED,
+    ids=[f"{c.__name__}.{n}={v!r}" for c, n, v, _, _ in PINNED],
+)
+def test_pinned_bounds_refuse_the_value_just_outside_and_take_the_boundary(
+    cls, name, outside, message, inside
+):
+    extra = {"gumbel_anneal_steps": 10} if name == "gumbel_temperature_start" else {}
+    with pytest.raises(ValueError) as info:
+        _config(cls, **extra, **{name: outside})
+    assert message in str(info.value), str(info.value)
+    for value in inside:
+        assert getattr(_config(cls, **extra, **{name: value}), name) == value
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"horizon": 17}, "horizon"),  # a window longer than the play trajectories
+        ({"horizon": 1, "trajectory_length": 0}, "trajectory_length must be >= 1"),
+    ],
+)
+def test_world_model_windows_fit_the_trajectories(changes, message):
+    with pytest.raises(ValueError, match=message):
+        WorldModelConfig(**changes)
+    assert WorldModelConfig(horizon=16, trajectory_length=16).horizon == 16  # equal: taken
+    assert WorldModelConfig(horizon=1, trajectory_length=1).trajectory_length == 1
+
+
+def test_representation_offsets_fit_the_play_trajectories():
+    key_wall = RepresentationConfig.key_wall(trajectory_length=4, max_offset=4)
+    assert key_wall.max_offset == 4  # equal to the trajectory length: taken
+    with pytest.raises(ValueError, match="max_offset <= the play trajectory length"):
+        RepresentationConfig.key_wall(trajectory_length=4, max_offset=5)
+    with pytest.raises(ValueError, match="min_offset <= max_offset"):
+        RepresentationConfig.key_wall(min_offset=3, max_offset=2)
+    assert RepresentationConfig.key_wall(min_offset=2, max_offset=2).min_offset == 2
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="WorldModelConfig takes lr=0 (trainers/world_model.py FIELD_RULES: Float(low=0.0)); "
+    "a learning rate of 0 never changes a weight, as RepresentationConfig now refuses",
+)
+def test_world_model_lr_must_be_positive():
+    with pytest.raises(ValueError, match="lr must be > 0"):
+        WorldModelConfig(lr=0.0)
+    assert WorldModelConfig(lr=1e-9).lr == 1e-9
 
 
 @pytest.mark.parametrize(
@@ -190,7 +314,7 @@ def test_values_are_normalised():
 
 def test_from_dict_validates():
     values = RepresentationConfig().to_dict() | {"lr": -1.0}
-    with pytest.raises(ValueError, match="lr must be >= 0"):
+    with pytest.raises(ValueError, match="lr must be > 0"):
         RepresentationConfig.from_dict(values)
 
 
@@ -200,7 +324,7 @@ def test_a_config_changed_after_construction_is_caught_by_the_trainer(
 ):
     cfg = representation_config() if trainer is RepresentationTrainer else world_model_config()
     cfg.lr = -1.0  # dataclasses are mutable: the trainer checks again
-    with pytest.raises(ValueError, match="lr must be >= 0"):
+    with pytest.raises(ValueError, match="lr must be >=? 0"):
         trainer(cfg)
 
 

@@ -421,9 +421,9 @@ def test_resume_equals_uninterrupted_run(tmp_path):
 
 
 def test_collapse_detector_restarts_and_reports(tmp_path):
-    # A learning rate of 0 can never leave the initial near-uniform codes: the loss stays
-    # at log B, so every attempt is declared collapsed.
-    cfg = _tiny_config(tmp_path, lr=0.0, collapse_check_after=4, max_restarts=2, num_steps=15)
+    # A learning rate of 1e-12 (lr=0 is refused) never leaves the initial near-uniform
+    # codes: the loss stays at log B, so every attempt is declared collapsed.
+    cfg = _tiny_config(tmp_path, lr=1e-12, collapse_check_after=4, max_restarts=2, num_steps=15)
     trainer = RepresentationTrainer(cfg)
     reason = trainer.collapse_hook.collapse_reason({"min_codes_in_batch": 1.0, "loss_cpc": 0.1}, 10)
     assert reason is not None and "only 1 code" in reason

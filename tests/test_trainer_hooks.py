@@ -277,8 +277,8 @@ def test_threads_apply_while_training_and_are_restored(tmp_path, tiny_configs):
 
 
 def test_restart_hooks_keep_their_restarts_across_a_resume(tmp_path, tiny_configs):
-    # lr 0 never leaves the initial codes: every attempt is flat at log B and restarts.
-    overrides = dict(lr=0.0, collapse_check_after=3, max_restarts=2, checkpoint_every=1)
+    # lr 1e-12 never leaves the initial codes: every attempt is flat at log B and restarts.
+    overrides = dict(lr=1e-12, collapse_check_after=3, max_restarts=2, checkpoint_every=1)
     trainer = RepresentationTrainer(tiny_configs.representation(tmp_path / "r", **overrides))
     assert list(trainer.hooks) == ["screening", "collapse", "entanglement"]
     with pytest.warns(RuntimeWarning):

@@ -75,7 +75,7 @@ class RepresentationConfig(TrainerConfig):
         "sparsity_weight": Float(low=0.0),
         "motion_weight": Float(low=0.0),
         "batch_size": Int(low=2),
-        "lr": Float(low=0.0),
+        "lr": Float(low=0.0, low_open=True, hint="(0 would never change a weight)"),
         "similarity_lr_scale": Float(low=0.0),
         "num_steps": Int(low=1),
         "diagnostics_every": Int(low=1),
@@ -760,7 +760,9 @@ class RepresentationTrainer(OfflineTrainer):
         """Runs ``config.num_steps`` steps of the last attempt; returns metrics and diagnostics.
 
         The result also holds ``attempt``, ``restarts`` and ``collapsed`` (the last
-        attempt still looks collapsed; a ``RuntimeWarning`` says so too).
+        attempt still looks collapsed; a ``RuntimeWarning`` says so too), and, as for every
+        :class:`~dorp_rl.trainers.OfflineTrainer`, ``resumed_from_step`` (the checkpoint's
+        step a resume went on from, ``None`` for a fresh run).
         """
         result = super().train(resume=resume)
         metrics = result["metrics"]
