@@ -7,7 +7,16 @@ Every command works in a run folder ``<root>/<name>/`` (default ``runs/demo/``):
 - ``play/``, ``codes/``, ``graph.pt``, ``world_model/``: play data, the representation
   run (checkpoints, CSV logs), the code graph, the world-model run;
 - ``log.txt``: what each command did; ``results.csv`` and ``results.md``: one row per
-  evaluated method (:data:`~dorp_rl.eval.RESULT_COLUMNS`).
+  evaluated method (:data:`~dorp_rl.eval.RESULT_COLUMNS`);
+- ``run.lock`` (and ``running.json`` while a command runs): the run's lock, held by one
+  command at a time for all of its stages (:class:`~dorp_rl.integrity.DirectoryLock`),
+  so a second command on a busy run stops with exit code 2 (or waits: ``--wait``).
+
+``--name`` is a folder strictly below ``--root``; anything else (an absolute path, ``..``
+out of the root, ``""``, ``.``, a symlink elsewhere) is a usage error, as are a ``--root``
+that is a file or cannot be written, a ``stages.json`` this version cannot read, stage
+files replaced by others and a ``--low-level`` file that is not a world model of the
+setting. A usage error (exit code 2) leaves the run folder as it was (except its lock file).
 
 A stage whose stored config equals the current one and whose files exist is skipped (and
 the command says so); a changed field re-runs that stage and every stage depending on it,
@@ -27,6 +36,8 @@ import functools
 import json
 import logging
 import operator
+import os
+import shlex
 import shutil
 import sys
 import threading
@@ -51,6 +62,7 @@ from dorp_rl.eval import (
     result_row,
     write_results,
 )
+from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_bytes
 from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
 from dorp_rl.trainers import (
     OfflineTrainer,
@@ -59,6 +71,7 @@ from dorp_rl.trainers import (
     WorldModelConfig,
     WorldModelTrainer,
     load_encoder,
+    load_video_model,
 )
 from dorp_rl.viz import plot_results
 
@@ -93,6 +106,12 @@ PLAY_FIELDS = (
 LOW_LEVEL_NAMES = {"ground-truth": "gt", "video": "world-model"}
 #: training steps of the demo's codes (the preset's 1500 do not fit its 5-minute budget)
 DEMO_CODE_STEPS = 1000
+#: the run folder's lock file (one command at a time in a run folder)
+RUN_LOCK = "run.lock"
+#: which command holds the run's lock (pid and command line), for the refusal's message
+RUN_HOLDER = "running.json"
+#: what a run name is, for the usage messages
+NAME_RULE = "a run name is a folder below --root, such as 'demo' or 'paper/2obj'"
 
 
 # --------------------------------------------------------------------------- configs
@@ -101,9 +120,10 @@ class RunOptions:
     """Where a run lives and how it runs."""
 
     name: str = "demo"
-    """run name: every file of the run goes to <root>/<name>/"""
+    """run name: every file of the run goes to <root>/<name>/, a folder strictly below
+    --root (such as 'demo' or 'paper/2obj'; not absolute, not '.', not out of --root)"""
     root: str = "runs"
-    """folder holding the runs"""
+    """folder holding the runs (created if missing; it must be writable)"""
     threads: int = 1
     """torch threads (torch.set_num_threads). Keep 1 on a shared 2-core machine: there,
     oversubscribed threads made a training step about 100x slower."""
@@ -112,6 +132,9 @@ class RunOptions:
     setting: SettingName = "2obj"
     """environment, code preset and graph groups (dorp_rl.eval.SETTINGS); the codes and
     world-model fields below default to this setting's presets"""
+    wait: bool = False
+    """when another dorp command is running in the run folder: wait until it has finished,
+    then go on (default: stop at once with exit code 2)"""
 
 
 def _codes_default() -> RepresentationConfig:
@@ -301,38 +324,212 @@ def quiet_torchrl(active: bool) -> Iterator[None]:
         logger.setLevel(level)
 
 
+def run_folder(root: str, name: str) -> Path:
+    """``<root>/<name>``, once checked to be a folder strictly below ``root``.
+
+    Reads only (nothing is created). Symlinks are followed: a name that resolves to
+    ``root`` itself or outside it is refused.
+
+    Raises:
+        UsageError: an empty, absolute or escaping ``name``, or a ``root`` (or a folder
+            on its path) that is a file.
+    """
+    if not name.strip():
+        raise UsageError(f"--name {name!r} is empty: {NAME_RULE}.")
+    if Path(name).is_absolute():
+        raise UsageError(f"--name {name!r} is an absolute path: {NAME_RULE}.")
+    base = Path(root)
+    existing = next((p for p in (base, *base.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise UsageError(
+            f"--root {root}: {existing} is a file, not a folder. Give a folder for the runs "
+            "(it is created if missing)."
+        )
+    try:
+        inside, folder = base.resolve(), (base / name).resolve()
+    except (OSError, RuntimeError, ValueError) as err:  # a symlink loop, a NUL byte
+        raise UsageError(f"--name {name!r} cannot be resolved ({err}): {NAME_RULE}.") from None
+    if folder == inside or inside not in folder.parents:
+        where = "--root itself" if folder == inside else f"{folder}, outside --root {root}"
+        raise UsageError(f"--name {name!r} is {where}: {NAME_RULE}.")
+    path = base / name
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"--name {name!r}: {path} is a file, not a run folder: {NAME_RULE}.")
+    return path
+
+
+def _read_stages(path: Path) -> dict[str, Any]:
+    """The stage records of ``stages.json`` (none if the file is missing), checked.
+
+    Raises:
+        UsageError: a file that is not JSON, not a mapping of stage names to records, or
+            a record without its ``config`` (or an evaluation's without its ``summary``).
+    """
+    if not path.exists():
+        return {}
+    problem, text = "", ""
+    try:
+        text = path.read_text()
+        stages = json.loads(text)
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        stages, problem = None, "it is empty" if not text.strip() else f"it is not JSON ({err})"
+    if not problem and not isinstance(stages, dict):
+        problem = f"it holds a {type(stages).__name__}, not a record per stage"
+    for name, record in (stages if not problem else {}).items():
+        config = record.get("config", ...) if isinstance(record, dict) else ...
+        if config is ... or (config is not None and not isinstance(config, dict)):
+            problem = f"stage {name!r} has no 'config' mapping"
+        elif (
+            config is not None
+            and (name.startswith("evaluate:") or name == "pictures")
+            and not isinstance(record.get("summary"), dict)
+        ):
+            problem = f"finished stage {name!r} has no 'summary' mapping"
+        elif not isinstance(record.get("seconds", 0.0), (int, float)):
+            problem = f"stage {name!r} has 'seconds' {record['seconds']!r}, not a number"
+        if problem:
+            break
+    if problem:
+        raise UsageError(
+            f"{path} cannot be read as this run's stage records: {problem}. Remove it to "
+            "run every stage again, or use another --name."
+        )
+    return stages
+
+
+def _holder(directory: Path) -> str:
+    """Who holds the run lock of ``directory``: pid, host, since and command if recorded."""
+    try:
+        lock = json.loads((directory / RUN_LOCK).read_text())
+    except (OSError, ValueError):
+        return "another process"
+    if not isinstance(lock, dict):
+        return "another process"
+    try:
+        holder = json.loads((directory / RUN_HOLDER).read_text())
+    except (OSError, ValueError):
+        holder = {}
+    command = holder.get("command") if isinstance(holder, dict) else None
+    what = f"{command}, " if command and holder.get("pid") == lock.get("pid") else ""
+    return f"process {lock.get('pid')} on {lock.get('host')} ({what}since {lock.get('since')})"
+
+
+def _lock_run(
+    directory: Path, wait: bool, command_line: str, say: Callable[[str], None]
+) -> DirectoryLock:
+    """Takes the run lock of ``directory`` (creating the folder) for one command.
+
+    Raises:
+        UsageError: the run is busy and ``wait`` is false, or the folder cannot be written.
+    """
+    lock = DirectoryLock(directory, RUN_LOCK, purpose="a dorp command")
+    try:
+        try:
+            lock.acquire()
+        except DirectoryLockedError:
+            if not wait:
+                raise UsageError(
+                    f"the run folder {directory} is in use by {_holder(directory)}: a second "
+                    "command would remove files the first one is writing. Wait for it to "
+                    "finish, add --wait to wait for it, or use another --name."
+                ) from None
+            say(f"the run folder {directory} is in use by {_holder(directory)}; waiting (--wait)")
+            lock.acquire(wait=True)
+        since = time.strftime("%Y-%m-%d %H:%M:%S")
+        holder = {"pid": os.getpid(), "command": command_line, "since": since}
+        atomic_write_bytes(directory / RUN_HOLDER, (json.dumps(holder) + "\n").encode())
+    except OSError as err:
+        lock.release()
+        raise UsageError(
+            f"cannot write in the run folder {directory}: {err.strerror or err}. Use a --root "
+            "you can write in (or make this one writable)."
+        ) from None
+    return lock
+
+
 class Run:
-    """A run folder: resolved config, stage records, log and results."""
+    """A run folder: resolved config, stage records, log and results.
+
+    Holds the run's lock (``run.lock``) from its creation to :meth:`close` (or the end of
+    a ``with`` block), so that one command at a time reads or changes the folder. Nothing
+    is written into the folder before a stage runs (:meth:`begin_changes`): a command that
+    stops with a usage error leaves it as it was, and the lines said until then go to
+    ``log.txt`` only once the run changes.
+    """
 
     #: seconds between updates of a running stage's time in ``stages.json``
     heartbeat: float = 30.0
 
     def __init__(
-        self, command: Any, command_name: str, echo: Callable[[str], None] | None = None
+        self,
+        command: Any,
+        command_name: str,
+        echo: Callable[[str], None] | None = None,
+        command_line: str | None = None,
     ) -> None:
         self.command = command
+        self.command_name = command_name
         #: where :meth:`say` prints (default: above any progress bar of this process)
         self.echo = echo
-        self.dir = Path(command.root) / command.name
-        self.dir.mkdir(parents=True, exist_ok=True)
+        #: the command line, as recorded for a second command refused on this run
+        self.command_line = command_line or f"dorp {command_name}"
+        self.dir = run_folder(command.root, command.name)
         self.progress = command.progress
         #: codes of the play data's transitions, by (codes variant, encoder fingerprint)
         self.encoded: dict[tuple[str, str], tuple[Any, Any]] = {}
         self.stages_path = self.dir / "stages.json"
         self._saving = threading.RLock()
-        self.stages: dict[str, Any] = (
-            json.loads(self.stages_path.read_text()) if self.stages_path.exists() else {}
+        self._unsaid: list[str] | None = []  # log lines not yet in log.txt; None: written
+        self._lock = _lock_run(
+            self.dir, getattr(command, "wait", False), self.command_line, self._print
         )
-        resolved = {"command": command_name, **dataclasses.asdict(command)}
-        (self.dir / "config.json").write_text(json.dumps(resolved, indent=2) + "\n")
+        try:
+            self.stages: dict[str, Any] = _read_stages(self.stages_path)
+        except BaseException:
+            self.close(changed=False)
+            raise
 
-    def say(self, message: str) -> None:
-        """Prints ``message`` (above any progress bar) and appends it to ``log.txt``."""
+    def _print(self, message: str) -> None:
         from tqdm.auto import tqdm
 
         (self.echo or tqdm.write)(message)
+
+    def say(self, message: str) -> None:
+        """Prints ``message`` (above any progress bar) and appends it to ``log.txt``."""
+        self._print(message)
+        line = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {message}\n"
+        if self._unsaid is not None:
+            self._unsaid.append(line)
+            return
         with (self.dir / "log.txt").open("a") as f:
-            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {message}\n")
+            f.write(line)
+
+    def begin_changes(self) -> None:
+        """From here on this command changes the run folder: writes ``config.json`` (the
+        resolved config) and the lines said so far into ``log.txt``. Once per run."""
+        if self._unsaid is None:
+            return
+        resolved = {"command": self.command_name, **dataclasses.asdict(self.command)}
+        (self.dir / "config.json").write_text(json.dumps(resolved, indent=2) + "\n")
+        with (self.dir / "log.txt").open("a") as f:
+            f.writelines(self._unsaid)
+        self._unsaid = None
+
+    def close(self, changed: bool = True) -> None:
+        """Releases the run's lock; ``changed``: first write what :meth:`begin_changes`
+        writes (a command that ran or failed), else leave the folder as it was."""
+        if changed:
+            self.begin_changes()
+        if self._lock.held:
+            (self.dir / RUN_HOLDER).unlink(missing_ok=True)
+            self._lock.release()
+
+    def __enter__(self) -> Run:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, *_: object) -> None:
+        usage = kind is not None and issubclass(kind, (UsageError, DirectoryLockedError))
+        self.close(changed=not usage)
 
     def stage(
         self,
@@ -346,20 +543,36 @@ class Run:
         """Runs ``build`` unless the stage is recorded with ``config`` and its ``outputs`` exist.
 
         ``build`` returns (value, summary); the summary is stored with the config. A
-        stage that runs again first removes its old ``outputs``, except that a stage with
-        a ``resume`` which was stopped before it finished, with the same ``config``,
+        stage that runs again first removes its old ``outputs`` (once no other process
+        holds a library lock in them, e.g. a collection's), except that a stage with a
+        ``resume`` which was stopped before it finished, with the same ``config``,
         calls ``resume`` on its outputs as they are: a training continues from its last
         checkpoint, an evaluation from its last finished chunk of tasks. While a stage
         runs, its record holds the seconds spent so far (updated every :attr:`heartbeat`
         seconds), so a stopped and resumed stage reports the time of both parts.
+
+        Raises:
+            UsageError: the finished stage's files do not load (replaced or damaged),
+                naming them; nothing is changed.
+            DirectoryLockedError: another process writes in one of ``outputs``.
         """
         config = json.loads(json.dumps(config))  # as stored: tuples become lists
         record = self.stages.get(name)
         if record is not None and record["config"] not in (None, config):
             record = {**record, "config": _upgrade_stored(record["config"])}
         if record is not None and record["config"] == config and all(p.exists() for p in outputs):
+            try:
+                value = load()
+            except DirectoryLockedError:
+                raise
+            except (ValueError, OSError) as err:  # IntegrityError is a ValueError
+                shown = ", ".join(str(p) for p in outputs) or str(self.stages_path)
+                raise UsageError(
+                    f"{shown} does not hold what stage {name} made: {err} Remove it to make "
+                    "it again, or use another --name."
+                ) from None
             self.say(f"{name}: done for this config, skipped{self._where(outputs)}")
-            return load()
+            return value
         resuming = (
             resume is not None
             and record is not None
@@ -381,13 +594,18 @@ class Run:
             reason = f"changed: {shown}{more}"
         else:
             reason = "its files are missing"
+        claimed = [] if resuming else _claim_outputs(outputs)
+        self.begin_changes()
         self.say(f"{name}: running ({reason})")
         before = float(record.get("seconds", 0.0)) if resuming and record is not None else 0.0
         # Unfinished until build returns; the record keeps its place (and its row's).
         self._record(name, {"config": None, "started": config, "seconds": before})
-        if not resuming:
-            for path in outputs:
+        try:
+            for path in [] if resuming else outputs:
                 _remove(path)
+        finally:
+            for lock in claimed:
+                lock.release()
         start = time.perf_counter()
         stop = threading.Event()
 
@@ -431,6 +649,25 @@ class Run:
             for k, r in self.stages.items()
             if k.startswith("evaluate:") and r["config"] is not None
         ]
+
+
+def _claim_outputs(outputs: Sequence[Path]) -> list[DirectoryLock]:
+    """Takes every library lock (``*.lock``: a collection's, a training's) found in the
+    folders of ``outputs``, so that they are not removed under another process.
+
+    Raises:
+        DirectoryLockedError: one is held (the locks taken so far are released).
+    """
+    claimed: list[DirectoryLock] = []
+    try:
+        for path in outputs:
+            for lock_file in sorted(path.glob("*.lock")) if path.is_dir() else ():
+                claimed.append(DirectoryLock(path, lock_file.name).acquire())
+    except BaseException:
+        for lock in claimed:
+            lock.release()
+        raise
+    return claimed
 
 
 def _remove(path: Path) -> None:
@@ -693,8 +930,14 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
 
 # --------------------------------------------------------------------------- main
 def _check(command: str, cmd: Any) -> None:
-    """Rules between arguments that tyro cannot see; raises :class:`UsageError`."""
+    """Rules between arguments that tyro cannot see; raises :class:`UsageError`.
+
+    Reads only: the run name and root (:func:`run_folder`) and a ``--low-level``
+    checkpoint (it must be a world model of ``--setting``) are checked before anything
+    is written.
+    """
     setting = SETTINGS[cmd.setting]
+    run_folder(cmd.root, cmd.name)
     if cmd.threads < 1:
         raise UsageError(f"--threads must be >= 1, got {cmd.threads}.")
     for key in ("codes", "world_model"):
@@ -777,11 +1020,22 @@ def _check(command: str, cmd: Any) -> None:
                     "--paper runs several settings: --low-level must be 'gt' or "
                     f"'world-model' (one model per setting), not the checkpoint {cmd.low_level!r}."
                 )
-        if cmd.low_level not in ("gt", "world-model") and not Path(cmd.low_level).is_file():
-            raise UsageError(
-                f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file; "
-                f"{cmd.low_level!r} is none of these."
-            )
+        if cmd.low_level not in ("gt", "world-model"):
+            _check_world_model_file(cmd.low_level, cmd.setting)
+
+
+def _check_world_model_file(path: str, setting: str) -> None:
+    """``--low-level <path>`` must be a world-model checkpoint of ``setting``'s environment."""
+    what = (
+        f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file of "
+        f"--setting {setting} (made by dorp train-world-model --setting {setting})"
+    )
+    if not Path(path).is_file():
+        raise UsageError(f"{what}; {path!r} is none of these.")
+    try:
+        load_video_model(path, SETTINGS[setting].make_env())
+    except (ValueError, OSError) as err:  # another kind, env, a damaged or a text file
+        raise UsageError(f"{what}: {err}") from None
 
 
 def _check_paper_methods(chosen: Sequence[str], settings: Sequence[str]) -> None:
@@ -848,10 +1102,20 @@ def parse(argv: Sequence[str]) -> tuple[str, Any]:
     return name, cmd
 
 
-def run_command(name: str, cmd: Any) -> Path:
-    """Runs a parsed command; returns the run folder."""
+def run_command(name: str, cmd: Any, command_line: str | None = None) -> Path:
+    """Runs a parsed command, holding the run's lock throughout; returns the run folder.
+
+    Raises:
+        UsageError: the run is busy (without ``--wait``), cannot be written, or holds
+            stage records or files this command cannot use; the folder is left as it was.
+    """
     torch.set_num_threads(cmd.threads)
-    run = Run(cmd, name)
+    with Run(cmd, name, command_line=command_line) as run:
+        _run_stages(run, name, cmd)
+    return run.dir
+
+
+def _run_stages(run: Run, name: str, cmd: Any) -> None:
     start = time.perf_counter()
     run.say(f"dorp {name}: run folder {run.dir} ({cmd.threads} thread(s))")
     if name == "collect":
@@ -874,8 +1138,8 @@ def run_command(name: str, cmd: Any) -> Path:
         print(f"\n{format_table(rows)}\n")
         run.say(f"results: {run.dir / 'results.csv'}, {run.dir / 'results.md'}")
         say_pictures(run, pictures)
+    run.begin_changes()
     run.say(f"dorp {name}: finished in {time.perf_counter() - start:.0f} s; files in {run.dir}")
-    return run.dir
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -886,11 +1150,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         cmd.low_level = LOW_LEVEL_NAMES.get(cmd.low_level, cmd.low_level)
     try:
         _check(name, cmd)
-    except UsageError as err:
-        print(f"usage: dorp {name} [-h] [OPTIONS]\ndorp {name}: error: {err}", file=sys.stderr)
+        run_command(name, cmd, command_line=shlex.join(["dorp", *argv]))
+    except (UsageError, DirectoryLockedError) as err:
+        # Arguments, run folders and files that cannot be used: a message, exit code 2.
+        lines = (line.strip() for line in str(err).splitlines())
+        message = " ".join(line for line in lines if line)  # one line, whatever the library's
+        print(f"usage: dorp {name} [-h] [OPTIONS]\ndorp {name}: error: {message}", file=sys.stderr)
         raise SystemExit(2) from None
-    try:
-        run_command(name, cmd)
     except KeyboardInterrupt:
         print(
             f"\ndorp {name}: stopped. Finished stages are kept: the same command goes on, "

@@ -276,12 +276,23 @@ def _setting_command(
     )
 
 
-def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> dict[str, Any]:
+def run_setting(
+    sub: Reproduce, echo: Callable[[str], None] | None = None, command_line: str | None = None
+) -> dict[str, Any]:
     """One setting of ``--paper`` in its sub-run (``sub`` from :func:`_setting_command`):
     evaluations and pictures. Returns its result ``rows`` (with the planners' ``seed``),
     its stage ``timings`` (by sub-run name) and its ``pictures``; ``echo`` is where the
-    sub-run's messages go (default: printed)."""
-    subrun = Run(sub, "reproduce", echo=echo)
+    sub-run's messages go (default: printed).
+
+    The sub-run's own lock (``<sub-run>/run.lock``) is held throughout, by the process
+    that runs it (a worker's, side by side); the parent holds the lock of the run
+    above, a lock file of its own, so the two never wait for each other.
+    ``command_line`` is recorded for a command refused on the sub-run meanwhile."""
+    with Run(sub, "reproduce", echo=echo, command_line=command_line) as subrun:
+        return _run_setting_stages(subrun, sub)
+
+
+def _run_setting_stages(subrun: Run, sub: Reproduce) -> dict[str, Any]:
     before = {k: json.dumps(v) for k, v in subrun.stages.items()}
     evaluate_stage(subrun, sub)
     pictures = pictures_stage(subrun, sub)
@@ -305,14 +316,23 @@ def run_setting(sub: Reproduce, echo: Callable[[str], None] | None = None) -> di
     return {"rows": rows, "timings": timings, "pictures": pictures}
 
 
-def _run_setting_in_worker(sub: Reproduce, messages: Any) -> dict[str, Any]:
+def _run_setting_in_worker(sub: Reproduce, messages: Any, command_line: str) -> dict[str, Any]:
     """:func:`run_setting` in a worker process: its messages and bars go to the parent
     through the queue ``messages`` as ``(kind, sub-run name, payload)``."""
     exit_with_parent()
     torch.set_num_threads(sub.threads)
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     relay_bars(lambda event: messages.put(("bar", sub.name, event)))
-    return run_setting(sub, echo=lambda message: messages.put(("say", sub.name, message)))
+
+    def say(message: str) -> None:
+        messages.put(("say", sub.name, message))
+
+    return run_setting(sub, echo=say, command_line=command_line)
+
+
+def _sub_run_command_line(run: Run, name: str) -> str:
+    """How a sub-run's lock records its command: the parent's, and which sub-run."""
+    return f"{run.command_line} (sub-run {name})"
 
 
 def _subruns_side_by_side(
@@ -349,7 +369,12 @@ def _subruns_side_by_side(
 
         pool = ProcessPoolExecutor(processes, mp_context=context)
         try:
-            futures = {pool.submit(_run_setting_in_worker, subs[s], messages): s for s in order}
+            futures = {
+                pool.submit(
+                    _run_setting_in_worker, subs[s], messages, _sub_run_command_line(run, s)
+                ): s
+                for s in order
+            }
             pending = set(futures)
             while pending:
                 done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
@@ -423,6 +448,7 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
     results: dict[str, dict[str, Any]] = {}
 
     def finished(name: str, result: dict[str, Any]) -> None:
+        run.begin_changes()
         results[name] = result
         # After every sub-run, in the order of --settings: a stopped run keeps its times.
         write_timings([t for n in subs if n in results for t in results[n]["timings"]], run.dir)
@@ -435,7 +461,7 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
         _subruns_side_by_side(run, subs, side_by_side, finished)
     else:
         for name, sub in subs.items():
-            finished(name, run_setting(sub))
+            finished(name, run_setting(sub, command_line=_sub_run_command_line(run, name)))
     rows = [row for name in subs for row in results[name]["rows"]]
     timings = [t for name in subs for t in results[name]["timings"]]
     pictures = {name: results[name]["pictures"] for name in subs}

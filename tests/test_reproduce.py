@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +106,15 @@ def test_settings_side_by_side_give_the_one_process_results(tmp_path, dorp) -> N
     # The workers' lines are relayed here, named by setting, and kept in their sub-runs.
     assert "[keycorridor] codes: running (not run yet)" in out
     assert "codes: running (not run yet)" in (tmp_path / "two" / "keywall" / "log.txt").read_text()
+
+    # Each sub-run was locked by the process that ran it: this one with one process; a
+    # worker side by side, while this one held the lock of the run above (no deadlock).
+    def locker(*parts: str) -> int:
+        return json.loads(tmp_path.joinpath(*parts, "run.lock").read_text())["pid"]
+
+    assert locker("one") == locker("one", "keywall") == locker("two") == os.getpid()
+    assert os.getpid() not in {locker("two", s) for s in ("keywall", "keycorridor")}
+    assert not list(tmp_path.glob("*/**/running.json"))  # each removed when its lock was
 
     timed = {"seconds_per_task"}
     one, two = (read_csv(tmp_path / name / "results.csv")[1] for name in ("one", "two"))
@@ -322,13 +332,13 @@ def test_the_evaluation_bar_moves_as_tasks_finish(monkeypatch) -> None:
     from dorp_rl import progress
 
     updates: list[int] = []
-    update = progress._LogSafeBar.update
+    for bar in (progress._LogSafeBar, progress._LineBar):  # with a terminal, and without
 
-    def recording(self, n=1):
-        updates.append(int(n))
-        return update(self, n)
+        def recording(self, n=1, update=bar.update):
+            updates.append(int(n))
+            return update(self, n)
 
-    monkeypatch.setattr(progress._LogSafeBar, "update", recording)
+        monkeypatch.setattr(bar, "update", recording)
 
     def greedy(td):  # one object straight to its goal: done after its lower bound
         diff = (td["goal_state"] - td["state"])[:, 0]
