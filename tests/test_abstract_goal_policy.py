@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector, MultiSyncCollector
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import KeyCorridorEnv, ObjectRearrangementEnv
+from dorp_rl.envs import KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
 from dorp_rl.planners import CodeGraph, CodeMatchCost
@@ -351,13 +351,15 @@ class QuadrantWorld:
     """One block, quadrant codes 0 1 / 2 3 and a graph 0-1, 0-2, 2-1, 1-3; ``at(q)`` shows
     the policy the block at ``cells[q]`` (after setting any state keys given)."""
 
-    def __init__(self, reenter: bool, cells: dict, goal: list[int]):
+    def __init__(self, reenter: bool, cells: dict, goal: list[int], **policy_kwargs):
         self.env = env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
         oracle = OracleCodeEncoder(env, cell_size=8)
         self.graph = CodeGraph.from_transitions(
             torch.tensor([[0], [0], [2], [1]]), torch.tensor([[1], [2], [1], [3]]), (4,)
         )
-        self.policy = make_dorp_policy(env, oracle, self.graph, seed=0, reenter=reenter, **SMALL)
+        self.policy = make_dorp_policy(
+            env, oracle, self.graph, seed=0, reenter=reenter, **SMALL, **policy_kwargs
+        )
         self.cells = cells
         self.td = env.reset(
             env.reset()
@@ -572,3 +574,142 @@ def test_waypoint_step_penalty_reaches_the_code_term(two_objects):
     assert [m.step_penalty for m in code_terms] == [2e-3]
     with pytest.raises(ValueError, match="step_penalty"):
         make_dorp_policy(env, oracle, graph, waypoint_step_penalty=0.5, **SMALL)
+
+
+# ---------------------------------------------------------------- order, budgets, key rooms
+def region(cell: list[int]) -> int:
+    """The oracle's region (cell size 4) of a block's top-left cell."""
+    return cell[0] // 4 * 4 + cell[1] // 4
+
+
+def hops(a: list[int], b: list[int]) -> int:
+    """Region hops between two cells: the graph of plentiful play links neighbours only."""
+    return abs(a[0] // 4 - b[0] // 4) + abs(a[1] // 4 - b[1] // 4)
+
+
+@pytest.mark.parametrize(
+    ("order", "group"), [("index", 0), ("nearest", 1), ([1, 0], 1), ([0, 1], 0)]
+)
+def test_order_picks_the_group_to_move_first(two_objects, order, group):
+    """Block 0 is 6 region hops from its goal, block 1 one hop: "index" (and [0, 1]) move
+    block 0 first, "nearest" (and [1, 0]) the block with the shorter path."""
+    env, oracle, graph = two_objects
+    start, goal = [[0, 0], [8, 0]], [[12, 12], [8, 4]]
+    policy = make_dorp_policy(env, oracle, graph, seed=0, order=order, **SMALL)
+    td = env.reset(
+        env.reset()
+        .set("state", torch.tensor([start] * 4))
+        .set("goal_state", torch.tensor([goal] * 4)),
+        set_state=True,
+    )
+    td = policy(td)
+    assert (td["dorp_group"] == group).all()
+    assert (td["dorp_distance"] == hops(start[group], goal[group])).all()
+    # The waypoint is the block's next region on its path; the other block keeps its code.
+    waypoint = td["subgoal_code"][0].tolist()
+    assert waypoint[1 - group] == region(start[1 - group])
+    assert hops([waypoint[group] // 4 * 4, waypoint[group] % 4 * 4], start[group]) == 1
+    assert td["subgoal_mask"][0].tolist() == [group == 0, group == 1]
+
+
+def test_nearest_order_finishes_the_group_it_moves_and_solves_the_task(two_objects):
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, order="nearest", **SMALL)
+    start, goal = [[0, 0], [8, 0]], [[12, 12], [8, 4]]
+    td = env.reset(
+        env.reset()
+        .set("state", torch.tensor([start] * 4))
+        .set("goal_state", torch.tensor([goal] * 4)),
+        set_state=True,
+    )
+    rollout = env.rollout(
+        80, policy, tensordict=td, auto_reset=False, break_when_any_done=False,
+        break_when_all_done=True,
+    )  # fmt: skip
+    assert rollout["next", "success"].any(1).all()
+    # Row 0's waypoints: block 1 (one hop) first, then block 0, never back.
+    moving = rollout["dorp_mode"][0, :, 0] == MODES["waypoint"]
+    groups = rollout["dorp_group"][0, :, 0][moving].tolist()
+    assert groups[0] == 1 and groups == sorted(groups, reverse=True) and 0 in groups
+
+
+@pytest.mark.parametrize("max_removed", [0, 2])
+def test_max_removed_edges_ends_a_task_after_that_many_removals(two_objects, max_removed):
+    """Each failed waypoint (budget spent) removes its edge; the failure after
+    ``max_removed_edges`` removals ends the task instead."""
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, max_removed_edges=max_removed, **SMALL)
+    td = policy(fresh_batch(env, make_task_set(env, 4, seed=2)))
+    others = td["subgoal_code"][1:].clone()
+    for failure in range(1, max_removed + 2):
+        edge = int(td["dorp_edge"][0])
+        td["dorp_budget"][0] = 0  # row 0 ran out of budget on the same frames
+        td = policy(td)
+        if failure <= max_removed:  # removed, and a new waypoint over another edge
+            assert int(td["dorp_replans"][0]) == failure and not bool(td["dorp_failed"][0])
+            assert edge in td["dorp_removed"][0].tolist() and int(td["dorp_edge"][0]) != edge
+            assert int(td["dorp_mode"][0]) == MODES["waypoint"]
+    assert bool(td["dorp_failed"][0]) and int(td["dorp_mode"][0]) == MODES["failed"]
+    assert int(td["dorp_replans"][0]) == max_removed
+    assert int(td["action"][0]) == 0  # a failed task is not planned for
+    # The other rows kept their waypoints and removed nothing.
+    assert torch.equal(td["subgoal_code"][1:], others)
+    assert (td["dorp_replans"][1:] == 0).all() and not td["dorp_failed"][1:].any()
+
+
+@pytest.mark.parametrize("max_reentries", [0, 1, 8])
+def test_max_reentries_caps_the_reentries_of_a_task(max_reentries):
+    """The bridge world of the re-entry test: the hop 1 -> 3 fails and (with a re-entry
+    left) the group backs out to 0 to come into 1 through 2; then the hop 0 -> 2 fails
+    too. With 0 re-entries the first failure removes 1 -> 3 at once (no path is left,
+    the task fails); with 1 the second failure is removed at once (the re-entry of 1
+    ends, the group goes 0 -> 1 again); with more, it starts its own re-entry of 0."""
+    cells = {0: [2, 2], 1: [2, 12], 2: [12, 2]}
+    world = QuadrantWorld(True, cells, goal=[12, 12], max_reentries=max_reentries)
+    assert world.policy.max_reentries == max_reentries
+    at, edge = world.at, world.edge
+    node = lambda q: int(world.graph.node_of(torch.tensor([q]), 0))  # noqa: E731
+
+    assert int(at(0)["subgoal_code"][0, 0]) == 1
+    assert int(at(1)["dorp_edge"][0]) == edge(1, 3)
+    td = at(1, dorp_budget=0)  # the hop 1 -> 3 failed
+    if max_reentries == 0:
+        assert edge(1, 3) in td["dorp_removed"][0].tolist() and bool(td["dorp_failed"][0])
+        return
+    assert int(td["dorp_via"][0]) == node(1) and int(td["subgoal_code"][0, 0]) == 0
+    assert td["dorp_reentered"][0].tolist().count(edge(1, 3)) == 1
+    td = at(0)
+    assert int(td["subgoal_code"][0, 0]) == 2 and int(td["dorp_edge"][0]) == edge(0, 2)
+    td = at(0, dorp_budget=0)  # the hop 0 -> 2 on the way back in fails as well
+    if max_reentries == 1:
+        assert edge(0, 2) in td["dorp_removed"][0].tolist()
+        assert int(td["dorp_via"][0]) == -1 and int(td["dorp_edge"][0]) == edge(0, 1)
+    else:
+        assert edge(0, 2) not in td["dorp_removed"][0].tolist()
+        assert int(td["dorp_via"][0]) == node(0)
+        assert edge(0, 2) in td["dorp_reentered"][0].tolist()
+    assert not bool(td["dorp_failed"][0]) and int(td["dorp_replans"][0]) == 2
+
+
+@pytest.mark.parametrize(
+    ("room", "cell_size", "play_frames"), [(KeyWallEnv, 4, 8000), (KeyCorridorEnv, 2, 16_000)]
+)
+def test_solves_key_room_tasks_with_oracle_codes_and_the_true_dynamics(
+    room, cell_size, play_frames
+):
+    """Oracle codes (the agent's region and the key bit, one graph group as in the paper's
+    settings) and the true dynamics: every task solved, in at most 1.25x its lower bound
+    (measured: exactly the lower bound). Key-corridor needs regions of 2 cells: regions of
+    4 span walls, and 2 of 8 tasks failed."""
+    env = room(batch_size=(8,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=cell_size)
+    play = collect_play_data(room(batch_size=(8,), seed=1), play_frames, seed=0)
+    graph = CodeGraph.from_play_data(play, oracle, ((0, 1),))
+    policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    tasks = make_task_set(env, 8, seed=1)
+    result = evaluate_policy(env, policy, tasks, tasks_per_rollout=8)
+    assert result["success_rate"] == 1.0
+    steps, bound = torch.tensor(result["steps"]), tasks["lower_bound"]
+    assert (steps <= 1.25 * bound).all(), (steps.tolist(), bound.tolist())
+    # Taking the key is part of every such task: the goal states hold it.
+    assert (tasks["goal_state"][:, -1] == 1).all()
