@@ -338,8 +338,17 @@ def test_unblocked_key_room_move_then_opposite_restores_state(seed, name):
     lay = key_layout(name)
     pool = all_key_states(name)
     pick = torch.randint(len(pool), (64,), generator=torch.Generator().manual_seed(seed))
-    s = pool[pick].unsqueeze(1).expand(64, 4, 3)
-    a = torch.arange(4).expand(64, 4)
+    # Besides the random states, every keyless state one move from the key (by the
+    # reference): the key pick-up is checked on every run, not only when drawn.
+    near_key = [
+        st
+        for st in pool.tolist()
+        if st[2] == 0 and any(key_move(lay, tuple(st), d)[2] == 1 for d in range(4))
+    ]
+    states = torch.cat([pool[pick], torch.tensor(near_key, dtype=pool.dtype)])
+    n = states.shape[0]
+    s = states.unsqueeze(1).expand(n, 4, 3)
+    a = torch.arange(4).expand(n, 4)
     moved = env.transition(s, a)
     opposite = torch.tensor([OPPOSITE[d] for d in range(4)])[a]
     back = env.transition(moved, opposite)
@@ -348,9 +357,9 @@ def test_unblocked_key_room_move_then_opposite_restores_state(seed, name):
     torch.testing.assert_close(back[changed & kept_key], s[changed & kept_key])
     # Going back after picking the key up returns to the cell, with the key.
     took_key = changed & ~kept_key
-    if took_key.any():
-        torch.testing.assert_close(back[took_key][:, :2], s[took_key][:, :2])
-        assert (back[took_key][:, 2] == 1).all()
+    assert int(took_key.sum()) >= len(near_key) > 0
+    torch.testing.assert_close(back[took_key][:, :2], s[took_key][:, :2])
+    assert (back[took_key][:, 2] == 1).all()
     for state, action, nxt in zip(
         s.reshape(-1, 3).tolist(),
         a.reshape(-1).tolist(),
