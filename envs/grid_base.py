@@ -315,7 +315,23 @@ class GridWorldEnv(CheckedRolloutLength, EnvBase):
         return None
 
     def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
-        """int64 ``[*B]``: a lower bound on the steps from ``state`` to ``goal_state``."""
+        """int64 ``[*B]``: a lower bound on the steps from ``state`` to ``goal_state``.
+
+        Both are checked first (:meth:`check_state`: layout and the env's rules) and must
+        have the same shape ``[*B, *state_shape]``: a bound between states of other worlds,
+        or off the grid, would be a number that means nothing.
+        """
+        state = self.check_state(state, "state")
+        goal_state = self.check_state(goal_state, "goal_state")
+        if state.shape != goal_state.shape:
+            raise ValueError(
+                f"state and goal_state must have the same shape, got {list(state.shape)} and "
+                f"{list(goal_state.shape)}."
+            )
+        return self._lower_bound_steps(state, goal_state)
+
+    def _lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
+        """:meth:`lower_bound_steps` on checked states of one shape."""
         raise NotImplementedError
 
     def config(self) -> dict:

@@ -240,7 +240,7 @@ class KeyRoomEnv(GridWorldEnv):
             _DISTANCE_CACHE[cache_key] = dist
         return _DISTANCE_CACHE[cache_key]
 
-    def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
+    def _lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Exact BFS steps from ``state`` to ``goal_state`` (``-1`` if unreachable)."""
         return self.distance_table()[self._state_index(state), self._state_index(goal_state)]
 

@@ -333,6 +333,6 @@ class ObjectRearrangementEnv(GridWorldEnv):
     def describe_world(self) -> str:
         return f"{type(self).__name__} with {self.num_objects} object(s)"
 
-    def lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
+    def _lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Sum over blocks of the Manhattan distance to the goal corner."""
         return (state - goal_state).abs().flatten(-2).sum(-1)
