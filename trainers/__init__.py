@@ -8,6 +8,7 @@ registered on the trainer, their state checkpointed with it.
 
 from dorp_rl.envs import ENV_NAMES
 from dorp_rl.trainers.base import (
+    NoCheckpointWarning,
     OfflineTrainer,
     TrainerConfig,
     TrainerHook,
@@ -30,6 +31,7 @@ __all__ = [
     "CandidateScreening",
     "CollapseRestart",
     "EntanglementRestart",
+    "NoCheckpointWarning",
     "OfflineTrainer",
     "RepresentationConfig",
     "RepresentationTrainer",

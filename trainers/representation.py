@@ -21,7 +21,7 @@ from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
-from dorp_rl.validation import Choice, Float, Int, derive_seed
+from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed
 
 #: What the key-room presets share: the motion-coverage term (puts the agent's object map
 #: on the agent), the map-sparsity and code-usage terms, and a collapse restart when the
@@ -583,6 +583,7 @@ class RepresentationTrainer(OfflineTrainer):
         cfg = self.config
         torch.manual_seed(seed)
         self.encoder = DiscreteCodeEncoder(cfg.encoder_config()).to(self.device)
+        self.encoder.env_config = self.env.config()
         sim_kwargs: dict[str, Any] = {}
         if cfg.similarity == "dddp":
             sim_kwargs = {"alpha": cfg.alpha, "sign": cfg.dddp_sign}
@@ -816,6 +817,7 @@ def load_encoder(
             (:class:`~dorp_rl.integrity.IntegrityError`), another kind of checkpoint or
             another environment.
     """
+    device = check_device(device)
     payload = load_checkpoint(
         path,
         kind="representation",
@@ -825,4 +827,5 @@ def load_encoder(
     cfg = RepresentationConfig.from_dict(payload["config"])
     encoder = DiscreteCodeEncoder(cfg.encoder_config())
     load_module_state(encoder, payload["state"]["encoder"], path, "encoder")
+    encoder.env_config = dict(payload.get("env_config") or {}) or None
     return encoder.to(device).eval()

@@ -26,7 +26,7 @@ from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
-from dorp_rl.validation import Choice, Float, Int, derive_seed
+from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed
 
 #: seed offset of the held-out play data used for evaluation
 HELD_OUT_SEED_OFFSET = 100_003
@@ -78,7 +78,7 @@ class WorldModelConfig(TrainerConfig):
         "deterministic_fraction": Float(low=0.0, high=1.0),
         "open_loop_ramp": Float(low=0.0, high=1.0),
         "batch_size": Int(low=1),
-        "lr": Float(low=0.0),
+        "lr": Float(low=0.0, low_open=True, hint="(0 would never change a weight)"),
         "lr_final": Float(low=0.0),
         "grad_clip": Float(
             low=0.0,
@@ -405,6 +405,7 @@ def load_video_model(
             (:class:`~dorp_rl.integrity.IntegrityError`), another kind of checkpoint or
             another environment.
     """
+    device = check_device(device)
     payload = load_checkpoint(
         path,
         kind=WorldModelTrainer.kind,

@@ -42,7 +42,7 @@ from dorp_rl.integrity import (
     verify_manifest,
 )
 from dorp_rl.progress import progress_bar
-from dorp_rl.validation import check_int, check_seed, derive_seed
+from dorp_rl.validation import check_device, check_int, check_seed, derive_seed
 
 #: Keys kept for every transition of the play data.
 PLAY_KEYS = (
@@ -83,7 +83,7 @@ class UniformRandomPolicy:
 
     def __init__(self, num_actions: int, seed: int = 0, device: torch.device | str = "cpu") -> None:
         self.num_actions = check_int("num_actions", num_actions, low=1)
-        self.device = torch.device(device)
+        self.device = check_device(device)
         self.rng = torch.Generator(device=self.device)
         self.rng.manual_seed(check_seed(seed))
 

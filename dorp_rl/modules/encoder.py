@@ -128,6 +128,11 @@ class DiscreteCodeEncoder(nn.Module):
         True
     """
 
+    env_config: dict | None = None
+    """``env.config()`` of the environment the encoder was trained on (set by
+    :class:`~dorp_rl.trainers.RepresentationTrainer` and ``load_encoder``; ``None``:
+    unknown). A code graph refuses play data of another environment by it."""
+
     fast_inference: bool = True
     """Run :meth:`inference_extractor` in eval mode without gradients (set ``False`` on
     an instance to time or debug the plain extractor)."""
