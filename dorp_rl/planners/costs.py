@@ -470,6 +470,19 @@ class _EncodingCache:
         self.keys, self.slots = keys[order], rows[order]
 
 
+#: ``step_penalty`` of :class:`CodeMatchCost` stays below this, so that a match at step 25
+#: still costs less than 0.5 (less than a frame that misses the code)
+STEP_PENALTY_MAX = 0.02
+
+
+def check_step_penalty(value: float, name: str = "step_penalty") -> float:
+    """``value`` as a finite float in ``[0, STEP_PENALTY_MAX)``, or a ``ValueError`` naming ``name``."""
+    try:
+        return check_float(name, value, low=0.0, high=STEP_PENALTY_MAX, high_open=True)
+    except ValueError as err:
+        raise ValueError(f"{err} (so that a match at step 25 still costs less than 0.5)") from None
+
+
 class CodeMatchCost(RolloutCost):
     """0 once the encoder's code of a predicted frame is the target code, else 1.
 
@@ -556,14 +569,7 @@ class CodeMatchCost(RolloutCost):
         self.target_key = unravel_key(target_key)
         self.pixels_key = unravel_key(pixels_key)
         self.start_pixels_key = unravel_key(start_pixels_key)
-        try:
-            step_penalty = check_float(
-                "step_penalty", step_penalty, low=0.0, high=0.02, high_open=True
-            )
-        except ValueError as err:
-            raise ValueError(
-                f"{err} (so that a match at step 25 still costs less than 0.5)"
-            ) from None
+        step_penalty = check_step_penalty(step_penalty)
         self.step_penalty = step_penalty
         self.chunk_size = int(chunk_size)
         self.onehots_key: NestedKey | None = None

@@ -79,7 +79,12 @@ from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.code_graph import CodeGraph
-from dorp_rl.planners.costs import CodeMatchCost, PixelDistanceCost, WeightedCostSum
+from dorp_rl.planners.costs import (
+    CodeMatchCost,
+    PixelDistanceCost,
+    WeightedCostSum,
+    check_step_penalty,
+)
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
 from dorp_rl.validation import (
     MissingKeyError,
@@ -1018,6 +1023,7 @@ def make_dorp_policy(
 
     seed = check_seed(seed, optional=True)
     goal_code_weight = check_float("goal_code_weight", goal_code_weight, low=0.0)
+    waypoint_step_penalty = check_step_penalty(waypoint_step_penalty, "waypoint_step_penalty")
     waypoint_goal_weight = check_float(
         "waypoint_goal_weight", waypoint_goal_weight, low=0.0, optional=True
     )
