@@ -336,7 +336,7 @@ def test_threads_sets_torch_threads(tmp_path, dorp) -> None:
         (["evaluate", "--methods", "magic"], "magic"),
         (["evaluate", "--low-level", "no/such/checkpoint.pt"], "no/such/checkpoint.pt"),
         (["train-encoder", "--codes.num-steps", "0"], "num_steps must be >= 1"),
-        (["evaluate", "--codes.lr", "-1"], "Error parsing codes: lr must be >= 0"),
+        (["evaluate", "--codes.lr", "-1"], "Error parsing codes: lr must be > 0"),
         (["evaluate", "--tasks", "x"], "see dorp evaluate --help"),
         (["collect", "--codes.env", "key-wall", "--codes.num-objects", "1"], "--setting"),
         (["evaluate", "--tasks", "0"], "--tasks must be >= 1"),

@@ -131,7 +131,7 @@ def test_defaults_presets_and_round_trips_are_valid(cls):
         (WorldModelConfig, {"seed": -1}, "seed must be in [0, "),
         (RepresentationConfig, {"lr": math.nan}, "lr must be a finite number > 0"),
         (RepresentationConfig, {"lr": -1.0}, "lr must be > 0"),
-        (WorldModelConfig, {"lr": math.nan}, "lr must be a finite number >= 0"),
+        (WorldModelConfig, {"lr": math.nan}, "lr must be a finite number > 0"),
         (RepresentationConfig, {"max_offset": 4}, "max_offset <= the play trajectory length"),
     ],
 )
@@ -254,11 +254,6 @@ def test_representation_offsets_fit_the_play_trajectories():
     assert RepresentationConfig.key_wall(min_offset=2, max_offset=2).min_offset == 2
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="WorldModelConfig takes lr=0 (trainers/world_model.py FIELD_RULES: Float(low=0.0)); "
-    "a learning rate of 0 never changes a weight, as RepresentationConfig now refuses",
-)
 def test_world_model_lr_must_be_positive():
     with pytest.raises(ValueError, match="lr must be > 0"):
         WorldModelConfig(lr=0.0)

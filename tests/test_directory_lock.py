@@ -108,14 +108,20 @@ def test_collecting_into_a_locked_directory_fails_without_touching_it(tmp_path):
 
 def test_two_processes_never_mix_their_rows(tmp_path):
     directory = tmp_path / "shared"
-    other = start_collector(directory, 400_000)
+    other = start_collector(directory, 40_000)
     try:
         with pytest.raises(DirectoryLockedError, match=f"process {other.pid}"):
-            collect(directory, 2000)
+            collect(directory, 2000)  # another size: its rows would differ from the first's
         assert other.poll() is None  # the first collection was not disturbed
+        assert other.wait(timeout=300) == 0
     finally:
         other.kill()
         other.wait()
+    # every stored row is the first collection's, as if it had run alone
+    data = stored(load_play_data(directory))
+    reference = stored(collect(tmp_path / "reference", 40_000))
+    for key in PLAY_KEYS:
+        assert torch.equal(data[key], reference[key]), key
 
 
 def test_a_killed_collection_leaves_no_stale_lock_and_is_redone(tmp_path):

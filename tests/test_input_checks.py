@@ -41,7 +41,7 @@ from dorp_rl.planners import (
 )
 from dorp_rl.planners.costs import PixelDistanceCost
 from dorp_rl.policies import AbstractGoalPolicy, VisualForesightPolicy, make_dorp_policy
-from dorp_rl.trainers import RepresentationConfig
+from dorp_rl.trainers import RepresentationConfig, load_encoder, load_video_model
 from dorp_rl.validation import (
     SEED_MAX,
     BatchShapeError,
@@ -415,9 +415,9 @@ SMALL = {"planning_horizon": 3, "num_candidates": 16}
         ({"waypoint_goal_weight": -0.1}, r"waypoint_goal_weight must be >= 0"),
         (
             {"waypoint_step_penalty": math.nan},
-            r"step_penalty must be a finite number in \[0, 0.02\)",
+            r"^waypoint_step_penalty must be a finite number in \[0, 0.02\)",
         ),
-        ({"waypoint_step_penalty": 0.5}, r"step_penalty must be in \[0, 0.02\)"),
+        ({"waypoint_step_penalty": 0.5}, r"^waypoint_step_penalty must be in \[0, 0.02\)"),
         ({"goal_blur_sigmas": (1.0, math.nan)}, r"blur_sigmas\[1\] must be a finite number > 0"),
         ({"waypoint_budget": math.nan}, r"waypoint_budget must be an integer >= 1"),
         ({"waypoint_budget": 0}, r"waypoint_budget must be >= 1"),
@@ -622,8 +622,20 @@ def test_a_planner_on_rewards_does_not_count_rewards_after_an_early_done(planner
         lambda d: WorldModelEnv(_Still(), 4, device=d),
         lambda d: RepresentationConfig.rearrangement(1, device=d),
         lambda d: check_device(d),
+        lambda d: UniformRandomPolicy(4, device=d),
+        lambda d: load_encoder("no-such-checkpoint.pt", device=d),
+        lambda d: load_video_model("no-such-checkpoint.pt", device=d),
     ],
-    ids=["rearrangement", "key-wall", "world-model-env", "config", "helper"],
+    ids=[
+        "rearrangement",
+        "key-wall",
+        "world-model-env",
+        "config",
+        "helper",
+        "random-policy",
+        "load-encoder",
+        "load-video-model",
+    ],  # fmt: skip
 )
 def test_a_device_that_does_not_exist_is_refused_by_name(make, monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -696,3 +708,40 @@ def test_a_rollout_of_no_steps_names_max_steps(make, steps, message):
 def test_a_batch_size_given_as_a_string_is_refused_by_name(make):
     with pytest.raises(ValueError, match=r"batch_size.*'8'"):
         make("8")
+
+
+# ---------------------------------------------------------------- lower bounds
+@pytest.mark.parametrize(
+    "env", [ObjectRearrangementEnv(2, seed=0), KeyWallEnv(seed=0)], ids=["2obj", "keywall"]
+)
+def test_lower_bound_steps_refuses_other_shapes_and_states_off_the_grid(env):
+    tasks = make_task_set(env, 3, seed=0)
+    state, goal = tasks["state"], tasks["goal_state"]
+    assert torch.equal(env.lower_bound_steps(state, goal), tasks["lower_bound"])
+    with pytest.raises(ValueError, match=r"same shape, got \[1, .*\] and \[3, "):
+        env.lower_bound_steps(state[:1], goal)
+    off = goal.clone()
+    off[0, ..., 0] = 40  # a row below the 16 x 16 grid
+    with pytest.raises(ValueError, match="goal_state holds 1 invalid configuration"):
+        env.lower_bound_steps(state, off)
+    with pytest.raises(ValueError, match="state"):
+        env.lower_bound_steps(state.float(), goal)
+
+
+def test_a_trained_or_loaded_encoder_records_its_environment(tmp_path):
+    from dorp_rl.planners import CodeGraph
+    from dorp_rl.trainers import RepresentationTrainer
+
+    cfg = RepresentationConfig.key_wall(
+        num_frames=256, num_envs=8, batch_size=16, num_steps=2, log_every=1,
+        checkpoint_every=2, diagnostics_every=10**9, progress=False, out_dir=str(tmp_path),
+        collapse_check_after=10**9,
+    )  # fmt: skip
+    trainer = RepresentationTrainer(cfg)
+    trainer.train()
+    assert trainer.encoder.env_config == KeyWallEnv().config()
+    encoder = load_encoder(trainer.checkpoint_path)
+    assert encoder.env_config == KeyWallEnv().config()
+    corridor = collect_play_data(KeyCorridorEnv(batch_size=(8,)), 128, seed=0)
+    with pytest.raises(ValueError, match="the encoder was trained on KeyWallEnv"):
+        CodeGraph.from_play_data(corridor, encoder)
