@@ -1248,7 +1248,7 @@ for _name in ["../../escape", "/tmp/dorp-absolute-escape", "", ".", "a/../.."]:
     FAULTS.append(Fault("command line", f"--name {_name!r}", _cli_name(_name), ("--name",)))
 
 
-@fault("command line", "two commands on one run folder at once", ("lock",))
+@fault("command line", "two commands on one run folder at once", ("in use", "process"))
 def _cli_two_commands() -> Any:
     runs = fresh("cli-two")
     first = _dorp(
