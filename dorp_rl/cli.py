@@ -57,13 +57,17 @@ from dorp_rl.eval import (
     SETTINGS,
     EvalSpec,
     evaluate_parallel,
+    failure_section,
+    format_failures,
     format_table,
     make_task_set,
     result_row,
     write_results,
+    write_task_records,
 )
 from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_bytes
 from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
+from dorp_rl.policies import DORP_RECIPE
 from dorp_rl.trainers import (
     OfflineTrainer,
     RepresentationConfig,
@@ -76,8 +80,9 @@ from dorp_rl.trainers import (
 from dorp_rl.viz import plot_results
 
 SettingName = Literal[
-    "1obj", "2obj", "3obj", "5obj", "3obj-full", "5obj-full", "keywall", "keycorridor"
-]
+    "1obj", "2obj", "3obj", "5obj", "6obj", "3obj-full", "5obj-full", "6obj-full",
+    "keywall", "keycorridor",
+]  # fmt: skip
 Method = Literal[
     "dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem", "random"
 ]
@@ -771,14 +776,17 @@ def graph_stage(
     encoder, buffer = codes_stage(run, codes, codes_variant)
     path = run.dir / f"{_tagged('graph', variant, '-')}.pt"
     groups = SETTINGS[setting].groups if groups is None else groups
-    env_config = codes.make_env().config()
+    env = codes.make_env()
+    env_config, num_actions = env.config(), env.num_actions
 
     def build():
         # Graphs over one codes variant (per group, full) share one encoding of the play data.
         key = (codes_variant, encoder_fingerprint(encoder))
         if key not in run.encoded:
             run.encoded[key] = encode_transitions(buffer, encoder, progress=run.progress)
-        graph = CodeGraph.from_play_data(buffer, encoder, groups, transitions=run.encoded[key])
+        graph = CodeGraph.from_play_data(
+            buffer, encoder, groups, transitions=run.encoded[key], num_actions=num_actions
+        )
         graph.save(path)
         nodes = [graph.num_nodes(g) for g in range(graph.num_groups)]
         return graph, {"nodes": nodes}
@@ -786,7 +794,8 @@ def graph_stage(
     def load():
         return CodeGraph.load(path, encoder=encoder, env_config=env_config)
 
-    config = {"groups": groups, "codes": _stage_config(codes)}
+    # "action_counts": graphs keep their play data's actions (older graphs are rebuilt).
+    config = {"groups": groups, "codes": _stage_config(codes), "action_counts": True}
     return encoder, run.stage(_tagged("graph", variant), config, [path], build, load)
 
 
@@ -874,6 +883,7 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
                 planner=cmd.dorp_planner,
                 waypoint_budget=cmd.waypoint_budget,
                 graph=run.stages[dorp[2]]["config"],
+                policy_recipe=DORP_RECIPE,
             )
 
         key = f"evaluate:{method}" + ("" if method == "random" else f":{level_name}")
@@ -908,23 +918,26 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
             chunk_file.unlink()  # its per-task results go into the stage's record
             level = "none" if method == "random" else level_name
             row = result_row(result, tasks, setting=cmd.setting, method=method, low_level=level)
-            row["per_task"] = {  # for the steps plot; not a results.csv column
+            row["per_task"] = {  # for the steps plot and tasks.csv; not results.csv columns
                 "success": result["success"],
                 "steps": result["steps"],
                 "lower_bound": tasks["lower_bound"].tolist(),
+                "records": result["records"],
             }
             run.say(
                 f"{method}: success {row['success_rate']:.2f}, {row['mean_steps']:.1f} steps "
                 f"(lower bound {row['mean_lower_bound']:.1f}), "
                 f"{row['seconds_per_task']:.1f} s per task"
             )
+            run.say(format_failures(result["records"], method))
             return None, row
 
         resume = functools.partial(build, resume=True)
         run.stage(key, config, [], build, lambda: None, resume)
     rows = run.result_rows()
     figures = plot_results(rows, run.dir, PAPER_SUCCESS)
-    write_results(rows, run.dir, figures)
+    write_results(rows, run.dir, figures, sections=[failure_section(rows)])
+    write_task_records(rows, run.dir / "tasks.csv")
     return rows
 
 

@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDict
 
 from dorp_rl.cli import (
     DORP_VARIANTS,
@@ -40,9 +39,13 @@ from dorp_rl.eval import (
     PAPER_SUCCESS,
     RESULT_COLUMNS,
     SETTINGS,
+    failure_section,
     make_task_set,
     rearrangement_code_maps,
     rearrangement_diagnostics,
+    rollout_chunk,
+    tasks_to_draw,
+    write_task_records,
 )
 from dorp_rl.eval.diagnostics import key_room_diagnostics
 from dorp_rl.eval.parallel import exit_with_parent
@@ -70,9 +73,13 @@ _SETTING_FIELDS = ("env", "num_objects")
 
 def paper_methods(setting: str) -> tuple[str, ...]:
     """The methods of the paper's Table 1 in ``setting``: every method at 1-3 objects; no
-    similarity ablations at 5 objects (the paper reports none); DORP only in key rooms."""
+    similarity ablations at 5 objects (the paper reports none); DORP only in key rooms.
+    Six objects (not in the paper): DORP, the full graph and VF-CEM (the stronger
+    baseline)."""
     if SETTINGS[setting].env in ("key-wall", "key-corridor"):
         return ("dorp",)
+    if SETTINGS[setting].num_objects >= 6:
+        return ("dorp", "dorp-full", "vf-cem")
     if SETTINGS[setting].num_objects >= 5:
         return ("dorp", "dorp-full", "vf-rs", "vf-cem")
     return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
@@ -120,8 +127,9 @@ def pictures_stage(run: Run, cmd: Evaluate) -> list[Path]:
 
     Writes into ``<run>/pictures/``: ``code_map.png`` and ``factorization_histogram.png``
     of DORP's codes (``arbitrary/`` and ``identity/`` for the ablations' codes), and
-    ``rollout_<i>.gif`` for the first ``cmd.gifs`` tasks of the set, run with the first
-    DORP method of ``cmd.methods``. A stage of the run: skipped when nothing changed.
+    ``rollout_<task>.gif`` for ``cmd.gifs`` tasks of the set, those the evaluation of the
+    first DORP method of ``cmd.methods`` failed first (its chunks run again as the
+    evaluation ran them), then solved ones. A stage of the run: skipped when nothing changed.
 
     Returns:
         The files written (none without a DORP method).
@@ -148,8 +156,11 @@ def pictures_stage(run: Run, cmd: Evaluate) -> list[Path]:
                     env, loaded[method][0], directory / sub, cmd.codes.diagnostics_samples
                 )
                 files += written
-        gifs, solved = _rollout_gifs(run, cmd, methods[0], loaded[methods[0]], maps, directory)
-        return files + gifs, {"files": [str(p) for p in files + gifs], "gif_solved": solved}
+        gifs, solved, drawn = _rollout_gifs(
+            run, cmd, methods[0], loaded[methods[0]], maps, directory
+        )
+        summary = {"files": [str(p) for p in files + gifs], "gif_solved": solved}
+        return files + gifs, {**summary, "gif_tasks": drawn}
 
     def load() -> list[Path]:
         return [Path(p) for p in run.stages["pictures"]["summary"]["files"]]
@@ -164,51 +175,58 @@ def _codes_variant(method: str) -> str:
 
 def _rollout_gifs(
     run: Run, cmd: Evaluate, method: str, dorp: Any, maps: dict[str, Any], directory: Path
-) -> tuple[list[Path], list[bool]]:
-    """The first ``cmd.gifs`` tasks of the set, run with ``method`` (``dorp``: its
-    encoder, graph and graph stage), as GIFs."""
+) -> tuple[list[Path], list[bool], list[int]]:
+    """``cmd.gifs`` tasks run with ``method`` (``dorp``: its encoder, graph and graph
+    stage), as GIFs: the tasks the evaluation failed first, then solved ones
+    (:func:`~dorp_rl.eval.tasks_to_draw`). Each task's chunk is run again as the
+    evaluation ran it (:func:`~dorp_rl.eval.rollout_chunk`: same chunk, batch and seed),
+    so a failure is drawn as it happened on this machine."""
     n = min(cmd.gifs, cmd.tasks)
     if n == 0:
-        return [], []
+        return [], [], []
     setting = SETTINGS[cmd.setting]
-    env = setting.make_env(batch_size=(n,), seed=cmd.seed)
-    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed)[:n]
+    batch = min(cmd.tasks, cmd.tasks_per_rollout)
+    records = run.stages[_evaluation_key(cmd, method)]["summary"]["per_task"].get("records")
+    chosen = tasks_to_draw(records, n) if records else list(range(n))
+    env = setting.make_env(batch_size=(batch,), seed=cmd.seed)
+    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed)
     policy = _policy(cmd, method, env, _low_level_path(run, cmd), dorp)
-    given = TensorDict(state=tasks["state"], goal_state=tasks["goal_state"], batch_size=[n])
-    td = env.reset(given.to(env.device), set_state=True)
     limit = env.max_steps if cmd.max_steps is None else cmd.max_steps
-    bar = progress_bar(run.progress, total=n, desc="GIF rollouts", unit="task")
-
-    def tick(_env: Any, step: Any) -> None:
-        finished = int(step["done"].sum())
-        if bar is not None and finished > bar.n:
-            bar.update(finished - bar.n)
-
+    code_maps = maps.get(_codes_variant(method))
+    bar = progress_bar(run.progress, total=len(chosen), desc="GIF rollouts", unit="task")
+    paths: list[Path] = []
+    solved: list[bool] = []
+    drawn: list[int] = []
     try:
-        rollout = env.rollout(
-            limit,
-            policy,
-            tick,
-            tensordict=td,
-            auto_reset=False,
-            break_when_any_done=False,
-            break_when_all_done=True,
-        )
+        for chunk_index in sorted({task // batch for task in chosen}):
+            first = chunk_index * batch
+            rollout, at_goal = rollout_chunk(
+                env,
+                policy,
+                tasks[first : first + batch],
+                first,
+                max_steps=limit,
+                tasks_per_rollout=batch,
+                seed=cmd.seed,
+            )
+            done = rollout["next", "done"].reshape(rollout.shape[0], -1)
+            success = rollout["next", "success"].reshape(rollout.shape[0], -1)
+            for task in (t for t in chosen if t // batch == chunk_index):
+                i = task - first
+                steps = int(done[i].float().argmax()) + 1 if bool(done[i].any()) else done.shape[1]
+                drawn.append(task)
+                solved.append(bool(at_goal[i]) or bool(success[i, steps - 1]))
+                paths.append(
+                    save_rollout_gif(
+                        rollout[i, :steps], directory / f"rollout_{task}.gif", code_maps
+                    )
+                )
+                if bar is not None:
+                    bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-    code_maps = maps.get(_codes_variant(method))
-    done = rollout["next", "done"].reshape(n, -1)
-    success = rollout["next", "success"].reshape(n, -1)
-    paths: list[Path] = []
-    solved: list[bool] = []
-    for i in range(n):
-        steps = int(done[i].float().argmax()) + 1 if bool(done[i].any()) else done.shape[1]
-        solved.append(bool(success[i, steps - 1]))
-        paths.append(
-            save_rollout_gif(rollout[i, :steps], directory / f"rollout_{i}.gif", code_maps)
-        )
-    return paths, solved
+    return paths, solved, drawn
 
 
 def say_pictures(run: Run, pictures: list[Path]) -> None:
@@ -484,6 +502,8 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
         + format_paper_table(table_rows),
         "## Wall-clock per stage\n\nSee [timings.md](timings.md).",
     ]
+    sections.insert(1, failure_section(rows, by_seed=bool(cmd.seeds)))
+    write_task_records(rows, run.dir / "tasks.csv")
     if links:
         sections.append("## Pictures\n\n" + "\n".join(links))
     if cmd.seeds:

@@ -80,10 +80,25 @@ def test_reproduce_paper_writes_the_table_the_timings_and_the_pictures(tmp_path,
         image = Image.open(pictures / still)
         image.verify()
         assert image.format == "PNG"
-    gif = Image.open(pictures / "rollout_0.gif")
+    # The one GIF (--gifs 1) draws DORP's first failed task if it failed any, as it failed.
+    _, task_lines = read_csv(run / "1obj" / "tasks.csv")
+    dorp_tasks = [t for t in task_lines if t["method"] == "dorp"]
+    assert [t["task"] for t in dorp_tasks] == ["0", "1"]
+    failed = [t["task"] for t in dorp_tasks if t["outcome"] != "solved"]
+    drawn = failed[0] if failed else "0"
+    gif = Image.open(pictures / f"rollout_{drawn}.gif")
     assert gif.format == "GIF" and gif.n_frames >= 2 and gif.size[0] > 3 * 128
-    assert not (pictures / "rollout_1.gif").exists()  # --gifs 1
-    assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
+    assert [p.name for p in pictures.glob("*.gif")] == [f"rollout_{drawn}.gif"]
+    assert f"rollout GIF: {pictures / f'rollout_{drawn}.gif'}" in out
+    stages_json = json.loads((run / "1obj" / "stages.json").read_text())
+    summary = stages_json["pictures"]["summary"]
+    assert summary["gif_tasks"] == [int(drawn)]
+    assert summary["gif_solved"] == [not failed]
+    # How the tasks ended, per method, in the run's results and in the table's results.
+    assert "## How the tasks ended" in (run / "1obj" / "results.md").read_text()
+    assert "1obj dorp: " in table and " of 2 solved" in table
+    _, all_tasks = read_csv(run / "tasks.csv")
+    assert len(all_tasks) == 2 * len(paper_methods("1obj"))
 
     # Run again (with "gt"): every stage is reused, the table and timings are the same.
     again = dorp(
@@ -164,6 +179,12 @@ def test_a_seed_sweep_runs_a_sub_run_per_seed_and_pools_them(tmp_path, dorp) -> 
     )
     assert not all(torch.equal(first["encoder"][k], second["encoder"][k]) for k in first["encoder"])
     assert "pooled over the seeds [3, 4]" in (run / "results.md").read_text()
+    # How each seed's tasks ended, and one line per task and seed in tasks.csv.
+    assert "1obj dorp seed 3: " in (run / "results.md").read_text()
+    _, task_lines = read_csv(run / "tasks.csv")
+    assert [(t["method"], t["seed"], t["task"]) for t in task_lines if t["method"] == "dorp"] == [
+        ("dorp", "3", "0"), ("dorp", "3", "1"), ("dorp", "4", "0"), ("dorp", "4", "1")
+    ]  # fmt: skip
     _, timings = read_csv(run / "timings.csv")
     assert {t["setting"] for t in timings} == {"1obj-seed3", "1obj-seed4"}
 
@@ -173,16 +194,17 @@ def test_evaluate_draws_the_pictures_of_dorp_once(tmp_path, dorp) -> None:
         tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF
     )
     pictures = tmp_path / "run" / "pictures"
-    assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in out
-    assert Image.open(pictures / "rollout_0.gif").n_frames >= 2
+    (gif,) = pictures.glob("rollout_*.gif")  # the first failed task, else task 0
+    assert f"rollout GIF: {gif}" in out
+    assert Image.open(gif).n_frames >= 2
     assert Image.open(pictures / "factorization_histogram.png").format == "PNG"
-    written = (pictures / "rollout_0.gif").stat().st_mtime_ns
+    written = gif.stat().st_mtime_ns
     again = dorp(
         tmp_path, "evaluate", "--methods", "dorp", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF
     )
     assert "pictures: done for this config, skipped" in again
-    assert f"rollout GIF: {pictures / 'rollout_0.gif'}" in again
-    assert (pictures / "rollout_0.gif").stat().st_mtime_ns == written
+    assert f"rollout GIF: {gif}" in again
+    assert gif.stat().st_mtime_ns == written
     # Without DORP there are no codes to draw.
     dorp(tmp_path / "vf", "evaluate", "--methods", "vf-rs", *dorp.CODES, *dorp.EVAL, *ONE_GIF)
     assert not (tmp_path / "vf" / "run" / "pictures").exists()

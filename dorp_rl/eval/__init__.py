@@ -11,6 +11,13 @@ from dorp_rl.eval.diagnostics import (
     rearrangement_diagnostics,
     sample_rearrangement_states,
 )
+from dorp_rl.eval.failures import (
+    failure_section,
+    format_failures,
+    summarize_failures,
+    tasks_to_draw,
+    write_task_records,
+)
 from dorp_rl.eval.parallel import BACKENDS, EvalSpec, evaluate_parallel
 from dorp_rl.eval.results import RESULT_COLUMNS, format_table, result_row, write_results
 from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting
@@ -18,6 +25,7 @@ from dorp_rl.eval.tasks import (
     check_task_set,
     evaluate_policy,
     make_task_set,
+    rollout_chunk,
     seed_policy,
 )
 from dorp_rl.eval.world_model import open_loop_accuracy
@@ -31,7 +39,12 @@ __all__ = [
     "RESULT_COLUMNS",
     "SETTINGS",
     "Setting",
+    "failure_section",
+    "format_failures",
     "format_table",
+    "summarize_failures",
+    "tasks_to_draw",
+    "write_task_records",
     "result_row",
     "write_results",
     "best_assignment",
@@ -43,6 +56,7 @@ __all__ = [
     "key_room_code_maps",
     "key_room_diagnostics",
     "make_task_set",
+    "rollout_chunk",
     "open_loop_accuracy",
     "rearrangement_code_maps",
     "rearrangement_diagnostics",

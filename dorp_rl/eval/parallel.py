@@ -225,7 +225,7 @@ class _ChunkRunner:
             # One chunk: evaluate_policy reseeds it with (seed + index) + 0.
             seed=derive_seed(opts["seed"], index),
         )
-        keys = ("success", "steps", *opts["report_keys"])
+        keys = ("success", "steps", "records", *opts["report_keys"])
         return index, {key: result[key] for key in keys}
 
 

@@ -187,6 +187,12 @@ def pool_seeds(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             key: [v for row in group for v in row["per_task"][key]]
             for key in ("success", "steps", "lower_bound")
         }
+        if all("records" in row["per_task"] for row in group):
+            per_task["records"] = [
+                {**record, "seed": row.get("seed")}
+                for row in group
+                for record in row["per_task"]["records"]
+            ]
         solved = [i for i, ok in enumerate(per_task["success"]) if ok]
         steps = [float(per_task["steps"][i]) for i in solved]
         bounds = [float(per_task["lower_bound"][i]) for i in solved]

@@ -245,8 +245,11 @@ def evaluate_policy(
 
     Returns:
         ``success`` (bool list per task), ``steps`` (int list: steps until success, 0
-        for a task solved at its start, or the limit), ``success_rate``, ``mean_steps`` (over successful tasks, ``nan`` if
-        none), ``mean_lower_bound`` (over the same tasks), ``num_tasks``, ``seconds``,
+        for a task solved at its start, or the limit), ``success_rate``, ``mean_steps``
+        (over successful tasks, ``nan`` if none), ``mean_lower_bound`` (over the same
+        tasks), ``num_tasks``, ``seconds``, ``records`` (one dict per task: ``task``,
+        ``outcome`` -- ``"solved"``, ``"step_limit"`` or the reason the policy gave it up
+        -- ``steps``, and what the policy's ``task_records`` adds; :func:`task_records`)
         and one list per entry of ``report_keys``.
 
     Examples:
@@ -274,7 +277,6 @@ def evaluate_policy(
             "so finished chunks can be skipped."
         )
     record = _ChunkFile.open(resume_file, tasks, limit, tasks_per_rollout, seed, report_keys)
-    locked = env.batch_locked and env.batch_size != torch.Size([])
     chunks: list[dict[str, list]] = []
     earlier = 0.0 if record is None else record.seconds
     # Tasks of recorded chunks count from the start, not as progress (the time left).
@@ -294,7 +296,6 @@ def evaluate_policy(
                     first,
                     limit,
                     tasks_per_rollout,
-                    locked,
                     report_keys,
                     seed,
                     bar,
@@ -317,27 +318,59 @@ def summarize_chunks(
     seconds: float,
     report_keys: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """:func:`summarize` of per-chunk results (``success``, ``steps`` and the
-    ``report_keys`` lists of each chunk, in task order)."""
+    """:func:`summarize` of per-chunk results (``success``, ``steps``, ``records`` and the
+    ``report_keys`` lists of each chunk, in task order). A chunk without records (kept
+    by an older version) gets the outcome and steps of each task alone."""
     joined = {k: [v for c in chunks for v in c[k]] for k in ("success", "steps", *report_keys)}
     reported = {key: joined[key] for key in report_keys}
-    return summarize(tasks, joined["success"], joined["steps"], max_steps, seconds, reported)
+    records: list[dict[str, Any]] = []
+    for chunk in chunks:
+        given = chunk.get("records") or [
+            {"outcome": SOLVED if ok else STEP_LIMIT, "steps": int(n)}
+            for ok, n in zip(chunk["success"], chunk["steps"], strict=True)
+        ]
+        records += [{**r, "task": len(records) + i} for i, r in enumerate(given)]
+    return summarize(
+        tasks, joined["success"], joined["steps"], max_steps, seconds, reported, records
+    )
 
 
-def _run_chunk(
+def rollout_chunk(
     env: GridWorldEnv,
     policy: Callable[[TensorDictBase], TensorDictBase],
     chunk: TensorDictBase,
-    first: int,
-    limit: int,
-    tasks_per_rollout: int,
-    locked: bool,
-    report_keys: Sequence[str],
-    seed: int | None,
-    bar: Any,
-) -> dict[str, list]:
-    """One batched rollout of the tasks ``chunk`` (task ``first`` onwards); per-task lists."""
+    first: int = 0,
+    *,
+    max_steps: int | None = None,
+    tasks_per_rollout: int | None = None,
+    seed: int | None = None,
+    bar: Any = None,
+) -> tuple[TensorDictBase, torch.Tensor]:
+    """The batched rollout of one chunk of tasks, as :func:`evaluate_policy` runs it.
+
+    With the same ``env``, ``policy``, ``seed``, ``tasks_per_rollout`` and chunk (tasks
+    ``first`` onwards of the set) this is the rollout the evaluation saw, so a failed
+    task can be drawn as it failed (``dorp evaluate`` draws failures first).
+
+    Args:
+        env, policy: as in :func:`evaluate_policy`.
+        chunk: the chunk's tasks (rows of :func:`make_task_set`).
+        first: index of the chunk's first task in the set (it picks the seed).
+        max_steps: step limit (default: ``env.max_steps``).
+        tasks_per_rollout: the evaluation's chunk size (default: the chunk's rows); a
+            batch-locked env gets a short last chunk padded with repeats of its first task.
+        seed: the evaluation's seed; the policy is reseeded with ``seed + first //
+            tasks_per_rollout`` (:func:`seed_policy`). ``None``: left as it is.
+        bar: a progress bar moved as tasks finish (``None``: none).
+
+    Returns:
+        ``rollout`` (``[rows (+ padding), T]``) and ``at_goal`` (``[rows]`` bool: tasks
+        that started at their goal).
+    """
     rows = chunk.shape[0]
+    limit = env.max_steps if max_steps is None else max_steps
+    tasks_per_rollout = rows if tasks_per_rollout is None else tasks_per_rollout
+    locked = env.batch_locked and env.batch_size != torch.Size([])
     if seed is not None:
         seed_policy(policy, derive_seed(seed, first // tasks_per_rollout))
     if locked and rows != tasks_per_rollout:  # pad the last chunk with repeats
@@ -366,6 +399,32 @@ def _run_chunk(
         break_when_any_done=False,
         break_when_all_done=True,
     )
+    return rollout, at_goal
+
+
+def _run_chunk(
+    env: GridWorldEnv,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    chunk: TensorDictBase,
+    first: int,
+    limit: int,
+    tasks_per_rollout: int,
+    report_keys: Sequence[str],
+    seed: int | None,
+    bar: Any,
+) -> dict[str, list]:
+    """One batched rollout of the tasks ``chunk`` (task ``first`` onwards); per-task lists."""
+    rows = chunk.shape[0]
+    rollout, at_goal = rollout_chunk(
+        env,
+        policy,
+        chunk,
+        first,
+        max_steps=limit,
+        tasks_per_rollout=tasks_per_rollout,
+        seed=seed,
+        bar=bar,
+    )
     done = rollout["next", "done"].squeeze(-1)[:rows]  # [rows, T]
     won = rollout["next", "success"].squeeze(-1)[:rows]
     t = done.shape[-1]
@@ -386,6 +445,7 @@ def _run_chunk(
         at_goal.to(first_done.device), torch.zeros_like(first_done), first_done
     )
     result: dict[str, list] = {"success": success, "steps": steps}
+    result["records"] = task_records(policy, rollout, first_done, first, success, steps)
     for key in report_keys:
         if key not in rollout.keys(True, True):
             raise MissingKeyError(
@@ -396,6 +456,57 @@ def _run_chunk(
             values.reshape(rows, t, -1)[torch.arange(rows), first_done, 0].float().tolist()
         )
     return result
+
+
+#: How a task ended, in the ``outcome`` of a task record (:func:`task_records`): solved,
+#: held to the step limit, or given up by the policy for one of its reasons (the
+#: DORP policy's :data:`~dorp_rl.policies.ENDINGS`: ``no_path``, ``goal_stalled``,
+#: ``removal_limit``).
+SOLVED, STEP_LIMIT = "solved", "step_limit"
+
+
+def task_records(
+    policy: Any,
+    rollout: TensorDictBase,
+    last_step: torch.Tensor,
+    first: int,
+    success: Sequence[bool],
+    steps: Sequence[int],
+) -> list[dict[str, Any]]:
+    """One record per task of a chunk's rollout: how it ended and the policy's counts.
+
+    Every record has ``task`` (its index in the task set), ``outcome`` (``"solved"``,
+    ``"step_limit"`` or the reason the policy gave the task up) and ``steps``. A policy
+    with a ``task_records(last)`` method (:meth:`~dorp_rl.policies.AbstractGoalPolicy.
+    task_records`) is asked about the tensordicts of the tasks' last steps (``last``,
+    ``[rows]``) and its fields are added; its ``outcome`` is used for unsolved tasks.
+
+    Args:
+        policy: the policy of the rollout.
+        rollout: ``[rows (+ padding), T]`` rollout of the chunk.
+        last_step: ``[rows]`` index of each task's last step in ``rollout``.
+        first: index of the chunk's first task in the task set.
+        success, steps: the chunk's per-task results.
+    """
+    rows = len(success)
+    extra: list[dict[str, Any]] = [{} for _ in range(rows)]
+    describe = getattr(policy, "task_records", None)
+    if callable(describe):
+        index = torch.arange(rows, device=last_step.device)
+        last = rollout[:rows][index, last_step]
+        extra = [dict(r) for r in describe(last)]
+        if len(extra) != rows:
+            raise ValueError(
+                f"{type(policy).__name__}.task_records gave {len(extra)} records for {rows} tasks."
+            )
+    records = []
+    for row in range(rows):
+        given_up = extra[row].pop("outcome", None)
+        outcome = SOLVED if success[row] else (given_up or STEP_LIMIT)
+        records.append(
+            {"task": first + row, "outcome": outcome, "steps": int(steps[row]), **extra[row]}
+        )
+    return records
 
 
 class _ChunkFile:
@@ -510,9 +621,11 @@ def summarize(
     max_steps: int,
     seconds: float,
     reported: dict[str, list[float]] | None = None,
+    records: Sequence[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The result dict of :func:`evaluate_policy` from per-task ``success`` and ``steps``
-    (lists in task order, one entry per row of ``tasks``)."""
+    (lists in task order, one entry per row of ``tasks``) and the task ``records``
+    (:func:`task_records`; default: outcome and steps alone)."""
     success, steps = list(success), list(steps)
     n = tasks.shape[0]
     if n == 0:
@@ -522,6 +635,13 @@ def summarize(
             f"expected one success and one steps entry per task ({n}), "
             f"got {len(success)} and {len(steps)}."
         )
+    if records is None:
+        records = [
+            {"task": i, "outcome": SOLVED if won else STEP_LIMIT, "steps": int(n)}
+            for i, (won, n) in enumerate(zip(success, steps, strict=True))
+        ]
+    if len(records) != n:
+        raise ValueError(f"expected one record per task ({n}), got {len(records)}.")
     ok = torch.tensor(success, dtype=torch.bool)
     bound = tasks["lower_bound"].float() if "lower_bound" in tasks.keys() else None
     return {
@@ -537,5 +657,6 @@ def summarize(
         else float("nan"),
         "max_steps": max_steps,
         "seconds": seconds,
+        "records": [dict(r) for r in records],
         **(reported or {}),
     }

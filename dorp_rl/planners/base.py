@@ -86,7 +86,7 @@ from dorp_rl.planners.costs import (
     RolloutCost,
     check_step_aggregation,
 )
-from dorp_rl.validation import check_int, check_seed, check_task_frames
+from dorp_rl.validation import MissingKeyError, check_int, check_seed, check_task_frames
 
 __all__ = [
     "EXECUTIONS",
@@ -126,6 +126,11 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             last ``out_keys`` entry (``"cost"`` if it has none).
         action_key: where the action is written.
         key_prefix: prefix of the state keys.
+        action_prior_key: a key of the acting tensordict holding, per row, a distribution
+            over actions ``[*B, A]`` (non-negative, not all zero; normalised here) that
+            the planner samples its candidates' actions from instead of uniformly
+            (:meth:`action_prior`; random shooting draws every action from it, CEM starts
+            from it). ``None`` (default): uniform draws.
 
     Examples:
         >>> import torch
@@ -157,6 +162,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         cost_key: NestedKey | None = None,
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
+        action_prior_key: NestedKey | None = None,
     ) -> None:
         if not isinstance(env, EnvBase):
             raise ValueError(f"env must be a torchrl EnvBase, got {type(env).__name__}.")
@@ -231,7 +237,11 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                     f"not produce (it produces {sorted(str(k) for k in produced)})."
                 )
         self._env_in_keys = self._env_input_keys()
-        self.in_keys = list(dict.fromkeys([*self._env_in_keys, *self._root_keys, *self.state_keys]))
+        self.action_prior_key = None if action_prior_key is None else unravel_key(action_prior_key)
+        prior_keys = [] if self.action_prior_key is None else [self.action_prior_key]
+        self.in_keys = list(
+            dict.fromkeys([*self._env_in_keys, *self._root_keys, *prior_keys, *self.state_keys])
+        )
         self._frame_keys = self._find_frame_keys()
         self.out_keys = [self.action_key, *self.state_keys]
         self.generator = torch.Generator(device=env.device)
@@ -359,6 +369,37 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         else:
             length = torch.full_like(step, self.planning_horizon)
         return plan, length, score
+
+    def action_prior(self, td: TensorDictBase) -> torch.Tensor | None:
+        """The rows' action distributions ``[b, A]`` under ``action_prior_key`` (``None``
+        without one), checked and normalised; rows of ``td [b]`` being planned."""
+        if self.action_prior_key is None:
+            return None
+        value = td.get(self.action_prior_key, None)
+        rows = td.batch_size[0]
+        if value is None:
+            raise MissingKeyError(
+                f"{type(self).__name__} samples from {self.action_prior_key!r}, which the "
+                f"tensordict lacks: write a distribution over the {self.num_actions} actions "
+                "per row there (or build the planner with action_prior_key=None)."
+            )
+        value = value.reshape(rows, -1).to(self.generator.device, torch.float32)
+        if value.shape[-1] != self.num_actions:
+            raise ValueError(
+                f"{self.action_prior_key!r} must hold {self.num_actions} action weights per "
+                f"row, got {value.shape[-1]}."
+            )
+        total = value.sum(-1, keepdim=True)
+        if (
+            not bool(torch.isfinite(value).all())
+            or bool((value < 0).any())
+            or bool((total <= 0).any())
+        ):
+            raise ValueError(
+                f"{self.action_prior_key!r} must hold finite, non-negative action weights "
+                "with a positive sum in every row."
+            )
+        return value / total
 
     def _optimize(
         self,

@@ -43,6 +43,8 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         cost_key: the per-step cost key; ``None`` takes the cost's last ``out_keys``.
         action_key: where the action is written.
         key_prefix: prefix of the state keys (``planner_plan``, ...).
+        action_prior_key: per-row action distributions ``[*B, A]`` to draw decisions from
+            instead of uniformly (:class:`~dorp_rl.planners.DiscreteMPCPlanner`).
         optim_steps: CEM iterations (default 3).
         top_k: number of elites the distributions are refitted to, in
             ``[1, num_candidates]`` (default 20, 2 % of 1000).
@@ -84,6 +86,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         cost_key: NestedKey | None = None,
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
+        action_prior_key: NestedKey | None = None,
         optim_steps: int = 3,
         top_k: int = 20,
         warm_start: bool = True,
@@ -103,6 +106,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
             cost_key=cost_key,
             action_key=action_key,
             key_prefix=key_prefix,
+            action_prior_key=action_prior_key,
         )
         self.optim_steps = check_int("optim_steps", optim_steps, low=1)
         self.top_k = check_int("top_k", top_k, low=1, high=self.num_candidates)
@@ -114,19 +118,28 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         )
 
     def initial_probs(
-        self, previous_plan: torch.Tensor, shift: torch.Tensor, valid: torch.Tensor
+        self,
+        previous_plan: torch.Tensor,
+        shift: torch.Tensor,
+        valid: torch.Tensor,
+        prior: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Initial per-decision distributions ``[b, H / r, A]`` (uniform, or warm-started).
+        """Initial per-decision distributions ``[b, H / r, A]`` (uniform or the rows'
+        ``prior``, warm-started).
 
         Args:
             previous_plan: int64 ``[b, H]``, the stored plans (per env step).
             shift: int64 ``[b]``, env steps executed since each was planned.
             valid: bool ``[b]``, which rows have a plan.
+            prior: ``[b, A]`` action distributions to start from (``None``: uniform).
         """
         rows = previous_plan.shape[0]
         a, h = self.num_actions, self.planning_horizon
         device = previous_plan.device
-        uniform = torch.full((rows, self.num_decisions, a), 1.0 / a, device=device)
+        if prior is None:
+            uniform = torch.full((rows, self.num_decisions, a), 1.0 / a, device=device)
+        else:
+            uniform = prior.to(device).unsqueeze(1).expand(-1, self.num_decisions, -1).clone()
         use = valid & (shift < h) if self.warm_start else torch.zeros_like(valid)
         if not use.any():
             return uniform
@@ -159,7 +172,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         valid: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         rows = td.batch_size[0]
-        probs = self.initial_probs(previous_plan, shift, valid)
+        probs = self.initial_probs(previous_plan, shift, valid, self.action_prior(td))
         u = self._uniforms(rows, self.optim_steps)
         index = torch.arange(rows, device=probs.device)
         best_decisions = best_score = best_step = None

@@ -281,6 +281,48 @@ def encode_transitions(
     return torch.cat(codes), torch.cat(next_codes)
 
 
+def play_actions(buffer: Any, *, chunk_size: int = 65536) -> torch.Tensor | None:
+    """The ``action`` of every transition of a play buffer, int64 ``[N]`` (``None`` when
+    the buffer keeps none, or keeps them one-hot)."""
+    storage = getattr(buffer, "storage", None)
+    n = len(buffer)
+    parts = []
+    for start in range(0, n, chunk_size):
+        index = torch.arange(start, min(n, start + chunk_size))
+        chunk = storage[index] if storage is not None else buffer[index]
+        action = chunk.get("action", None)
+        if action is None or action.is_floating_point():
+            return None
+        action = action.reshape(index.numel(), -1)
+        if action.shape[1] != 1:
+            return None  # one-hot or multi-dimensional actions: not counted
+        parts.append(action[:, 0].to(torch.int64).cpu())
+    return torch.cat(parts) if parts else None
+
+
+def _count_actions(
+    codes: torch.Tensor, next_codes: torch.Tensor, actions: torch.Tensor, num_actions: int | None
+) -> torch.Tensor:
+    """``[C, A]`` counts of transitions in which action ``a`` changed one-hot ``j``."""
+    if not isinstance(actions, torch.Tensor) or actions.is_floating_point():
+        raise ValueError(f"actions must be an int64 tensor [N], got {_describe(actions)}.")
+    actions = actions.reshape(-1).to(torch.int64)
+    if actions.shape[0] != codes.shape[0]:
+        raise ValueError(
+            f"actions must hold one action per transition ({codes.shape[0]}), got "
+            f"{actions.shape[0]}."
+        )
+    if actions.numel() and int(actions.min()) < 0:
+        raise ValueError(f"actions must be >= 0, got {int(actions.min())}.")
+    seen = int(actions.max()) + 1 if actions.numel() else 1
+    width = seen if num_actions is None else check_int("num_actions", num_actions, low=1)
+    if seen > width:
+        raise ValueError(f"actions go up to {seen - 1}, but num_actions={width}.")
+    changed = (codes != next_codes).to(torch.float64)  # [N, C]
+    onehot = torch.nn.functional.one_hot(actions, width).to(torch.float64)  # [N, A]
+    return (changed.T @ onehot).round().to(torch.int64)
+
+
 def _check_is_encoder(encoder: Any) -> None:
     if getattr(encoder, "code_sizes", None) is None or not callable(
         getattr(encoder, "encode", None)
@@ -311,6 +353,9 @@ class CodeGraph(nn.Module):
         fingerprint: :func:`encoder_fingerprint` of the encoder that made the codes.
         env_config: ``env.config()`` of the environment the play data came from.
         dense_limit: groups with at most this many nodes get a distance table.
+        action_counts: int64 ``[C, A]``, play transitions in which action ``a`` changed
+            one-hot ``j``'s code (``None``: the actions are unknown); read by
+            :meth:`action_weights`.
 
     Examples:
         >>> import torch
@@ -337,6 +382,7 @@ class CodeGraph(nn.Module):
         fingerprint: str = "",
         env_config: dict[str, Any] | None = None,
         dense_limit: int = DEFAULT_DENSE_LIMIT,
+        action_counts: torch.Tensor | None = None,
     ) -> None:
         super().__init__()
         sizes = list(Ints(low=1)("code_sizes", code_sizes))
@@ -390,6 +436,18 @@ class CodeGraph(nn.Module):
         self.register_buffer("indptr", indptr)
         self.register_buffer("indices", indices)
         self.register_buffer("edge_counts", edge_counts)
+        if action_counts is not None and (
+            not isinstance(action_counts, torch.Tensor)
+            or action_counts.dtype != torch.int64
+            or action_counts.dim() != 2
+            or action_counts.shape[0] != len(sizes)
+            or bool((action_counts < 0).any())
+        ):
+            raise ValueError(
+                f"action_counts must be a non-negative int64 tensor [{len(sizes)}, A] (one row "
+                f"per one-hot), got {_describe(action_counts)}."
+            )
+        self.register_buffer("action_counts", action_counts)
         # Derived: source of every edge, its reverse, and the group of every node.
         src = torch.repeat_interleave(torch.arange(v), indptr.diff())
         self.register_buffer("edge_source", src, persistent=False)
@@ -422,6 +480,9 @@ class CodeGraph(nn.Module):
         next_codes: torch.Tensor,
         code_sizes: Sequence[int],
         groups: str | Sequence[Sequence[int]] = "onehot",
+        *,
+        actions: torch.Tensor | None = None,
+        num_actions: int | None = None,
         **kwargs: Any,
     ) -> CodeGraph:
         """Builds the graphs from the codes of consecutive frames.
@@ -431,6 +492,9 @@ class CodeGraph(nn.Module):
             next_codes: int64 ``[N, C]``, the code of the frame after it (same trajectory).
             code_sizes: codes per one-hot.
             groups: ``"onehot"``, ``"full"`` or index groups.
+            actions: int64 ``[N]`` (or ``[N, 1]``), the action of each transition; counted
+                per one-hot whose code it changed (``action_counts``). ``None``: unknown.
+            num_actions: the env's number of actions (default: the largest action + 1).
             **kwargs: ``fingerprint``, ``env_config``, ``dense_limit``.
         """
         sizes = [int(z) for z in code_sizes]
@@ -476,6 +540,9 @@ class CodeGraph(nn.Module):
             node_keys.append(keys)
             node_counts.append(frame_counts)
             node_offsets.append(offset + keys.shape[0])
+        action_counts = None
+        if actions is not None:
+            action_counts = _count_actions(codes, next_codes, actions, num_actions)
         total = node_offsets[-1]
         src, dst, cnt = torch.cat(sources), torch.cat(targets), torch.cat(counts)
         order = torch.argsort(src * total + dst)
@@ -491,6 +558,7 @@ class CodeGraph(nn.Module):
             indptr=indptr,
             indices=dst,
             edge_counts=cnt,
+            action_counts=action_counts,
             **kwargs,
         )
 
@@ -505,6 +573,7 @@ class CodeGraph(nn.Module):
         progress: bool = False,
         dense_limit: int = DEFAULT_DENSE_LIMIT,
         transitions: tuple[torch.Tensor, torch.Tensor] | None = None,
+        num_actions: int | None = None,
     ) -> CodeGraph:
         """Encodes every transition of a play buffer and builds the graphs.
 
@@ -524,6 +593,8 @@ class CodeGraph(nn.Module):
             dense_limit: see the class docstring.
             transitions: ``(codes, next_codes)`` of this buffer's transitions by this
                 encoder (:func:`encode_transitions`); ``None`` encodes them here.
+            num_actions: the env's number of actions, for ``action_counts`` (the play
+                data's ``action`` per transition; default: the largest action + 1).
 
         Raises:
             ValueError: ``transitions`` that do not hold one code pair per transition of
@@ -554,6 +625,8 @@ class CodeGraph(nn.Module):
             next_codes,
             encoder.code_sizes,
             groups,
+            actions=play_actions(buffer, chunk_size=chunk_size),
+            num_actions=num_actions,
             fingerprint=encoder_fingerprint(encoder),
             env_config=metadata.get("env_config"),
             dense_limit=dense_limit,
@@ -781,6 +854,44 @@ class CodeGraph(nn.Module):
     # ------------------------------------------------------------------ #
     # Persistence
     # ------------------------------------------------------------------ #
+    def action_weights(self, onehots: torch.Tensor, num_actions: int | None = None) -> torch.Tensor:
+        """How often each action changed the given one-hots in the play data, normalised.
+
+        Args:
+            onehots: bool ``[R, C]``, per row the one-hots a move should change (a hop's).
+            num_actions: width of the result (default: that of ``action_counts``); wider
+                than the counts pads with actions never seen changing a code.
+
+        Returns:
+            float ``[R, A]``: per row, the share of each action among the play transitions
+            that changed any of its one-hots (uniform for a row with none, or none seen).
+
+        Raises:
+            ValueError: a graph built without actions (``action_counts`` is ``None``), or
+                ``onehots`` not of shape ``[R, C]``.
+        """
+        if self.action_counts is None:
+            raise ValueError(
+                "this graph has no action counts (built without the play data's actions, "
+                "or saved by an older version): rebuild it with CodeGraph.from_play_data."
+            )
+        counts = self.action_counts.float()
+        width = counts.shape[1] if num_actions is None else int(num_actions)
+        if width < counts.shape[1]:
+            raise ValueError(
+                f"num_actions={width} is fewer than the {counts.shape[1]} actions of the "
+                "graph's play data."
+            )
+        counts = torch.nn.functional.pad(counts, (0, width - counts.shape[1]))
+        if onehots.dim() != 2 or onehots.shape[1] != counts.shape[0]:
+            raise ValueError(
+                f"onehots must be bool [R, {counts.shape[0]}], got {list(onehots.shape)}."
+            )
+        weights = onehots.to(counts.device, counts.dtype) @ counts
+        total = weights.sum(-1, keepdim=True)
+        uniform = torch.full_like(weights, 1.0 / width)
+        return torch.where(total > 0, weights / total.clamp_min(1e-12), uniform)
+
     def config(self) -> dict[str, Any]:
         """What identifies this graph: code sizes, groups, encoder fingerprint, limits.
 
@@ -848,6 +959,7 @@ class CodeGraph(nn.Module):
             fingerprint=config.fingerprint,
             env_config=payload.get("env_config") or None,
             dense_limit=config.dense_limit,
+            action_counts=state.get("action_counts"),
         )
         if encoder is not None:
             graph.check_encoder(encoder, source=str(path))

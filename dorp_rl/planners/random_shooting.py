@@ -43,6 +43,8 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         cost_key: the per-step cost key; ``None`` takes the cost's last ``out_keys``.
         action_key: where the action is written.
         key_prefix: prefix of the state keys (``planner_plan``, ...).
+        action_prior_key: per-row action distributions ``[*B, A]`` to draw decisions from
+            instead of uniformly (:class:`~dorp_rl.planners.DiscreteMPCPlanner`).
 
     Examples:
         >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
@@ -75,6 +77,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         cost_key: NestedKey | None = None,
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
+        action_prior_key: NestedKey | None = None,
     ) -> None:
         super().__init__(
             env,
@@ -88,6 +91,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
             cost_key=cost_key,
             action_key=action_key,
             key_prefix=key_prefix,
+            action_prior_key=action_prior_key,
         )
         # the probability that a decision repeats the one before it
         self.action_persistence = check_float(
@@ -102,8 +106,14 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         valid: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         rows = td.batch_size[0]
-        u = self._uniforms(rows, 1)[:, 0]
-        decisions = (u * self.num_actions).floor().to(torch.int64).clamp_max(self.num_actions - 1)
+        u = self._uniforms(rows, 1)[:, 0]  # [b, N, D]
+        prior = self.action_prior(td)
+        if prior is None:
+            decisions = (u * self.num_actions).floor().to(torch.int64)
+        else:  # inverse CDF of each row's distribution
+            cdf = prior.cumsum(-1).unsqueeze(1).expand(-1, u.shape[1], -1).contiguous()
+            decisions = torch.searchsorted(cdf, u.contiguous(), right=True)
+        decisions = decisions.clamp_max(self.num_actions - 1)
         if self.action_persistence > 0:
             repeat = self._uniforms(rows, 1)[:, 0] < self.action_persistence
             for t in range(1, decisions.shape[-1]):

@@ -1,6 +1,8 @@
 """Policies: DORP's hierarchical abstract-goal policy and the visual-foresight baselines."""
 
 from dorp_rl.policies.abstract_goal import (
+    DORP_RECIPE,
+    ENDINGS,
     MODES,
     ORDERS,
     AbstractGoalPolicy,
@@ -11,6 +13,8 @@ from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightP
 
 __all__ = [
     "AbstractGoalPolicy",
+    "DORP_RECIPE",
+    "ENDINGS",
     "MODES",
     "ORDERS",
     "VARIANT_DEFAULTS",

@@ -44,6 +44,13 @@ key                        dtype / shape       meaning
 ``dorp_replans``           int64 ``[1]``       edges removed so far
 ``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
 ``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
+``dorp_waypoint_steps``    int64 ``[1]``       steps spent moving to waypoints
+``dorp_plans``             int64 ``[1]``       waypoint plans made (fresh low-level plans)
+``dorp_reentries``         int64 ``[1]``       re-entries started
+``dorp_end``               int64 ``[1]``       why the policy gave up: 0 not given up, 1 no
+                                               path left, 2 goal phase out of budget, 3
+                                               edge-removal limit (:data:`ENDINGS`)
+``dorp_end_group``         int64 ``[1]``       the group left without a path (-1: none)
 ``dorp_misses``            int64 ``[1]``       plans for this waypoint that reached it nowhere
 ``dorp_entry_edge``        int64 ``[1]``       edge of the last hop reached (-1: none)
 ``dorp_via``               int64 ``[1]``       node being re-entered another way (-1: none)
@@ -101,6 +108,10 @@ from dorp_rl.validation import (
 #: Values of ``dorp_mode``.
 MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
 _NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = range(5)
+#: Values of ``dorp_end``: why the policy gave a task up (the ``outcome`` of
+#: :meth:`AbstractGoalPolicy.task_records`).
+ENDINGS = {"running": 0, "no_path": 1, "goal_stalled": 2, "removal_limit": 3}
+_RUNNING, _NO_PATH, _GOAL_STALLED, _REMOVAL_LIMIT = range(4)
 _CEM_ONLY = frozenset(
     ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
 )
@@ -112,6 +123,7 @@ _FILLS = {
     "dorp_via": -1,
     "dorp_via_ban": -1,
     "dorp_reentered": -1,
+    "dorp_end_group": -1,
     "subgoal_mask": False,
     "dorp_failed": False,
     "dorp_relaxed": False,
@@ -119,6 +131,14 @@ _FILLS = {
 }
 _BOOL_KEYS = ("subgoal_mask", "dorp_failed", "dorp_relaxed", "dorp_via_left")
 _FLOAT_KEYS = ("dorp_goal_best", "goal_code_weight")
+#: Where the policy writes the waypoint planner's action distribution (``action_prior_mix``).
+PRIOR_KEY = "subgoal_action_prior"
+#: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
+#: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
+#: older recipe runs again instead of being reused.
+DORP_RECIPE = 2
+#: make_dorp_policy's ``action_prior_mix`` for graphs with action counts.
+DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: Orders in which groups are moved (besides an explicit sequence of group indices).
 ORDERS = ("index", "nearest")
 
@@ -177,6 +197,14 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             ``max_removed_edges``. ``"goal"``: only the stalled goal phase re-enters
             (failed hops are removed at once).
         max_reentries: re-entries a task may start (then failed hops are removed at once).
+        action_prior_mix: the share of the waypoint planner's sampled actions drawn from
+            the actions that changed the hop's one-hots in the play data
+            (:meth:`~dorp_rl.planners.CodeGraph.action_weights`), the rest uniformly; 0
+            draws uniformly. The waypoint planner must read the distribution from
+            ``"subgoal_action_prior"`` (``action_prior_key``) and the graph must have its
+            play data's action counts. With many actions of which few move the hop's
+            object, uniform draws rarely move it far, and hops fail for want of a
+            candidate.
 
     Examples:
         >>> import torch
@@ -213,6 +241,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         replan_on_miss: bool = False,
         goal_code_weight: float | None = None,
         goal_patience: int | None = 14,
+        action_prior_mix: float = 0.0,
         pixels_key: str = "pixels",
         goal_pixels_key: str = "goal_pixels",
     ) -> None:
@@ -258,6 +287,21 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         replan_on_miss = check_bool("replan_on_miss", replan_on_miss)
         goal_code_weight = check_float("goal_code_weight", goal_code_weight, low=0.0, optional=True)
         goal_patience = check_int("goal_patience", goal_patience, low=1, optional=True)
+        action_prior_mix = check_float("action_prior_mix", action_prior_mix, low=0.0, high=1.0)
+        if action_prior_mix > 0:
+            if waypoint_planner.action_prior_key != PRIOR_KEY:
+                raise ValueError(
+                    f"action_prior_mix={action_prior_mix} needs a waypoint planner that samples "
+                    f"from {PRIOR_KEY!r} (action_prior_key={PRIOR_KEY!r}), got "
+                    f"action_prior_key={waypoint_planner.action_prior_key!r}."
+                )
+            if graph.action_counts is None:
+                raise ValueError(
+                    f"action_prior_mix={action_prior_mix} needs a graph with the play data's "
+                    "action counts (CodeGraph.from_play_data records them); this one has "
+                    "none: rebuild it, or pass action_prior_mix=0."
+                )
+        self.action_prior_mix = float(action_prior_mix)
         if isinstance(order, str):
             if order not in ORDERS:
                 raise ValueError(f"order must be one of {ORDERS} or group indices, got {order!r}.")
@@ -330,6 +374,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_goal_best",
             "dorp_goal_stall",
             "dorp_relaxed",
+            "dorp_waypoint_steps",
+            "dorp_plans",
+            "dorp_reentries",
+            "dorp_end",
+            "dorp_end_group",
         ]
         if self.goal_code_weight is not None:
             self.state_keys.append("goal_code_weight")
@@ -385,6 +434,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_goal_best=Unbounded(shape=(1,), dtype=torch.float32),
             dorp_goal_stall=integer(1),
             dorp_relaxed=Binary(n=1, shape=(1,), dtype=torch.bool),
+            dorp_waypoint_steps=integer(1),
+            dorp_plans=integer(1),
+            dorp_reentries=integer(1),
+            dorp_end=integer(1),
+            dorp_end_group=integer(1),
         )
         if self.goal_code_weight is not None:
             specs["goal_code_weight"] = Unbounded(shape=(1,), dtype=torch.float32)
@@ -405,6 +459,53 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         seed = check_seed(seed, optional=True)
         self.waypoint_planner.set_seed(seed)
         self.goal_planner.set_seed(None if seed is None else derive_seed(seed, 1))
+
+    def task_records(self, last: TensorDictBase) -> list[dict[str, Any]]:
+        """How the policy fared on each task, from the tensordicts of the tasks' last steps.
+
+        Args:
+            last: ``[N]`` tensordict of one step per task (the step the task ended at),
+                holding this policy's state keys.
+
+        Returns:
+            One dict per task: ``outcome`` (``"no_path"``, ``"goal_stalled"`` or
+            ``"removal_limit"`` when the policy gave the task up, ``None`` when it did
+            not), ``group`` (the group left without a path, or whose hop hit the removal
+            limit; ``None``), ``phase`` (the :data:`MODES` name at that step), and the
+            counts ``edge_removals``, ``reentries``, ``plans`` (waypoint plans made),
+            ``waypoints`` (reached), ``waypoint_steps``, ``goal_steps`` and ``relaxed``.
+            :func:`~dorp_rl.eval.evaluate_policy` puts them into its ``records``.
+        """
+        names = {v: k for k, v in ENDINGS.items()}
+        phases = {v: k for k, v in MODES.items()}
+
+        def column(key: str) -> list[int]:
+            value = last.get(key, None)
+            if value is None:
+                raise MissingKeyError(
+                    f"task_records needs {key!r}: was the step planned by this policy?"
+                )
+            return value.reshape(last.shape[0], -1)[:, 0].long().tolist()
+
+        ends, groups, modes = column("dorp_end"), column("dorp_end_group"), column("dorp_mode")
+        counts = {
+            "edge_removals": column("dorp_replans"),
+            "reentries": column("dorp_reentries"),
+            "plans": column("dorp_plans"),
+            "waypoints": column("dorp_waypoints"),
+            "waypoint_steps": column("dorp_waypoint_steps"),
+            "goal_steps": column("dorp_goal_steps"),
+            "relaxed": column("dorp_relaxed"),
+        }
+        return [
+            {
+                "outcome": None if ends[i] == _RUNNING else names.get(ends[i], str(ends[i])),
+                "group": None if groups[i] < 0 else groups[i],
+                "phase": phases.get(modes[i], str(modes[i])),
+                **{key: values[i] for key, values in counts.items()},
+            }
+            for i in range(last.shape[0])
+        ]
 
     # ------------------------------------------------------------------ #
     # Acting
@@ -483,8 +584,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             new_waypoint[row] = self._next_waypoint(state, row)
         if self.goal_budget is not None:
             allowed = self.goal_budget * (1 + state["dorp_relaxed"].squeeze(-1).long())
-            spent = state["dorp_goal_steps"].squeeze(-1) >= allowed
-            state["dorp_failed"][active & at_goal & spent] = True
+            spent = active & at_goal & (state["dorp_goal_steps"].squeeze(-1) >= allowed)
+            state["dorp_failed"][spent] = True
+            state["dorp_end"][spent] = _GOAL_STALLED
             at_goal &= ~spent
         failed = state["dorp_failed"].squeeze(-1)
         mode[failed] = _FAILED
@@ -522,6 +624,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                         sub.set(key, state[key][index].to(flat.device))
                 for key, value in planner_state.items():
                     sub.set(key, value[index].to(flat.device))
+                if planner is self.waypoint_planner and self.action_prior_mix > 0:
+                    sub.set(PRIOR_KEY, self._action_prior(state, index).to(flat.device))
                 planner(sub)
                 action[index] = sub.get(planner.action_key).reshape(-1, 1).cpu()
                 for key in planner.state_keys:
@@ -534,6 +638,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         planned_now = (mode == _WAYPOINT) & (outputs[wp.cursor_key].squeeze(-1) == 1)
         missed = planned_now & (outputs[wp.plan_cost_key].squeeze(-1) >= self.miss_threshold)
         state["dorp_misses"][missed] += 1
+        state["dorp_plans"][planned_now] += 1
         if self.replan_on_miss:
             # A plan that reaches the waypoint nowhere is not worth following: take its
             # first step only and plan again, instead of wandering for a whole horizon.
@@ -542,6 +647,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             gone = missed & (state["dorp_misses"].squeeze(-1) >= self.max_misses)
             state["dorp_budget"][gone] = 1  # 0 after the decrement below: removed next step
         state["dorp_budget"][mode == _WAYPOINT] -= 1
+        state["dorp_waypoint_steps"][(mode == _WAYPOINT) & active] += 1
         in_goal = (mode == _GOAL) & active
         state["dorp_goal_steps"][in_goal] += 1
         if self.goal_patience is not None:
@@ -569,6 +675,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         count = int(state["dorp_replans"][row])
         if count >= self.max_removed_edges:
             state["dorp_failed"][row] = True
+            state["dorp_end"][row] = _REMOVAL_LIMIT
+            state["dorp_end_group"][row] = state["dorp_group"][row]
             return
         if self._reenter_hops and self._start_reentry(state, row, edge):
             state["dorp_replans"][row] += 1
@@ -651,6 +759,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
     def _note_reentry(self, state: dict[str, torch.Tensor], row: int, edge: int) -> None:
         slots = state["dorp_reentered"][row]
         slots[int((slots < 0).nonzero()[0])] = edge
+        state["dorp_reentries"][row] += 1
 
     def _track_reentry(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
         """Rows re-entering ``dorp_via``: note when they leave it, and end the re-entry
@@ -764,7 +873,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         removed = state["dorp_removed"][row]
         current = int(state["dorp_group"][row]) if int(state["dorp_mode"][row]) == _WAYPOINT else -1
         best: tuple[int, int, int, int] | None = None
-        for group in self._group_order(code, goal, current):
+        ranked = self._group_order(code, goal, current)
+        for group in ranked:
             node = int(graph.node_of(code, group))
             target = int(graph.node_of(goal, group))
             if node < 0 or target < 0:
@@ -780,6 +890,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 break
         if best is None:
             state["dorp_failed"][row] = True
+            state["dorp_end"][row] = _NO_PATH
+            state["dorp_end_group"][row] = ranked[0] if ranked else -1
             return False
         self._set_waypoint(state, row, *best)
         return True
@@ -807,6 +919,13 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_distance"][row] = distance
         state["dorp_budget"][row] = self.waypoint_budget
         state["dorp_misses"][row] = 0
+
+    def _action_prior(self, state: dict[str, torch.Tensor], index: torch.Tensor) -> torch.Tensor:
+        """``[len(index), A]``: the hop's one-hots' action shares, mixed with uniform draws."""
+        hop = (state["subgoal_code"][index] != state["code"][index]) & state["subgoal_mask"][index]
+        actions = self.waypoint_planner.num_actions
+        weights = self.graph.action_weights(hop, actions)
+        return self.action_prior_mix * weights + (1.0 - self.action_prior_mix) / actions
 
     def _encode(self, frames: torch.Tensor) -> torch.Tensor:
         module = self.encoder
@@ -945,7 +1064,7 @@ def make_dorp_policy(
     order: str | Sequence[int] = "index",
     waypoint_budget: int = 28,
     max_removed_edges: int = 128,
-    goal_budget: int | None = 56,
+    goal_budget: int | None = None,
     max_misses: int | None = 1,
     forget_blocked_edges: bool = True,
     reenter: bool | str | None = None,
@@ -953,9 +1072,10 @@ def make_dorp_policy(
     replan_on_miss: bool | None = None,
     goal_code_weight: float = 100.0,
     goal_patience: int | None = 14,
-    goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
+    goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0, 8.0),
     waypoint_goal_weight: float | None = None,
     waypoint_step_penalty: float = 0.0,
+    action_prior_mix: float | None = None,
     seed: int | None = None,
     **planner_kwargs: Any,
 ) -> AbstractGoalPolicy:
@@ -977,8 +1097,12 @@ def make_dorp_policy(
             cells the same way are so rare that hops failed for want of a candidate and
             executed plans wandered; 0 draws uniformly, as the paper.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
-        order, waypoint_budget, max_removed_edges, goal_budget, max_misses,
-            forget_blocked_edges, max_reentries: see :class:`AbstractGoalPolicy`.
+        order, waypoint_budget, max_removed_edges, max_misses, forget_blocked_edges,
+            max_reentries: see :class:`AbstractGoalPolicy`.
+        goal_budget: see :class:`AbstractGoalPolicy`; ``None`` (default): the goal-image
+            phase is never given up before the env's step limit. A learned code may cover
+            places far apart, so a block can hold its goal code many cells from its goal
+            place; the pixel distance then needs more than a fixed budget to get it there.
         reenter, replan_on_miss: see :class:`AbstractGoalPolicy`; ``None`` (default):
             on in the key rooms, off in rearrangement. A key room's learned codes often
             cover separate rooms, where re-entering helps and a plan that misses its
@@ -995,7 +1119,8 @@ def make_dorp_policy(
             and the policy flips between the two phases.
         goal_blur_sigmas: blurred terms of the goal-image pixel distance
             (:class:`~dorp_rl.planners.PixelDistanceCost`); ``()`` is the paper's plain
-            L2, which is flat while a block does not overlap its goal place.
+            L2, which is flat while a block does not overlap its goal place. The widest
+            term (sigma 8 by default) still pulls a block from across a 16 x 16 frame.
         goal_patience: goal-phase steps without progress after which the goal-code
             term is dropped for the task (see :class:`AbstractGoalPolicy`).
         waypoint_goal_weight: weight of the goal image's pixel distance (the goal
@@ -1012,6 +1137,10 @@ def make_dorp_policy(
         waypoint_step_penalty: the waypoint cost's cost per step of a frame at the
             waypoint (:func:`make_waypoint_cost`): earlier arrival wins; 0 (default)
             scores every step at the waypoint alike.
+        action_prior_mix: share of the waypoint planner's actions drawn from those that
+            changed the hop's one-hots in the play data (see :class:`AbstractGoalPolicy`).
+            ``None`` (default): 0.8 when the graph has its play data's action counts
+            (graphs built by :meth:`~dorp_rl.planners.CodeGraph.from_play_data`), else 0.
         seed: seeds the planners.
         **planner_kwargs: more arguments of the planners (e.g. ``optim_steps``, ``top_k``).
 
@@ -1095,12 +1224,16 @@ def make_dorp_policy(
         step_penalty=waypoint_step_penalty,
         goal_blur_sigmas=goal_blur_sigmas,
     )
+    if action_prior_mix is None:
+        action_prior_mix = DEFAULT_ACTION_PRIOR_MIX if graph.action_counts is not None else 0.0
+    action_prior_mix = check_float("action_prior_mix", action_prior_mix, low=0.0, high=1.0)
     waypoint = classes[planner](
         planning_env,
         waypoint_cost,
         **shape,
         seed=seed,
         key_prefix="waypoint_planner_",
+        action_prior_key=PRIOR_KEY if action_prior_mix > 0 else None,
         **shared,
         **(cem_only if planner == "cem" else rs_only),
     )
@@ -1143,4 +1276,5 @@ def make_dorp_policy(
         replan_on_miss=replan_on_miss,
         goal_code_weight=float(goal_code_weight) if goal_code_weight > 0 else None,
         goal_patience=goal_patience,
+        action_prior_mix=action_prior_mix,
     )
