@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import tiny_args
 import torch
 
 from dorp_rl.modules import VideoModelConfig
@@ -85,24 +86,8 @@ def world_model_config(tmp_path) -> Callable[..., WorldModelConfig]:
 class DorpCommand:
     """Runs the ``dorp`` command in a test; ``CODES`` and ``EVAL`` are arguments of seconds."""
 
-    #: 1-object codes of a few steps on 256 play frames.
-    CODES = (
-        "--setting", "1obj",
-        "--codes.num-frames", "256",
-        "--codes.num-envs", "16",
-        "--codes.encoder.code-sizes", "8",
-        "--codes.batch-size", "32",
-        "--codes.num-steps", "5",
-        "--codes.diagnostics-samples", "64",
-    )  # fmt: skip
-    #: 2 tasks of at most 6 steps, small plans.
-    EVAL = (
-        "--tasks", "2",
-        "--tasks-per-rollout", "2",
-        "--candidates", "20",
-        "--planning-horizon", "3",
-        "--max-steps", "6",
-    )  # fmt: skip
+    CODES = tiny_args.CODES
+    EVAL = tiny_args.EVAL
 
     def __init__(self, capsys: pytest.CaptureFixture[str]) -> None:
         self.capsys = capsys

@@ -10,24 +10,14 @@ import sys
 from pathlib import Path
 
 import pytest
+import tiny_args
 import torch
 
 from dorp_rl.cli import main, quiet_torchrl
 from dorp_rl.eval import RESULT_COLUMNS
 from dorp_rl.planners import encoder_fingerprint
 
-TINY_WORLD_MODEL = [
-    "--world-model.num-steps", "3",
-    "--world-model.num-frames", "256",
-    "--world-model.num-envs", "16",
-    "--world-model.horizon", "3",
-    "--world-model.trajectory-length", "4",
-    "--world-model.eval-frames", "128",
-    "--world-model.eval-sequences", "8",
-    "--world-model.model.channels", "16",
-    "--world-model.model.dilations", "1", "2", "4",
-    "--world-model.batch-size", "8",
-]  # fmt: skip
+TINY_WORLD_MODEL = tiny_args.WORLD_MODEL
 
 
 @pytest.fixture(autouse=True)

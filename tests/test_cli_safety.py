@@ -21,35 +21,16 @@ import time
 from pathlib import Path
 
 import pytest
+import tiny_args
 import torch
 
 from dorp_rl.cli import NAME_RULE, RUN_HOLDER, RUN_LOCK, Run, UsageError, default_command, main
 from dorp_rl.data import load_play_data
 from dorp_rl.integrity import DirectoryLock, DirectoryLockedError
 
-#: 1-object play data of a few seconds (as conftest's DorpCommand.CODES)
-CODES = (
-    "--setting", "1obj",
-    "--codes.num-envs", "16",
-    "--codes.encoder.code-sizes", "8",
-    "--codes.batch-size", "32",
-    "--codes.num-steps", "5",
-    "--codes.diagnostics-samples", "64",
-)  # fmt: skip
-EVAL = ("--tasks", "2", "--tasks-per-rollout", "2", "--candidates", "20",
-        "--planning-horizon", "3", "--max-steps", "6", "--gifs", "0")  # fmt: skip
-TINY_WORLD_MODEL = (
-    "--world-model.num-steps", "3",
-    "--world-model.num-frames", "256",
-    "--world-model.num-envs", "16",
-    "--world-model.horizon", "3",
-    "--world-model.trajectory-length", "4",
-    "--world-model.eval-frames", "128",
-    "--world-model.eval-sequences", "8",
-    "--world-model.model.channels", "16",
-    "--world-model.model.dilations", "1", "2", "4",
-    "--world-model.batch-size", "8",
-)  # fmt: skip
+CODES = tiny_args.CODES_ANY_FRAMES
+EVAL = (*tiny_args.EVAL, "--gifs", "0")
+TINY_WORLD_MODEL = tiny_args.WORLD_MODEL
 #: every command, with arguments that make it tiny
 COMMANDS = {
     "collect": ("collect", *CODES),
