@@ -73,11 +73,18 @@ def unreachable_goal_graph(env, oracle, goal_region: int, start_region: int):
     )
 
 
-def test_unreachable_goal_ends_as_a_failure_within_the_budget():
+@pytest.mark.parametrize("restore", [False, True])
+def test_unreachable_goal_ends_as_a_failure_within_the_budget(restore):
+    """The only path is a fake edge: it fails, is removed and the task is given up. With
+    ``restore_when_stuck`` the edge comes back once (no waypoint is reached in between),
+    fails a second time and the task is given up then."""
     env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
     oracle = OracleCodeEncoder(env, cell_size=4)
     graph = unreachable_goal_graph(env, oracle, goal_region=15, start_region=0)
-    policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_budget=5, **SMALL)
+    policy = make_dorp_policy(
+        env, oracle, graph, seed=0, waypoint_budget=5, restore_when_stuck=restore, **SMALL
+    )
+    tries = 2 if restore else 1
     planned_rows = []
     planning = policy.waypoint_planner.planning
 
@@ -92,9 +99,10 @@ def test_unreachable_goal_ends_as_a_failure_within_the_budget():
     rollout = env.rollout(40, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
     failed = rollout["dorp_failed"].squeeze(-1)[0]
     first = int(failed.float().argmax())
-    assert failed.any() and first <= 5 + 1  # the budget, then the removal
+    assert failed.any() and first <= tries * (5 + 1)  # the budget, then the removal
     assert (rollout["dorp_mode"][0, first:] == MODES["failed"]).all()
-    assert int(rollout["dorp_replans"][0, -1]) == 1
+    assert int(rollout["dorp_replans"][0, -1]) == tries
+    assert bool(rollout["dorp_restored"][0, -1]) == restore
     # A failed task costs no more planning.
     assert len(planned_rows) == first
 
@@ -263,7 +271,14 @@ def test_a_waypoint_no_plan_reaches_is_removed_before_its_budget():
     first_failure = {}
     for misses in (None, 1):
         policy = make_dorp_policy(
-            env, oracle, graph, seed=0, waypoint_budget=8, max_misses=misses, **SMALL
+            env,
+            oracle,
+            graph,
+            seed=0,
+            waypoint_budget=8,
+            max_misses=misses,
+            restore_when_stuck=False,
+            **SMALL,
         )
         td = env.reset(env.reset().set("state", start).set("goal_state", goal), set_state=True)
         rollout = env.rollout(12, policy, tensordict=td, auto_reset=False)
@@ -349,9 +364,12 @@ def test_a_goal_phase_that_stops_improving_drops_its_code_term(patience):
 
 class QuadrantWorld:
     """One block, quadrant codes 0 1 / 2 3 and a graph 0-1, 0-2, 2-1, 1-3; ``at(q)`` shows
-    the policy the block at ``cells[q]`` (after setting any state keys given)."""
+    the policy the block at ``cells[q]`` (after setting any state keys given). The hop
+    1 -> 3 is a bridge, so its removal leaves no path: ``restore_when_stuck`` is off unless
+    asked for, so that the tests see the removal and the task given up."""
 
     def __init__(self, reenter: bool, cells: dict, goal: list[int], **policy_kwargs):
+        policy_kwargs.setdefault("restore_when_stuck", False)
         self.env = env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
         oracle = OracleCodeEncoder(env, cell_size=8)
         self.graph = CodeGraph.from_transitions(

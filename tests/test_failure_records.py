@@ -95,6 +95,25 @@ def test_a_goal_phase_out_of_budget_is_recorded_as_goal_stalled() -> None:
     assert record["waypoints"] == 0 and record["relaxed"] == 0
 
 
+@pytest.mark.parametrize("restore", [False, True])
+def test_a_group_left_without_a_path_gets_its_removed_edges_back(restore) -> None:
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    # One edge, region 0 -> 1: the block needs 4 moves, the waypoint budget is 3, so the
+    # first try fails and removing the edge leaves no path to the goal region.
+    graph = CodeGraph.from_transitions(torch.tensor([[0]]), torch.tensor([[1]]), oracle.code_sizes)
+    policy = make_policy(env, graph, waypoint_budget=3, max_misses=None, restore_when_stuck=restore)
+    tasks = one_object_tasks([(0, 0)], [(0, 5)])
+    result = evaluate_policy(env, policy, tasks, max_steps=30, tasks_per_rollout=1, seed=0)
+    (record,) = result["records"]
+    if restore:  # the edge comes back and the second try gets there
+        assert record["outcome"] == "solved" and record["edge_removals"] == 1
+        assert record["waypoints"] == 1 and record["steps"] >= 5
+    else:
+        assert record["outcome"] == "no_path" and record["group"] == 0
+        assert record["edge_removals"] == 1 and record["waypoint_steps"] == 3
+
+
 def test_records_count_removals_and_steps_per_phase_of_a_solved_task() -> None:
     env = ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=0)
     policy = make_policy(env)

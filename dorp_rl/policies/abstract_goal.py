@@ -58,6 +58,8 @@ key                        dtype / shape       meaning
 ``dorp_via_left``          bool ``[1]``        the group has left ``dorp_via`` on the way
 ``dorp_reentered``         int64 ``[K]``       edges re-entered for this task (-1: free slot)
 ``dorp_failed``            bool ``[1]``        no path left: the task is given up
+``dorp_restored``          bool ``[1]``        removed edges were restored (no path was
+                                               left) since the last waypoint reached
 ``dorp_goal_best``         float ``[1]``       lowest goal-plan cost so far (``inf``: none)
 ``dorp_goal_stall``        int64 ``[1]``       goal-phase steps since that cost last fell
 ``dorp_relaxed``           bool ``[1]``        the goal phase dropped its goal-code term
@@ -126,17 +128,18 @@ _FILLS = {
     "dorp_end_group": -1,
     "subgoal_mask": False,
     "dorp_failed": False,
+    "dorp_restored": False,
     "dorp_relaxed": False,
     "dorp_goal_best": float("inf"),
 }
-_BOOL_KEYS = ("subgoal_mask", "dorp_failed", "dorp_relaxed", "dorp_via_left")
+_BOOL_KEYS = ("subgoal_mask", "dorp_failed", "dorp_relaxed", "dorp_via_left", "dorp_restored")
 _FLOAT_KEYS = ("dorp_goal_best", "goal_code_weight")
 #: Where the policy writes the waypoint planner's action distribution (``action_prior_mix``).
 PRIOR_KEY = "subgoal_action_prior"
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 2
+DORP_RECIPE = 3
 #: make_dorp_policy's ``action_prior_mix`` for graphs with action counts.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: Orders in which groups are moved (besides an explicit sequence of group indices).
@@ -187,6 +190,12 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             for the other groups (their hops may have failed only because an object
             stood in the way, which has now moved); ``False`` keeps every removal for the
             rest of the task, as the authors.
+        restore_when_stuck: when no group has a path to its goal code left but edges were
+            removed, restore all of them and plan again instead of giving the task up
+            (a hop removed because an object stood in the way may be the group's only
+            way). At most once until a waypoint is reached again, so a goal behind an
+            edge that never works is still given up; the removals count towards
+            ``max_removed_edges``. ``False`` gives up at once, as the authors.
         reenter: when removing a failed hop would leave its group no path to the goal
             code, and the group entered the hop's code by a hop: first go back out over
             that entry edge, re-enter the code another way and try the hop once more (a
@@ -236,6 +245,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         max_misses: int | None = 1,
         miss_threshold: float = 0.5,
         forget_blocked_edges: bool = True,
+        restore_when_stuck: bool = True,
         reenter: bool | str = False,
         max_reentries: int = 8,
         replan_on_miss: bool = False,
@@ -283,6 +293,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         max_misses = check_int("max_misses", max_misses, low=1, optional=True)
         miss_threshold = check_float("miss_threshold", miss_threshold)
         forget_blocked_edges = check_bool("forget_blocked_edges", forget_blocked_edges)
+        restore_when_stuck = check_bool("restore_when_stuck", restore_when_stuck)
         max_reentries = check_int("max_reentries", max_reentries, low=0)
         replan_on_miss = check_bool("replan_on_miss", replan_on_miss)
         goal_code_weight = check_float("goal_code_weight", goal_code_weight, low=0.0, optional=True)
@@ -347,6 +358,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.goal_code_weight = None if goal_code_weight is None else float(goal_code_weight)
         self.goal_patience = None if goal_patience is None else int(goal_patience)
         self.max_removed_edges = int(max_removed_edges)
+        self.restore_when_stuck = restore_when_stuck
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
         self.num_onehots = len(graph.code_sizes)
@@ -371,6 +383,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             "dorp_via_left",
             "dorp_reentered",
             "dorp_failed",
+            "dorp_restored",
             "dorp_goal_best",
             "dorp_goal_stall",
             "dorp_relaxed",
@@ -431,6 +444,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             dorp_via_left=Binary(n=1, shape=(1,), dtype=torch.bool),
             dorp_reentered=integer(max(1, self.max_reentries)),
             dorp_failed=Binary(n=1, shape=(1,), dtype=torch.bool),
+            dorp_restored=Binary(n=1, shape=(1,), dtype=torch.bool),
             dorp_goal_best=Unbounded(shape=(1,), dtype=torch.float32),
             dorp_goal_stall=integer(1),
             dorp_relaxed=Binary(n=1, shape=(1,), dtype=torch.bool),
@@ -572,6 +586,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         budget = state["dorp_budget"].squeeze(-1)
         out_of_budget = in_waypoint & ~reached & (budget <= 0)
         state["dorp_waypoints"][hop_reached] += 1
+        state["dorp_restored"][hop_reached] = False
         state["dorp_entry_edge"][hop_reached] = state["dorp_edge"][hop_reached]
         if self.forget_blocked_edges:
             self._forget_blocked_edges(state, hop_reached)
@@ -868,12 +883,39 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         """Sets the next waypoint of ``row``; marks the row failed when no group has a path."""
         if int(state["dorp_via"][row]) >= 0 and self._reentry_waypoint(state, row):
             return True
-        graph = self.graph
         code, goal = state["code"][row], state["goal_code"][row]
         removed = state["dorp_removed"][row]
         current = int(state["dorp_group"][row]) if int(state["dorp_mode"][row]) == _WAYPOINT else -1
-        best: tuple[int, int, int, int] | None = None
         ranked = self._group_order(code, goal, current)
+        best = self._best_hop(code, goal, removed, ranked, current)
+        if (
+            best is None
+            and self.restore_when_stuck
+            and not bool(state["dorp_restored"][row])
+            and bool((removed >= 0).any())
+        ):
+            removed.fill_(-1)  # dorp_replans keeps counting towards max_removed_edges
+            state["dorp_restored"][row] = True
+            best = self._best_hop(code, goal, removed, ranked, current)
+        if best is None:
+            state["dorp_failed"][row] = True
+            state["dorp_end"][row] = _NO_PATH
+            state["dorp_end_group"][row] = ranked[0] if ranked else -1
+            return False
+        self._set_waypoint(state, row, *best)
+        return True
+
+    def _best_hop(
+        self,
+        code: torch.Tensor,
+        goal: torch.Tensor,
+        removed: torch.Tensor,
+        ranked: list[int],
+        current: int,
+    ) -> tuple[int, int, int, int] | None:
+        """``(group, next node, edge, distance)`` of the hop to take, ``None`` if no path."""
+        graph = self.graph
+        best: tuple[int, int, int, int] | None = None
         for group in ranked:
             node = int(graph.node_of(code, group))
             target = int(graph.node_of(goal, group))
@@ -888,13 +930,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 best = (group, nxt, edge, distance)
             if self.order != "nearest" or group == current:
                 break
-        if best is None:
-            state["dorp_failed"][row] = True
-            state["dorp_end"][row] = _NO_PATH
-            state["dorp_end_group"][row] = ranked[0] if ranked else -1
-            return False
-        self._set_waypoint(state, row, *best)
-        return True
+        return best
 
     def _set_waypoint(
         self,
@@ -1067,6 +1103,7 @@ def make_dorp_policy(
     goal_budget: int | None = None,
     max_misses: int | None = 1,
     forget_blocked_edges: bool = True,
+    restore_when_stuck: bool = True,
     reenter: bool | str | None = None,
     max_reentries: int = 8,
     replan_on_miss: bool | None = None,
@@ -1098,7 +1135,7 @@ def make_dorp_policy(
             executed plans wandered; 0 draws uniformly, as the paper.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
         order, waypoint_budget, max_removed_edges, max_misses, forget_blocked_edges,
-            max_reentries: see :class:`AbstractGoalPolicy`.
+            restore_when_stuck, max_reentries: see :class:`AbstractGoalPolicy`.
         goal_budget: see :class:`AbstractGoalPolicy`; ``None`` (default): the goal-image
             phase is never given up before the env's step limit. A learned code may cover
             places far apart, so a block can hold its goal code many cells from its goal
@@ -1271,6 +1308,7 @@ def make_dorp_policy(
         goal_budget=goal_budget,
         max_misses=max_misses,
         forget_blocked_edges=forget_blocked_edges,
+        restore_when_stuck=restore_when_stuck,
         reenter=reenter,
         max_reentries=max_reentries,
         replan_on_miss=replan_on_miss,
