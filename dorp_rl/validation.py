@@ -41,11 +41,8 @@ import torch
 #: Largest seed accepted anywhere (torch generators take 64-bit seeds; derived seeds add
 #: small offsets, which still fit).
 SEED_MAX = 2**63 - 1
-#: Channels, height and width of every frame of the paper's environments.
-FRAME_SHAPE = (3, 16, 16)
 
 __all__ = [
-    "FRAME_SHAPE",
     "BatchShapeError",
     "MissingKeyError",
     "UnknownArgumentError",
@@ -74,6 +71,7 @@ __all__ = [
     "derive_seed",
     "frames_to_uint8",
     "frames_to_unit_float",
+    "frame_shape_of",
     "keyword_names",
 ]
 
@@ -305,16 +303,21 @@ class Ints:
 
     low: int | None = None
     min_length: int = 1
+    max_length: int | None = None
 
     def __call__(self, name: str, value: Any) -> tuple[int, ...]:
         if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
             raise ValueError(f"{name} must be a sequence of integers, got {value!r}.")
-        items = tuple(value)
+        items = tuple(check_int(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(value))
         if len(items) < self.min_length:
             raise ValueError(
                 f"{name} must hold at least {self.min_length} integer(s), got {value!r}."
             )
-        return tuple(check_int(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(items))
+        if self.max_length is not None and len(items) > self.max_length:
+            raise ValueError(
+                f"{name} must hold at most {self.max_length} integer(s), got {value!r}."
+            )
+        return items
 
 
 @dataclass(frozen=True)
@@ -436,9 +439,9 @@ def check_frames(
     *,
     floats: bool = False,
     lead: str | Sequence[int] = "*B",
-    size: int | None = 16,
+    shape: Sequence[int] | None = None,
 ) -> torch.Tensor:
-    """Checks frames ``[*B, 3, H, W]`` and returns them as a tensor (numpy arrays are taken).
+    """Checks frames ``[*B, C, H, W]`` and returns them as a tensor (numpy arrays are taken).
 
     Args:
         pixels: uint8 frames, or floats in ``[0, 1]`` when ``floats`` is set.
@@ -448,20 +451,25 @@ def check_frames(
             ``/ 255`` and is refused rather than silently misread.
         lead: the leading dimensions: ``"*B"`` or ``"..."`` (any), named ones
             (``"N"``, ``"B, H"``: exactly that many) or a shape.
-        size: height and width (``None``: any).
+        shape: the frame shape ``(C, H, W)`` they must have (``None``: any, with at
+            least one channel and one pixel).
     """
     pixels = as_tensor(pixels, name)
-    hw = "H, W" if size is None else f"{size}, {size}"
-    layout = f"[{_lead_text(lead)}, 3, {hw}]"
+    if shape is not None:
+        shape = tuple(int(d) for d in shape)
+        if len(shape) != 3 or min(shape) < 1:
+            raise ValueError(f"a frame shape is (C, H, W) with every size >= 1, got {shape}.")
+    frame_text = "C, H, W" if shape is None else ", ".join(map(str, shape))
+    layout = f"[{_lead_text(lead)}, {frame_text}]"
     if lead in ("*B", "..."):
         lead_ok = pixels.dim() >= 3
     elif isinstance(lead, str):  # named dimensions: "N", "B, H"
         lead_ok = pixels.dim() == 3 + len(lead.split(","))
     else:
         lead_ok = pixels.dim() >= 3 and tuple(pixels.shape[:-3]) == tuple(lead)
-    frame_ok = pixels.dim() >= 3 and pixels.shape[-3] == 3
-    if size is not None:
-        frame_ok = frame_ok and tuple(pixels.shape[-2:]) == (size, size)
+    frame_ok = pixels.dim() >= 3 and min(pixels.shape[-3:]) >= 1
+    if shape is not None:
+        frame_ok = frame_ok and tuple(pixels.shape[-3:]) == shape
     if not (lead_ok and frame_ok):
         raise ValueError(f"{name} must have shape {layout}, got {list(pixels.shape)}.")
     if pixels.dtype == torch.uint8:
@@ -488,10 +496,13 @@ def check_frames(
     return pixels
 
 
-def frames_to_unit_float(pixels: Any, name: str = "pixels") -> torch.Tensor:
-    """Frames ``[*B, 3, 16, 16]`` (uint8, or floats of any precision in ``[0, 1]``) as
-    float32 in ``[0, 1]`` (the dtype of the models' weights)."""
-    pixels = check_frames(pixels, name, floats=True)
+def frames_to_unit_float(
+    pixels: Any, name: str = "pixels", *, shape: Sequence[int] | None = None
+) -> torch.Tensor:
+    """Frames ``[*B, C, H, W]`` (uint8, or floats of any precision in ``[0, 1]``) as
+    float32 in ``[0, 1]`` (the dtype of the models' weights); ``shape`` as in
+    :func:`check_frames`."""
+    pixels = check_frames(pixels, name, floats=True, shape=shape)
     if pixels.dtype == torch.uint8:
         return pixels.float() / 255.0
     return pixels.to(torch.float32)
@@ -502,20 +513,59 @@ def frames_to_uint8(
     name: str = "pixels",
     *,
     lead: str | Sequence[int] = "*B",
-    size: int | None = 16,
+    shape: Sequence[int] | None = None,
 ) -> torch.Tensor:
-    """Frames (uint8, or floats of any precision in ``[0, 1]``) as uint8 ``[*B, 3, H, W]``.
+    """Frames (uint8, or floats of any precision in ``[0, 1]``) as uint8 ``[*B, C, H, W]``.
 
     Float frames are scaled by 255 and rounded, so ``frames.double() / 255`` gives back
     exactly ``frames``. The envs draw, the planners compare and the palette models read
     uint8 frames: converting where frames enter keeps every path on the same values (a
     float goal compared with uint8 predictions would be off by a factor of 255).
-    ``lead`` and ``size`` as in :func:`check_frames`.
+    ``lead`` and ``shape`` as in :func:`check_frames`.
     """
-    pixels = check_frames(pixels, name, floats=True, lead=lead, size=size)
+    pixels = check_frames(pixels, name, floats=True, lead=lead, shape=shape)
     if pixels.dtype == torch.uint8:
         return pixels
     return (pixels.to(torch.float32) * 255.0).round_().to(torch.uint8)
+
+
+def frame_shape_of(env: Any, key: Any = "pixels") -> tuple[int, int, int]:
+    """``(C, H, W)`` of the image observation ``key`` of a TorchRL env, from its spec.
+
+    The spec's shape after the env's batch dimensions must be three-dimensional and its
+    dtype uint8 or floating point (floats in ``[0, 1]``).
+
+    Raises:
+        ValueError: an env without such an observation, naming the keys it has.
+
+    Examples:
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> from dorp_rl.validation import frame_shape_of
+        >>> frame_shape_of(KeyWallEnv(batch_size=(2,)))
+        (3, 16, 16)
+    """
+    observation_spec = getattr(env, "full_observation_spec", None)
+    if observation_spec is None:
+        raise ValueError(f"env must be a TorchRL EnvBase with an observation spec, got {env!r}.")
+    keys = list(observation_spec.keys(True, True))
+    if key not in keys:
+        raise ValueError(
+            f"{type(env).__name__} has no image observation {key!r}; its observations are "
+            f"{keys}. Name the image key, or rename it with a torchrl RenameTransform."
+        )
+    spec = observation_spec[key]
+    shape = tuple(spec.shape[len(getattr(env, "batch_size", ())) :])
+    if len(shape) != 3 or min(shape) < 1:
+        raise ValueError(
+            f"{type(env).__name__}'s {key!r} must be an image [C, H, W] (channels first; "
+            f"torchrl's ToTensorImage moves them), its spec has shape {list(shape)}."
+        )
+    if spec.dtype != torch.uint8 and not spec.dtype.is_floating_point:
+        raise ValueError(
+            f"{type(env).__name__}'s {key!r} must be uint8 or floats in [0, 1], its spec has "
+            f"dtype {spec.dtype}."
+        )
+    return shape  # type: ignore[return-value]
 
 
 def check_task_frames(
@@ -539,7 +589,7 @@ def check_task_frames(
     once per public call, never per imagined step.
 
     Args:
-        pixels: frames ``[*B, 3, H, W]``.
+        pixels: frames ``[*B, C, H, W]``.
         name: the argument or key, for the messages.
         env: the env (acting or planning) whose frames these must be.
         lead: the leading dimensions (see :func:`check_frames`).
@@ -556,7 +606,7 @@ def check_task_frames(
             if key in keys:
                 spec = observation_spec[key]
                 break
-    frames = frames_to_uint8(pixels, name, lead=lead, size=None)
+    frames = frames_to_uint8(pixels, name, lead=lead)
     describe = getattr(env, "describe_world", None)
     owner = describe() if callable(describe) else type(env).__name__
     if spec is not None:

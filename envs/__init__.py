@@ -10,14 +10,18 @@ from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_env
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.envs.rearrangement import DEFAULT_MAX_STEPS, OBJECT_COLOURS, ObjectRearrangementEnv
+from dorp_rl.envs.spec import DiscreteActions, env_device, env_identity
 
 register_gymnasium_envs()
 
 __all__ = [
     "DEFAULT_MAX_STEPS",
     "DIRECTIONS",
+    "DiscreteActions",
     "ENV_NAMES",
     "env_class",
+    "env_device",
+    "env_identity",
     "GRID_SIZE",
     "GridWorldEnv",
     "GroundTruthModelEnv",

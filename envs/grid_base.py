@@ -10,8 +10,10 @@ configurations are.
 
 from __future__ import annotations
 
+import copy
 import weakref
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -136,8 +138,20 @@ class _EmittedTensors:
         return (_EmittedTensors, (self.size,))
 
 
+def check_viewable_frames(frames: Any, name: str = "frames") -> torch.Tensor:
+    """Frames people can look at: uint8 ``[..., 3, H, W]`` (RGB) or ``[..., 1, H, W]`` (gray)."""
+    shape = getattr(frames, "shape", None)
+    if shape is not None and (len(shape) < 3 or shape[-3] not in (1, 3)):
+        raise ValueError(
+            f"{name} must have shape [..., 3, H, W] (RGB) or [..., 1, H, W] (gray), got "
+            f"{list(shape)}."
+        )
+    return check_frames(frames, name, lead="...")
+
+
 def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
-    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., 3, H*s, W*s]``.
+    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., C, H*s, W*s]``
+    (``C`` 3 for RGB frames, 1 for gray ones).
 
     Examples:
         >>> import torch
@@ -145,13 +159,14 @@ def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
         >>> upscale_frames(torch.zeros(2, 3, 16, 16, dtype=torch.uint8), scale=4).shape
         torch.Size([2, 3, 64, 64])
     """
-    frames = check_frames(frames, "frames", lead="...", size=None)
+    frames = check_viewable_frames(frames)
     scale = check_int("scale", scale, low=1)
     return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
 
 
 def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
-    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's rgb_array).
+    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's
+    rgb_array); gray frames ``[..., 1, H, W]`` are shown in three equal channels.
 
     Examples:
         >>> import torch
@@ -159,7 +174,10 @@ def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
         >>> frames_to_rgb_array(torch.zeros(3, 16, 16, dtype=torch.uint8)).shape
         (128, 128, 3)
     """
-    return upscale_frames(frames, scale).movedim(-3, -1).cpu().numpy().copy()
+    big = upscale_frames(frames, scale)
+    if big.shape[-3] == 1:
+        big = big.expand(*big.shape[:-3], 3, *big.shape[-2:])
+    return big.movedim(-3, -1).cpu().numpy().copy()
 
 
 class GridWorldEnv(CheckedRolloutLength, EnvBase):
@@ -342,6 +360,22 @@ class GridWorldEnv(CheckedRolloutLength, EnvBase):
         """
         return {"env": type(self).__name__}
 
+    def play_copy(self, trajectory_length: int | None = None) -> GridWorldEnv:
+        """A copy set up for play data: episodes of ``trajectory_length`` steps (default
+        :attr:`PLAY_TRAJECTORY_LENGTH`) that do not stop at the goal.
+
+        :func:`~dorp_rl.data.play_env` calls it; an env without it is wrapped in
+        torchrl's ``StepCounter`` instead.
+        """
+        length = check_int("trajectory_length", trajectory_length, low=1, optional=True)
+        length = self.PLAY_TRAJECTORY_LENGTH if length is None else length
+        if self.batch_size == torch.Size([]) and not self.batch_locked:
+            raise ValueError("env must be batch-locked to collect play data (batch_locked=True).")
+        out = copy.deepcopy(self)
+        out.max_steps = length
+        out.terminate_on_success = False
+        return out
+
     # ------------------------------------------------------------------ #
     # Which frames this world can show
     # ------------------------------------------------------------------ #
@@ -396,7 +430,7 @@ class GridWorldEnv(CheckedRolloutLength, EnvBase):
         once per call on the goal and current frames, through
         :func:`dorp_rl.validation.check_task_frames`.
         """
-        frames = check_frames(frames, name, size=self.grid_size)
+        frames = check_frames(frames, name, shape=(3, self.grid_size, self.grid_size))
         bad = self.invalid_frames(frames)
         if not bool(bad.any()):
             return

@@ -219,7 +219,9 @@ class GroundTruthModelEnv(_PlanningEnvBase):
             goal_pixels = env.render_state(goal_state)
         else:
             goal_pixels = (
-                frames_to_uint8(goal_pixels, "goal_pixels").expand(*shape, *_FRAME).clone()
+                frames_to_uint8(goal_pixels, "goal_pixels", shape=_FRAME)
+                .expand(*shape, *_FRAME)
+                .clone()
             )
         return self._outputs(shape, env.render_state(state), goal_pixels, reward=False, state=state)
 
@@ -639,7 +641,7 @@ class WorldModelEnv(_PlanningEnvBase):
         palette = getattr(self.model, "palette", None)
         if not isinstance(palette, torch.Tensor):
             return
-        frames = check_frames(frames, name)
+        frames = check_frames(frames, name, shape=_FRAME)
         bad = foreign_colours(frames, palette)
         if bool(bad.any()):
             first = [int(i) for i in bad.nonzero()[0]] if bad.dim() else []
@@ -660,14 +662,14 @@ class WorldModelEnv(_PlanningEnvBase):
             frames[key] = (
                 black.clone()
                 if value is None
-                else frames_to_uint8(value, key).expand(*shape, *_FRAME).clone()
+                else frames_to_uint8(value, key, shape=_FRAME).expand(*shape, *_FRAME).clone()
             )
         return self._outputs(shape, frames["pixels"], frames["goal_pixels"], reward=False)
 
     def predict_frames(self, pixels: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]`` (or floats in ``[0, 1]``),
         int ``[*B, 1]`` -> uint8 ``[*B, 3, 16, 16]``."""
-        pixels = frames_to_uint8(pixels, "pixels")
+        pixels = frames_to_uint8(pixels, "pixels", shape=_FRAME)
         shape = pixels.shape[:-3]
         action = check_planning_action(action, self.num_actions, shape)
         flat_pixels = pixels.reshape(-1, *_FRAME)

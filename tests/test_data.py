@@ -823,20 +823,20 @@ def test_bad_num_frames_raises(num_frames, tmp_path):
 
 
 @pytest.mark.parametrize("env", [object(), "KeyWallEnv", None])
-def test_non_grid_env_raises(env):
-    with pytest.raises(ValueError, match="GridWorldEnv"):
+def test_what_is_not_a_torchrl_env_raises(env):
+    with pytest.raises(ValueError, match="must be a TorchRL EnvBase"):
         collect_play_data(env, 10)
-    with pytest.raises(ValueError, match="GridWorldEnv"):
+    with pytest.raises(ValueError, match="must be a TorchRL EnvBase"):
         play_env(env)
 
 
-def test_non_grid_torchrl_env_raises():
+def test_a_torchrl_env_without_images_raises_naming_its_observations():
     pytest.importorskip("gymnasium")
     from torchrl.envs.libs.gym import GymEnv
 
     env = GymEnv("CartPole-v1")
-    with pytest.raises(ValueError, match="GridWorldEnv"):
-        collect_play_data(env, 10)
+    with pytest.raises(ValueError, match=r"no image observation 'pixels'; .*'observation'"):
+        collect_play_data(env, 10, trajectory_length=5)
 
 
 @pytest.mark.parametrize("length", [0, -1])

@@ -9,6 +9,7 @@ from dorp_rl.data.play import (
     collect_play_data,
     load_play_data,
     play_env,
+    play_keys,
     play_segment_length,
 )
 from dorp_rl.data.samplers import (
@@ -35,5 +36,6 @@ __all__ = [
     "collect_play_data",
     "load_play_data",
     "play_env",
+    "play_keys",
     "play_segment_length",
 ]

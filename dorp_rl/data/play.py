@@ -16,7 +16,6 @@ reaches the disk.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 import math
@@ -31,9 +30,10 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import TensorStorage
+from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 
 from dorp_rl.config import config_differences, format_differences
-from dorp_rl.envs.grid_base import GridWorldEnv
+from dorp_rl.envs.spec import DiscreteActions, env_device, env_identity
 from dorp_rl.integrity import (
     DirectoryLock,
     IntegrityError,
@@ -42,7 +42,7 @@ from dorp_rl.integrity import (
     verify_manifest,
 )
 from dorp_rl.progress import progress_bar
-from dorp_rl.validation import check_device, check_int, check_seed, derive_seed
+from dorp_rl.validation import check_device, check_int, check_seed, derive_seed, frame_shape_of
 
 #: Keys kept for every transition of the play data.
 PLAY_KEYS = (
@@ -71,6 +71,9 @@ class UniformRandomPolicy:
         num_actions: size of the discrete action space.
         seed: seed of the policy's generator (independent of torch's global RNG).
         device: where actions are created.
+        actions: the env's action layout (:class:`~dorp_rl.envs.spec.DiscreteActions`:
+            key, index or one-hot); default ``"action"``, int64 indices ``[*B, 1]``.
+            :meth:`for_env` reads it off an env.
 
     Examples:
         >>> from dorp_rl.data import UniformRandomPolicy
@@ -81,46 +84,97 @@ class UniformRandomPolicy:
         (torch.Size([4, 1]), torch.int64, True)
     """
 
-    def __init__(self, num_actions: int, seed: int = 0, device: torch.device | str = "cpu") -> None:
+    def __init__(
+        self,
+        num_actions: int,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        actions: DiscreteActions | None = None,
+    ) -> None:
         self.num_actions = check_int("num_actions", num_actions, low=1)
         self.device = check_device(device)
+        if actions is None:
+            actions = DiscreteActions("action", self.num_actions, False, (1,), torch.int64)
+        elif actions.num_actions != self.num_actions:
+            raise ValueError(
+                f"num_actions is {self.num_actions} but actions has {actions.num_actions}."
+            )
+        self.actions = actions
         self.rng = torch.Generator(device=self.device)
         self.rng.manual_seed(check_seed(seed))
 
+    @classmethod
+    def for_env(cls, env: EnvBase, seed: int = 0) -> UniformRandomPolicy:
+        """Uniform random actions in ``env``'s own action layout, on its device."""
+        actions = DiscreteActions.of(env)
+        return cls(actions.num_actions, seed=seed, device=env_device(env), actions=actions)
+
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = torch.randint(
-            self.num_actions,
-            (*tensordict.batch_size, 1),
-            generator=self.rng,
-            device=self.device,
-        )
-        tensordict.set("action", action)
+        action = self.actions.sample(tensordict.batch_size, self.rng, self.device)
+        tensordict.set(self.actions.key, action)
         return tensordict
 
 
-def play_env(env: GridWorldEnv, trajectory_length: int | None = None) -> GridWorldEnv:
-    """A copy of ``env`` set up for play: episodes of ``trajectory_length`` steps, no goal stop.
+def play_env(env: EnvBase, trajectory_length: int | None = None) -> EnvBase:
+    """``env`` set up for play: episodes of at most ``trajectory_length`` steps.
 
-    Rearrangement play data resets after every step (``trajectory_length=1``); key rooms
-    walk 1000 (key-wall) or 1500 (key-corridor) random steps, as in the paper.
+    An env that declares ``play_copy(trajectory_length)`` makes its own (the project's
+    envs: a copy that does not stop at the goal; rearrangement resets after every step,
+    the key rooms walk 1000 or 1500 random steps, as in the paper). Any other TorchRL
+    env is wrapped in torchrl's ``StepCounter(max_steps=trajectory_length)`` (it is not
+    copied: collecting steps it); its own episode ends end trajectories too. Its
+    ``trajectory_length`` is needed then, as is a batch of parallel envs
+    (``batch_size`` ``(N,)``), one image observation ``pixels`` ``[C, H, W]``
+    (rename another key with a ``RenameTransform``) and a discrete action
+    (``Categorical`` or ``OneHot``).
+
+    Returns:
+        the env to collect from; its ``play_trajectory_length`` attribute holds the length.
 
     Examples:
         >>> from dorp_rl.data import play_env
         >>> from dorp_rl.envs import KeyWallEnv
         >>> env = play_env(KeyWallEnv(batch_size=(2,)), trajectory_length=1000)
-        >>> env.max_steps, env.terminate_on_success
-        (1000, False)
+        >>> env.max_steps, env.terminate_on_success, env.play_trajectory_length
+        (1000, False, 1000)
     """
-    if not isinstance(env, GridWorldEnv):
-        raise ValueError(f"env must be a dorp_rl GridWorldEnv, got {type(env).__name__}.")
+    if not isinstance(env, EnvBase):
+        raise ValueError(f"env must be a TorchRL EnvBase, got {type(env).__name__}.")
     length = check_int("trajectory_length", trajectory_length, low=1, optional=True)
-    length = env.PLAY_TRAJECTORY_LENGTH if length is None else length
-    if env.batch_size == torch.Size([]) and not env.batch_locked:
-        raise ValueError("env must be batch-locked to collect play data (batch_locked=True).")
-    out = copy.deepcopy(env)
-    out.max_steps = length
-    out.terminate_on_success = False
+    make_copy = getattr(env, "play_copy", None)
+    if callable(make_copy):
+        out = make_copy(length)
+        out.play_trajectory_length = int(out.max_steps)
+        return out
+    frame_shape_of(env, "pixels")
+    actions = DiscreteActions.of(env)
+    if actions.key != "action":
+        raise ValueError(
+            f"{type(env).__name__}'s action key is {actions.key!r}; play data keep 'action' "
+            "(rename it with a torchrl RenameTransform)."
+        )
+    if len(env.batch_size) != 1:
+        raise ValueError(
+            f"{type(env).__name__} must have one batch dimension (parallel envs, e.g. a "
+            f"torchrl ParallelEnv or a batched env) to collect play data, got batch_size "
+            f"{list(env.batch_size)}."
+        )
+    if length is None:
+        raise ValueError(
+            f"trajectory_length is needed for {type(env).__name__}: how many random steps "
+            "one play trajectory lasts (1 gives a fresh reset per transition)."
+        )
+    out = TransformedEnv(env, StepCounter(max_steps=length))
+    out.play_trajectory_length = length
     return out
+
+
+def play_keys(env: EnvBase) -> tuple:
+    """The :data:`PLAY_KEYS` that ``env`` has: ``state`` only when it observes one."""
+    observed = set(env.full_observation_spec.keys(True, True))
+    return tuple(
+        k for k in PLAY_KEYS if not (k in ("state", ("next", "state")) and "state" not in observed)
+    )
 
 
 def _steps_per_batch(num_frames: int, num_envs: int, trajectory_length: int) -> int:
@@ -188,15 +242,15 @@ def check_sampler_fits(
         )
 
 
-def _metadata(env: GridWorldEnv, num_frames: int, seed: int, trajectory_length: int) -> dict:
+def _metadata(env: EnvBase, num_frames: int, seed: int, trajectory_length: int) -> dict:
     return {
         "format_version": _FORMAT_VERSION,
-        "env_config": env.config(),
+        "env_config": env_identity(env),
         "num_frames": int(num_frames),
         "seed": int(seed),
         "trajectory_length": int(trajectory_length),
         "num_envs": int(env.batch_size.numel()),
-        "device": str(env.device),
+        "device": str(env_device(env)),
     }
 
 
@@ -449,7 +503,7 @@ def _claim(directory: Path, wait: bool | float) -> DirectoryLock:
 
 
 def collect_play_data(
-    env: GridWorldEnv,
+    env: EnvBase,
     num_frames: int,
     *,
     directory: str | Path | None = None,
@@ -463,16 +517,21 @@ def collect_play_data(
     """Collects ``num_frames`` transitions of random play into a replay buffer.
 
     Runs the paper's exploration with torchrl's :class:`~torchrl.collectors.Collector`:
-    uniform random actions in a copy of ``env`` whose episodes last
-    ``trajectory_length`` steps (by default one step for rearrangement, i.e. a fresh
-    random configuration per transition, and 1000 / 1500-step random walks for
-    key-wall / key-corridor). ``env.batch_size`` copies run side by side.
+    uniform random actions drawn from the action spec (:class:`UniformRandomPolicy`) in
+    ``play_env(env, trajectory_length)``, whose episodes last ``trajectory_length`` steps
+    (by default one step for rearrangement, i.e. a fresh random configuration per
+    transition, and 1000 / 1500-step random walks for key-wall / key-corridor; any other
+    env needs it given). ``env.batch_size`` envs run side by side.
 
-    Each stored transition holds ``pixels``, ``state``, ``action``, ``step_count`` (the
-    step within its trajectory), ``traj_id`` and ``("next", "pixels" | "state")``.
+    Each stored transition holds ``pixels``, ``action``, ``step_count`` (the step within
+    its trajectory), ``traj_id``, ``("next", "pixels")`` and, when the env observes one,
+    ``state`` and ``("next", "state")``.
 
     Args:
-        env: a batch-locked :class:`~dorp_rl.envs.GridWorldEnv` (its batch = parallel envs).
+        env: any TorchRL env with one batch dimension (its parallel envs), an image
+            observation ``pixels`` ``[C, H, W]`` (uint8, or floats in ``[0, 1]``) and a
+            discrete action (see :func:`play_env`); the project's envs must be
+            batch-locked.
         num_frames: transitions to keep.
         directory: if given, data are written there (see the module docstring) and
             checked when loaded. When the folder already holds a complete collection
@@ -508,7 +567,7 @@ def collect_play_data(
     seed = check_seed(seed)
     batch_size = check_int("batch_size", batch_size, low=1, optional=True)
     collect_env = play_env(env, trajectory_length)
-    metadata = _metadata(collect_env, num_frames, seed, collect_env.max_steps)
+    metadata = _metadata(env, num_frames, seed, collect_env.play_trajectory_length)
     check_sampler_fits(
         sampler, num_frames, metadata["num_envs"], metadata["trajectory_length"], "this collection"
     )
@@ -534,7 +593,7 @@ def collect_play_data(
 
 
 def _collect(
-    collect_env: GridWorldEnv,
+    collect_env: EnvBase,
     num_frames: int,
     seed: int,
     directory: Path | None,
@@ -543,7 +602,7 @@ def _collect(
     progress: bool,
 ) -> TensorDictReplayBuffer:
     """Runs the collector into a fresh buffer (in memory, or memory-mapped in ``directory``)."""
-    length = collect_env.max_steps
+    length = collect_env.play_trajectory_length
     num_envs = int(collect_env.batch_size.numel())
     # Whole trajectories per collector batch keep each walk contiguous in storage.
     steps_per_batch = _steps_per_batch(num_frames, num_envs, length)
@@ -551,18 +610,17 @@ def _collect(
     total_frames = math.ceil(num_frames / frames_per_batch) * frames_per_batch
 
     collect_env.set_seed(seed)
-    policy = UniformRandomPolicy(
-        collect_env.num_actions, seed=derive_seed(seed, 1), device=collect_env.device
-    )
+    policy = UniformRandomPolicy.for_env(collect_env, seed=derive_seed(seed, 1))
+    keys = play_keys(collect_env)
     collector = Collector(
         collect_env,
         policy,
         frames_per_batch=frames_per_batch,
         total_frames=total_frames,
-        device=collect_env.device,
+        device=env_device(collect_env),
         trust_policy=True,
     )
-    buffer = _make_buffer(num_frames, directory, sampler, batch_size, collect_env.device)
+    buffer = _make_buffer(num_frames, directory, sampler, batch_size, env_device(collect_env))
     bar = progress_bar(progress, total=num_frames, desc="play data", unit="frame")
     stored = 0
     try:
@@ -570,7 +628,7 @@ def _collect(
             batch = batch.reshape(-1)  # env-major: each env's steps stay consecutive
             batch.set("traj_id", batch.get(("collector", "traj_ids")))
             take = min(num_frames - stored, batch.shape[0])
-            buffer.extend(batch[:take].select(*PLAY_KEYS).cpu())
+            buffer.extend(batch[:take].select(*keys).cpu())
             stored += take
             if bar is not None:
                 bar.update(take)
@@ -585,7 +643,7 @@ def _collect(
 
 def check_play_buffer(
     buffer: Any,
-    env: GridWorldEnv,
+    env: EnvBase,
     *,
     min_trajectory_length: int = 1,
     name: str = "buffer",
@@ -594,8 +652,8 @@ def check_play_buffer(
 
     A buffer from :func:`collect_play_data` / :func:`load_play_data` carries its
     ``metadata``: its environment must be ``env``'s and its trajectories at least
-    ``min_trajectory_length`` steps long. Any other buffer must hold :data:`PLAY_KEYS`
-    with ``env``'s frame and state shapes.
+    ``min_trajectory_length`` steps long. Any other buffer must hold ``env``'s
+    :func:`play_keys` with its state shape.
 
     Raises:
         ValueError: naming ``name`` and what does not fit.
@@ -609,7 +667,7 @@ def check_play_buffer(
         raise ValueError(f"{name} is empty.")
     metadata = getattr(buffer, "metadata", None)
     if isinstance(metadata, dict) and "env_config" in metadata:
-        diff = config_differences(metadata["env_config"], env.config())
+        diff = config_differences(metadata["env_config"], env_identity(env))
         if diff:
             details = format_differences(diff, name, "config")
             raise ValueError(f"{name} holds play data of another environment ({details}).")
@@ -622,12 +680,15 @@ def check_play_buffer(
         return
     first = buffer[:1]
     keys = set(first.keys(True, True))
-    missing = [k for k in PLAY_KEYS if k not in keys]
+    missing = [k for k in play_keys(env) if k not in keys]
     if missing:
         raise ValueError(f"{name} lacks the play-data keys {missing} (see collect_play_data).")
+    if "state" not in play_keys(env):
+        return
     state = first.get("state")
-    if tuple(state.shape[1:]) != tuple(env.state_shape):
+    state_shape = list(env.full_observation_spec["state"].shape[len(env.batch_size) :])
+    if list(state.shape[1:]) != state_shape:
         raise ValueError(
             f"{name} holds states of shape {list(state.shape[1:])}, {type(env).__name__} has "
-            f"{list(env.state_shape)}: the data come from another environment."
+            f"{state_shape}: the data come from another environment."
         )

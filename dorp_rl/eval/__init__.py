@@ -1,6 +1,6 @@
 """Evaluation: code diagnostics, open-loop accuracy of world models, task sets and the harness."""
 
-from dorp_rl.eval.code_information import code_information
+from dorp_rl.eval.code_information import code_dynamics, code_information, play_code_dynamics
 from dorp_rl.eval.diagnostics import (
     best_assignment,
     connected_fraction,
@@ -49,7 +49,9 @@ __all__ = [
     "write_results",
     "best_assignment",
     "check_task_set",
+    "code_dynamics",
     "code_information",
+    "play_code_dynamics",
     "connected_fraction",
     "encode_pixels",
     "evaluate_policy",

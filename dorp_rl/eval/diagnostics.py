@@ -90,7 +90,7 @@ def encode_pixels(
             anything but an int64 ``[n, C]`` tensor of non-negative code indices with the
             same ``C`` for every chunk.
     """
-    pixels = check_frames(pixels, "pixels", lead="N", size=GRID_SIZE)
+    pixels = check_frames(pixels, "pixels", lead="N", shape=(3, GRID_SIZE, GRID_SIZE))
     chunk_size = check_int("chunk_size", chunk_size, low=1)
     if len(pixels) == 0:
         raise ValueError("pixels is empty: nothing to encode.")

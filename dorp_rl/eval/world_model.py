@@ -57,7 +57,12 @@ def open_loop_accuracy(
             f"{list(sequences.shape)}."
         )
     n, horizon = sequences.shape
-    check_frames(sequences.get(("next", "pixels")), "('next', 'pixels')", lead="N, H")
+    check_frames(
+        sequences.get(("next", "pixels")),
+        "('next', 'pixels')",
+        lead="N, H",
+        shape=model.frame_shape,
+    )
     device = model.palette.device
     was_training = model.training
     model.eval()

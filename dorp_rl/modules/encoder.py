@@ -19,6 +19,7 @@ from dorp_rl.validation import (
     as_tensor,
     check_choice,
     check_int,
+    frame_shape_of,
     frames_to_unit_float,
 )
 
@@ -51,6 +52,7 @@ class EncoderConfig(ConfigMixin):
         "mlp_sizes": Ints(low=1, min_length=0),
         "input_scale": Float(low=0.0, low_open=True),
         "map_competition": Choice(("sigmoid", "softmax")),
+        "frame_shape": Ints(low=1, min_length=3, max_length=3),
     }
 
     code_sizes: tuple[int, ...] = (32,)
@@ -67,6 +69,8 @@ class EncoderConfig(ConfigMixin):
     """pixels in [0, 1] are multiplied by this"""
     map_competition: str = "sigmoid"
     """how object maps share a pixel: sigmoid (independent) or softmax (they compete)"""
+    frame_shape: tuple[int, int, int] = (3, 16, 16)
+    """(C, H, W) of the frames: channels of the first conv, H x W inputs of the map encoder"""
 
     @classmethod
     def authors(cls, code_sizes: Sequence[int] = (32,), **overrides: Any) -> EncoderConfig:
@@ -91,13 +95,16 @@ def module_device(module: nn.Module) -> torch.device:
     return torch.device("cpu")
 
 
-def check_pixels(pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
-    """Images ``[*B, 3, 16, 16]`` (uint8, or floats in ``[0, 1]``; numpy arrays are taken) as floats in ``[0, 1]``.
+def check_pixels(
+    pixels: torch.Tensor, name: str = "pixels", shape: Sequence[int] | None = None
+) -> torch.Tensor:
+    """Images ``[*B, C, H, W]`` (uint8, or floats in ``[0, 1]``; numpy arrays are taken) as
+    floats in ``[0, 1]``; with ``shape``, frames of another ``(C, H, W)`` are refused.
 
     Float frames outside ``[0, 1]`` (a forgotten ``/ 255``) are refused
     (:func:`dorp_rl.validation.frames_to_unit_float`).
     """
-    return frames_to_unit_float(pixels, name)
+    return frames_to_unit_float(pixels, name, shape=shape)
 
 
 class DiscreteCodeEncoder(nn.Module):
@@ -113,6 +120,10 @@ class DiscreteCodeEncoder(nn.Module):
     codes). :meth:`logits` gives the raw ``[*B, C, Z]`` logits (``-inf`` where masked)
     for training. :meth:`as_tensordict_module` wraps it as a ``TensorDictModule``.
 
+    Frames of any ``(C, H, W)`` are taken: ``config.frame_shape`` sizes the first
+    convolution and the map encoder, and :meth:`for_env` reads it off an env's
+    observation spec.
+
     Args:
         config: sizes (see :class:`EncoderConfig`).
 
@@ -126,6 +137,9 @@ class DiscreteCodeEncoder(nn.Module):
         (torch.Size([4, 2]), torch.Size([4, 2, 16]))
         >>> bool((code[:, 1] < 2).all())  # the key bit only uses 2 codes
         True
+        >>> gray = DiscreteCodeEncoder(EncoderConfig.small((8,), frame_shape=(1, 24, 32)))
+        >>> gray.encode(torch.zeros(5, 1, 24, 32, dtype=torch.uint8)).shape
+        torch.Size([5, 1])
     """
 
     env_config: dict | None = None
@@ -156,8 +170,13 @@ class DiscreteCodeEncoder(nn.Module):
         check_int("conv_layers", config.conv_layers, low=0)
         for i, width in enumerate(config.mlp_sizes):
             check_int(f"mlp_sizes[{i}]", width, low=1)
+        self.frame_shape = tuple(
+            check_int(f"frame_shape[{i}]", d, low=1) for i, d in enumerate(config.frame_shape)
+        )
+        if len(self.frame_shape) != 3:
+            raise ValueError(f"frame_shape must be (C, H, W), got {config.frame_shape}.")
         layers: list[nn.Module] = []
-        in_channels = 3
+        in_channels = self.frame_shape[0]
         for _ in range(config.conv_layers):
             layers += [
                 nn.Conv2d(in_channels, config.channels, k, padding=k // 2),
@@ -169,7 +188,7 @@ class DiscreteCodeEncoder(nn.Module):
         layers.append(nn.Conv2d(in_channels, self.num_onehots + extra, k, padding=k // 2))
         self.extractor = nn.Sequential(*layers)
         mlp: list[nn.Module] = []
-        width = 16 * 16
+        width = self.frame_shape[1] * self.frame_shape[2]
         for i, hidden in enumerate(config.mlp_sizes):
             mlp.append(nn.Linear(width, hidden))
             if i == len(config.mlp_sizes) - 1:
@@ -184,6 +203,16 @@ class DiscreteCodeEncoder(nn.Module):
         self.register_buffer("code_mask", mask, persistent=False)
         self.reset_parameters()
 
+    @classmethod
+    def for_env(
+        cls, env: Any, config: EncoderConfig | None = None, key: Any = "pixels"
+    ) -> DiscreteCodeEncoder:
+        """An encoder of ``env``'s frames: ``config`` (default :meth:`EncoderConfig.small`)
+        with ``frame_shape`` read off the observation spec of ``key``
+        (:func:`~dorp_rl.validation.frame_shape_of`)."""
+        config = EncoderConfig.small() if config is None else config
+        return cls(config.replace(frame_shape=frame_shape_of(env, key)))
+
     def reset_parameters(self) -> None:
         """Xavier-uniform weights and zero biases (the authors' initialisation)."""
         for module in self.modules():
@@ -194,14 +223,14 @@ class DiscreteCodeEncoder(nn.Module):
                 module.reset_parameters()
 
     def object_maps(self, pixels: torch.Tensor) -> torch.Tensor:
-        """The extractor's per-one-hot maps, float ``[*B, C, 16, 16]``.
+        """The extractor's per-one-hot maps, float ``[*B, C, H, W]`` (one per one-hot).
 
         In eval mode without gradients (planning, graph building) the extractor runs as
         :meth:`inference_extractor`: the same function, 2-3x faster on a CPU.
         """
-        x = check_pixels(pixels) * self.config.input_scale
+        x = check_pixels(pixels, shape=self.frame_shape) * self.config.input_scale
         batch = x.shape[:-3]
-        x = x.reshape(-1, 3, 16, 16)
+        x = x.reshape(-1, *self.frame_shape)
         if self.training or torch.is_grad_enabled() or not self.fast_inference:
             out = self.extractor(x)
         else:
@@ -211,7 +240,7 @@ class DiscreteCodeEncoder(nn.Module):
             out = out.softmax(dim=1)[:, : self.num_onehots]
         else:
             out = out.sigmoid()
-        return out.reshape(*batch, self.num_onehots, 16, 16)
+        return out.reshape(*batch, self.num_onehots, *self.frame_shape[1:])
 
     def inference_extractor(self) -> nn.Module:
         """The extractor for inference: BatchNorm folded into the convolutions, channels-last.
@@ -266,7 +295,7 @@ class DiscreteCodeEncoder(nn.Module):
         return state
 
     def logits_and_maps(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, 16, 16]``."""
+        """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, H, W]``."""
         maps = self.object_maps(pixels)
         logits = self.map_encoder(maps.flatten(-2))
         return logits.masked_fill(self.code_mask, float("-inf")), maps
@@ -281,7 +310,7 @@ class DiscreteCodeEncoder(nn.Module):
 
     @torch.no_grad()
     def encode(self, pixels: torch.Tensor, chunk_size: int = 4096) -> torch.Tensor:
-        """Codes int64 ``[*B, C]`` of many images ``[*B, 3, 16, 16]``, in eval mode and in chunks.
+        """Codes int64 ``[*B, C]`` of many images ``[*B, *frame_shape]``, in eval mode and in chunks.
 
         Takes what :meth:`forward` takes (uint8 or floats in ``[0, 1]``, tensors or numpy
         arrays).

@@ -66,7 +66,7 @@ class OracleCodeEncoder(nn.Module):
         self.register_buffer("colours", colours)
 
     def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        frames = frames_to_uint8(pixels).to(torch.int64)  # [*B, 3, H, W]
+        frames = frames_to_uint8(pixels, shape=(3, GRID_SIZE, GRID_SIZE)).to(torch.int64)
         colours = self.colours.to(frames.device)
         masks = (frames.unsqueeze(-4) == colours.view(-1, 3, 1, 1)).all(-3)  # [*B, K, H, W]
         rows = masks.any(-1).to(torch.int64).argmax(-1)  # first row holding the colour

@@ -85,7 +85,7 @@ def palette_from_frames(frames: torch.Tensor, max_colours: int = 64) -> torch.Te
         >>> palette_from_frames(frames).tolist()
         [[0, 0, 0], [255, 0, 0]]
     """
-    frames = frames_to_uint8(frames, "frames", size=None)
+    frames = frames_to_uint8(frames, "frames")
     codes = _pack_rgb(frames.movedim(-3, -1).reshape(-1, 3)).unique()
     if codes.numel() > max_colours:
         raise ValueError(
@@ -258,6 +258,9 @@ class VideoPredictionModel(nn.Module):
         (torch.uint8, torch.Size([5, 4, 3, 16, 16]))
     """
 
+    frame_shape: tuple[int, int, int] = FRAME_SHAPE
+    """The frames this model reads and predicts, ``(C, H, W)``."""
+
     def __init__(
         self,
         num_actions: int,
@@ -310,7 +313,7 @@ class VideoPredictionModel(nn.Module):
     def _check_pixels(self, pixels: torch.Tensor, name: str = "pixels") -> torch.Tensor:
         """Frames ``[N, 3, 16, 16]`` as uint8: uint8 ones as they are, floats in ``[0, 1]``
         (any precision) scaled by 255 and rounded (palette colours are exact bytes)."""
-        return frames_to_uint8(pixels, name, lead="N")
+        return frames_to_uint8(pixels, name, lead="N", shape=FRAME_SHAPE)
 
     def _check_action(
         self, action: torch.Tensor, shape: tuple[int, ...], name: str = "action"

@@ -146,7 +146,9 @@ class VideoPredictionLoss(LossModule):
             values.append(value)
         pixels, action, next_pixels = values
         for name, value in (("pixels", pixels), ("next_pixels", next_pixels)):
-            check_frames(value, f"{name} (a window sample)", lead="B, H")
+            check_frames(
+                value, f"{name} (a window sample)", lead="B, H", shape=self.model.frame_shape
+            )
         if pixels.shape != next_pixels.shape:
             raise ValueError(
                 f"pixels and next_pixels must have the same shape, got {list(pixels.shape)} "

@@ -282,8 +282,9 @@ def encode_transitions(
 
 
 def play_actions(buffer: Any, *, chunk_size: int = 65536) -> torch.Tensor | None:
-    """The ``action`` of every transition of a play buffer, int64 ``[N]`` (``None`` when
-    the buffer keeps none, or keeps them one-hot)."""
+    """The ``action`` of every transition of a play buffer as indices, int64 ``[N]``:
+    integer actions ``[N]`` or ``[N, 1]`` as they are, one-hot actions ``[N, A]`` by their
+    hot entry (``None`` when the buffer keeps no integer or one-hot actions)."""
     storage = getattr(buffer, "storage", None)
     n = len(buffer)
     parts = []
@@ -295,7 +296,9 @@ def play_actions(buffer: Any, *, chunk_size: int = 65536) -> torch.Tensor | None
             return None
         action = action.reshape(index.numel(), -1)
         if action.shape[1] != 1:
-            return None  # one-hot or multi-dimensional actions: not counted
+            if not bool((action.to(torch.int64).sum(-1) == 1).all()):
+                return None  # multi-dimensional actions that are not one-hot: not counted
+            action = action.to(torch.int64).argmax(-1, keepdim=True)
         parts.append(action[:, 0].to(torch.int64).cpu())
     return torch.cat(parts) if parts else None
 

@@ -8,14 +8,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from dorp_rl.envs.grid_base import frames_to_rgb_array, upscale_frames
-from dorp_rl.validation import check_frames
+from dorp_rl.envs.grid_base import check_viewable_frames, frames_to_rgb_array, upscale_frames
 
 __all__ = ["frame_grid", "frames_to_rgb_array", "save_frame_strip", "upscale_frames"]
-
-
-def _check_frames(frames: torch.Tensor) -> torch.Tensor:
-    return check_frames(frames, "frames", lead="...", size=None)
 
 
 def frame_grid(frames: torch.Tensor, scale: int = 8, gap: int = 1) -> np.ndarray:
@@ -31,7 +26,7 @@ def frame_grid(frames: torch.Tensor, scale: int = 8, gap: int = 1) -> np.ndarray
         >>> frame_grid(frames, scale=2, gap=1).shape  # 2 * 32 + 3 gaps, 4 * 32 + 5 gaps
         (67, 133, 3)
     """
-    frames = _check_frames(frames)
+    frames = check_viewable_frames(frames)
     if frames.dim() == 4:
         frames = frames.unsqueeze(0)
     if frames.dim() != 5:
