@@ -101,7 +101,7 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
     env = setting.make_env(batch_size=(batch,), seed=args.seed)
     encoder, graph, timings = codes_and_graph(setting, args, env)
     if low_level == "gt":
-        level: Any = "ground_truth"
+        level: Any = "gt"
     else:
         path = args.video_checkpoint.format(name=video_name(setting))
         level = load_video_model(path, env)

@@ -58,6 +58,10 @@ class KeyRoomEnv(GridWorldEnv):
     DEFAULT_MAX_STEPS: int = 400
     #: Length of the random walks of the paper's play data.
     PLAY_TRAJECTORY_LENGTH: int = 1000
+    #: ``make_dorp_policy``'s recovery settings that suit the key rooms: re-enter a code
+    #: another way, replan after a miss, no goal-image term in the waypoint cost (pixel
+    #: distance ignores the walls; docs/NOTES.md has the measurements).
+    DORP_OPTIONS = {"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0}
 
     def __init__(self, *, max_steps: int | None = None, **kwargs) -> None:
         cells = parse_layout(self.LAYOUT)

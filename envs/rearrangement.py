@@ -56,6 +56,11 @@ class ObjectRearrangementEnv(GridWorldEnv):
         (torch.Size([4, 3, 3, 16, 16]), torch.Size([4, 3, 2, 2]))
     """
 
+    #: ``make_dorp_policy``'s recovery settings that suit rearrangement: failed hops are
+    #: removed at once (blocks stand in the way) and waypoint plans are ranked by the goal
+    #: image too (docs/NOTES.md has the measurements).
+    DORP_OPTIONS = {"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003}
+
     def __init__(
         self,
         num_objects: int = 1,

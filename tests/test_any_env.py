@@ -37,11 +37,19 @@ class PushBlocksEnv(EnvBase):
     """Two blocks on an ``H x W`` canvas; action ``4 * block + direction`` moves one block.
 
     Block 0 is 1 x 2 cells, block 1 is 2 x 1; their shades differ in every channel. The
-    state is the blocks' top-left cells, int64 ``[2, 2]``.
+    state is the blocks' top-left cells, int64 ``[2, 2]``; a task is solved when it equals
+    ``goal_state``. Stateless: a step reads the state from the tensordict, so with
+    ``batch_size=()`` and ``batch_locked=False`` it steps any leading shape (its own true
+    dynamics as a planning env), and ``reset(td, set_state=True)`` starts from given states.
     """
 
-    def __init__(self, frame_shape=(3, 24, 32), batch_size=(4,), one_hot=False, seed=0):
+    _supports_set_state = True
+
+    def __init__(
+        self, frame_shape=(3, 24, 32), batch_size=(4,), one_hot=False, seed=0, batch_locked=True
+    ):
         super().__init__(batch_size=torch.Size(batch_size))
+        self.__dict__["_batch_locked"] = bool(batch_locked)
         self.frame_shape = tuple(frame_shape)
         c, h, w = self.frame_shape
         self.sizes = torch.tensor([[1, 2], [2, 1]])
@@ -49,10 +57,10 @@ class PushBlocksEnv(EnvBase):
         if c > 3:
             raise ValueError("at most 3 channels in this test env")
         b = self.batch_size
+        image = Bounded(0, 255, (*b, c, h, w), dtype=torch.uint8)
+        cells = Unbounded((*b, 2, 2), dtype=torch.int64)
         self.observation_spec = Composite(
-            pixels=Bounded(0, 255, (*b, c, h, w), dtype=torch.uint8),
-            state=Unbounded((*b, 2, 2), dtype=torch.int64),
-            shape=b,
+            pixels=image, goal_pixels=image.clone(), state=cells, goal_state=cells.clone(), shape=b
         )
         if one_hot:
             self.action_spec = OneHot(8, shape=(*b, 8))
@@ -67,12 +75,16 @@ class PushBlocksEnv(EnvBase):
 
     def render_state(self, state):
         c, h, w = self.frame_shape
+        rows = torch.arange(h).view(h, 1)
+        cols = torch.arange(w).view(1, w)
         frames = torch.zeros(*state.shape[:-2], c, h, w, dtype=torch.uint8)
-        flat, cells = frames.reshape(-1, c, h, w), state.reshape(-1, 2, 2)
-        for i in range(flat.shape[0]):
-            for block in range(2):
-                (r, col), (dh, dw) = cells[i, block].tolist(), self.sizes[block].tolist()
-                flat[i, :, r : r + dh, col : col + dw] = self.shades[block].view(c, 1, 1)
+        for block in range(2):
+            top = state[..., block, 0, None, None]
+            left = state[..., block, 1, None, None]
+            dh, dw = self.sizes[block].tolist()
+            inside = (rows >= top) & (rows < top + dh) & (cols >= left) & (cols < left + dw)
+            shade = self.shades[block].view(c, 1, 1)
+            frames = torch.where(inside.unsqueeze(-3), shade, frames)
         return frames
 
     def _limits(self):
@@ -80,24 +92,42 @@ class PushBlocksEnv(EnvBase):
         return torch.tensor([h, w]) - self.sizes  # highest top-left cell per block
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        shape = self.batch_size if tensordict is None else tensordict.batch_size
+        given = tensordict if kwargs.get("set_state", False) else None
         high = self._limits() + 1
-        state = (torch.rand(*self.batch_size, 2, 2, generator=self.rng) * high).long()
-        return TensorDict(pixels=self.render_state(state), state=state, batch_size=self.batch_size)
+        out = {}
+        for key in ("state", "goal_state"):
+            value = None if given is None else given.get(key, None)
+            if value is None:
+                value = (torch.rand(*shape, 2, 2, generator=self.rng) * high).long()
+            out[key] = value.clone()
+        return TensorDict(
+            pixels=self.render_state(out["state"]),
+            goal_pixels=self.render_state(out["goal_state"]),
+            **out,
+            batch_size=shape,
+        )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = DiscreteActions.of(self).index(tensordict["action"]).squeeze(-1)
-        state = tensordict["state"].clone()
+        shape = tensordict.batch_size
+        action = DiscreteActions.of(self).index(tensordict["action"]).reshape(-1)
+        state = tensordict["state"].reshape(-1, 2, 2).clone()
         block, move = action // 4, MOVES[action % 4]
         rows = torch.arange(state.shape[0])
         moved = state[rows, block] + move
         state[rows, block] = torch.minimum(moved.clamp(min=0), self._limits()[block])
+        state = state.reshape(*shape, 2, 2)
+        goal = tensordict["goal_state"]
+        success = (state == goal).flatten(-2).all(-1, keepdim=True)
         return TensorDict(
             pixels=self.render_state(state),
+            goal_pixels=tensordict["goal_pixels"],
             state=state,
-            reward=torch.zeros(*self.batch_size, 1),
-            done=torch.zeros(*self.batch_size, 1, dtype=torch.bool),
-            terminated=torch.zeros(*self.batch_size, 1, dtype=torch.bool),
-            batch_size=self.batch_size,
+            goal_state=goal,
+            reward=success.float(),
+            done=success,
+            terminated=success,
+            batch_size=shape,
         )
 
 
@@ -124,7 +154,11 @@ def test_play_data_codes_and_graph_of_an_env_of_another_frame_size(frame_shape, 
     for i in (0, 17, 399):
         step = probe._step(
             TensorDict(
-                state=sample["state"][i : i + 1], action=sample["action"][i : i + 1], batch_size=[1]
+                state=sample["state"][i : i + 1],
+                goal_state=sample["state"][i : i + 1],
+                goal_pixels=sample["pixels"][i : i + 1],
+                action=sample["action"][i : i + 1],
+                batch_size=[1],
             )
         )
         assert torch.equal(step["pixels"][0], sample["next", "pixels"][i])
@@ -253,3 +287,80 @@ def test_gray_frames_of_any_size_are_drawn_in_three_equal_channels(tmp_path):
     assert save_frame_strip(frames, tmp_path / "gray.png").exists()
     with pytest.raises(ValueError, match=r"\(RGB\) or \[\.\.\., 1, H, W\] \(gray\)"):
         frames_to_rgb_array(torch.zeros(2, 2, 8, 8, dtype=torch.uint8))
+
+
+def test_one_name_and_one_factory_for_the_low_level():
+    from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
+    from dorp_rl.policies import TRUE_DYNAMICS, make_planning_env
+
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
+    assert TRUE_DYNAMICS == "gt"
+    planning = make_planning_env(env, "gt")
+    assert isinstance(planning, GroundTruthModelEnv)
+    assert make_planning_env(env, planning) is planning
+    with pytest.raises(ValueError, match="the true dynamics are spelled 'gt'"):
+        make_planning_env(env, "ground_truth")
+    with pytest.raises(ValueError, match="got int"):
+        make_planning_env(env, 3)
+
+
+class BlockRegionEncoder(torch.nn.Module):
+    """Codes of PushBlocksEnv frames read off their pixels: per block, the region of
+    ``cell x cell`` pixels holding its top-left cell (an encoder written for this env)."""
+
+    def __init__(self, env: PushBlocksEnv, cell: int = 4) -> None:
+        super().__init__()
+        _, h, w = env.frame_shape
+        self.cell, self.cols = cell, -(-w // cell)
+        regions = -(-h // cell) * self.cols
+        self.code_sizes = (regions, regions)
+        self.register_buffer("shades", env.shades.clone())
+
+    def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        codes = []
+        for shade in self.shades:
+            mask = (pixels == shade.view(-1, 1, 1)).all(-3)  # [*B, H, W]
+            row = mask.any(-1).to(torch.int64).argmax(-1)
+            col = mask.any(-2).to(torch.int64).argmax(-1)
+            codes.append((row // self.cell) * self.cols + col // self.cell)
+        code = torch.stack(codes, -1)
+        return code, torch.nn.functional.one_hot(code, self.code_sizes[0]).float()
+
+    @torch.no_grad()
+    def encode(self, pixels: torch.Tensor) -> torch.Tensor:
+        return self(torch.as_tensor(pixels))[0]
+
+
+def test_dorp_with_the_true_dynamics_of_an_env_written_here():
+    """Play data, a code graph and the DORP policy on 3 x 24 x 32 frames; the planning
+    env is the env itself, stepped at any leading shape (its true dynamics)."""
+    from dorp_rl.policies import make_dorp_policy
+
+    play = PushBlocksEnv((3, 24, 32), batch_size=(8,), seed=1)
+    buffer = collect_play_data(play, 4000, seed=0, trajectory_length=50)
+    encoder = BlockRegionEncoder(play)
+    graph = CodeGraph.from_play_data(buffer, encoder, num_actions=8)
+    assert graph.num_nodes(0) >= 40 and graph.env_config == env_identity(play)
+
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,), seed=2)
+    model = PushBlocksEnv((3, 24, 32), batch_size=(), batch_locked=False)
+    policy = make_dorp_policy(
+        env, encoder, graph, low_level=model, seed=0, num_candidates=200, planning_horizon=8
+    )
+    start = torch.tensor(
+        [[[0, 0], [20, 30]], [[5, 5], [10, 10]], [[22, 0], [0, 31]], [[3, 20], [15, 2]]]
+    )
+    goal = torch.tensor(
+        [[[12, 20], [2, 3]], [[20, 25], [1, 28]], [[0, 28], [20, 5]], [[3, 22], [15, 0]]]
+    )
+    td = env.reset(TensorDict(state=start, goal_state=goal, batch_size=[4]), set_state=True)
+    rollout = env.rollout(300, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
+    solved = rollout["next", "done"].squeeze(-1).any(-1)
+    assert solved.all(), rollout["dorp_mode"][:, -1]
+    steps = rollout["next", "done"].squeeze(-1).float().argmax(-1) + 1
+    bound = (start - goal).abs().sum((-1, -2))
+    assert (steps <= 3 * bound).all(), (steps, bound)
+
+    other = PushBlocksEnv((1, 8, 8), batch_size=(4,))
+    with pytest.raises(ValueError, match="another environment's play data"):
+        make_dorp_policy(other, encoder, graph, low_level=model, seed=0)

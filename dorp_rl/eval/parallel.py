@@ -152,8 +152,7 @@ class EvalSpec:
 
     def make_policy(self, env: GridWorldEnv) -> Policy:
         """The policy of :attr:`method` for ``env`` (``env.rand_action`` for random)."""
-        from dorp_rl.envs import GroundTruthModelEnv, WorldModelEnv
-        from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy
+        from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy, make_planning_env
 
         if self.method == "random":
             return env.rand_action
@@ -167,7 +166,7 @@ class EvalSpec:
                 env,
                 encoder,
                 self.graph,
-                low_level="ground_truth" if self.low_level == "gt" else self.low_level,
+                low_level=self.low_level,
                 planner=self.dorp_planner,
                 planning_horizon=self.planning_horizon,
                 num_candidates=self.candidates,
@@ -175,15 +174,8 @@ class EvalSpec:
                 seed=self.seed,
                 **self.planner_kwargs,
             )
-        if self.low_level == "gt":
-            planning_env = GroundTruthModelEnv(env)
-        else:
-            from dorp_rl.trainers import load_video_model
-
-            model = load_video_model(self.low_level, env)
-            planning_env = WorldModelEnv(model, env.num_actions)
         return VisualForesightPolicy(
-            planning_env,
+            make_planning_env(env, self.low_level),
             self.method.removeprefix("vf-"),
             planning_horizon=self.planning_horizon,
             num_candidates=self.candidates,

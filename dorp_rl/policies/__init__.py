@@ -9,6 +9,7 @@ from dorp_rl.policies.abstract_goal import (
     make_dorp_policy,
     make_waypoint_cost,
 )
+from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
 from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightPolicy
 
 __all__ = [
@@ -17,8 +18,10 @@ __all__ = [
     "ENDINGS",
     "MODES",
     "ORDERS",
+    "TRUE_DYNAMICS",
     "VARIANT_DEFAULTS",
     "VisualForesightPolicy",
     "make_dorp_policy",
+    "make_planning_env",
     "make_waypoint_cost",
 ]

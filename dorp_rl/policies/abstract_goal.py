@@ -81,9 +81,7 @@ from torch import nn
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, TensorDictPrimer
 
-from dorp_rl.envs.grid_base import GridWorldEnv
-from dorp_rl.envs.key_rooms import KeyRoomEnv
-from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.spec import env_identity
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.cem import CategoricalCEMPlanner
@@ -95,6 +93,7 @@ from dorp_rl.planners.costs import (
     check_step_penalty,
 )
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
+from dorp_rl.policies.low_level import make_planning_env
 from dorp_rl.validation import (
     MissingKeyError,
     check_bool,
@@ -140,6 +139,9 @@ PRIOR_KEY = "subgoal_action_prior"
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
 DORP_RECIPE = 3
+#: make_dorp_policy's recovery settings for an env that declares none (``DORP_OPTIONS``,
+#: a dict of these keys on the env class, overrides them): the paper's loop.
+GENERIC_DORP_OPTIONS = {"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.0}
 #: make_dorp_policy's ``action_prior_mix`` for graphs with action counts.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: Orders in which groups are moved (besides an explicit sequence of group indices).
@@ -1086,11 +1088,11 @@ def make_waypoint_cost(
 
 
 def make_dorp_policy(
-    env: GridWorldEnv,
+    env: EnvBase,
     encoder: nn.Module | str | Path,
     graph: CodeGraph | str | Path,
     *,
-    low_level: str | EnvBase | nn.Module = "ground_truth",
+    low_level: str | EnvBase | nn.Module = "gt",
     planner: str = "rs",
     planning_horizon: int = 14,
     num_candidates: int = 1000,
@@ -1122,9 +1124,9 @@ def make_dorp_policy(
         env: the acting env (its dynamics serve as the oracle low level).
         encoder: an encoder, or the path of a representation checkpoint.
         graph: a :class:`~dorp_rl.planners.CodeGraph`, or the path of a saved one.
-        low_level: ``"ground_truth"`` (the env's true dynamics), a planning env
+        low_level: ``"gt"`` (the env's true dynamics), a planning env
             (:class:`~dorp_rl.envs.WorldModelEnv`, ...), a video prediction model, or the
-            path of a world-model checkpoint.
+            path of a world-model checkpoint (:func:`~dorp_rl.policies.make_planning_env`).
         planner: ``"rs"`` (random shooting) or ``"cem"`` for the waypoint steps.
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         action_persistence: the random-shooting planners' probability that a sampled
@@ -1141,7 +1143,8 @@ def make_dorp_policy(
             places far apart, so a block can hold its goal code many cells from its goal
             place; the pixel distance then needs more than a fixed budget to get it there.
         reenter, replan_on_miss: see :class:`AbstractGoalPolicy`; ``None`` (default):
-            on in the key rooms, off in rearrangement. A key room's learned codes often
+            the env's ``DORP_OPTIONS`` (else :data:`GENERIC_DORP_OPTIONS`): on in the key
+            rooms, off in rearrangement. A key room's learned codes often
             cover separate rooms, where re-entering helps and a plan that misses its
             waypoint only wanders (key-corridor, 50 tasks: 0.46 with neither, 0.92 with
             re-entry, 0.96 with both); in rearrangement hops fail because blocks stand in
@@ -1167,7 +1170,7 @@ def make_dorp_policy(
             ranks plans among themselves, so that of those reaching the waypoint the one
             whose frame is closest to the goal image wins, and a plan that misses moves
             blocks towards their goal places instead of anywhere. ``None`` (default):
-            0.003 in rearrangement, 0 (the code-match cost alone, as the paper) in the key
+            the env's ``DORP_OPTIONS`` (else 0): 0.003 in rearrangement, 0 (the code-match cost alone, as the paper) in the key
             rooms, where pixel distance ignores the walls and pulled the agent into the
             wrong part of a code (key-corridor, 50 tasks: 0.98 without, 0.88 with it; 3
             objects: 3.25x -> 2.47x the lower bound, both 50 of 50).
@@ -1185,7 +1188,7 @@ def make_dorp_policy(
         ValueError: a graph built for another environment, encoder or code sizes, or an
             unknown planner or low level.
     """
-    from dorp_rl.trainers import load_encoder, load_video_model
+    from dorp_rl.trainers import load_encoder
 
     seed = check_seed(seed, optional=True)
     goal_code_weight = check_float("goal_code_weight", goal_code_weight, low=0.0)
@@ -1199,38 +1202,25 @@ def make_dorp_policy(
     ) - {"env", "cost", "execution", "key_prefix", "seed", "action_persistence"}
     passed_on -= {"planning_horizon", "num_candidates", "action_repeat"}
     check_keywords(planner_kwargs, passed_on, "make_dorp_policy (for its planners)")
-    if reenter is None:
-        reenter = isinstance(env, KeyRoomEnv)
-    if replan_on_miss is None:
-        replan_on_miss = isinstance(env, KeyRoomEnv)
+    if not isinstance(env, EnvBase):
+        raise ValueError(f"env must be a TorchRL EnvBase, got {type(env).__name__}.")
+    suited = {**GENERIC_DORP_OPTIONS, **getattr(env, "DORP_OPTIONS", {})}
+    reenter = suited["reenter"] if reenter is None else reenter
+    replan_on_miss = suited["replan_on_miss"] if replan_on_miss is None else replan_on_miss
     if waypoint_goal_weight is None:
-        waypoint_goal_weight = 0.0 if isinstance(env, KeyRoomEnv) else 0.003
-    if not isinstance(env, GridWorldEnv):
-        raise ValueError(f"env must be a dorp_rl GridWorldEnv, got {type(env).__name__}.")
+        waypoint_goal_weight = suited["waypoint_goal_weight"]
     if isinstance(encoder, (str, Path)):
         encoder = load_encoder(encoder, env)
     if isinstance(graph, (str, Path)):
-        graph = CodeGraph.load(graph, encoder=encoder, env_config=env.config())
-    elif graph.env_config is not None and graph.env_config != env.config():
-        stored, wanted = graph.env_config, env.config()
+        graph = CodeGraph.load(graph, encoder=encoder, env_config=env_identity(env))
+    elif graph.env_config is not None and graph.env_config != env_identity(env):
+        stored, wanted = graph.env_config, env_identity(env)
         diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
         details = "; ".join(f"{k}: graph {stored.get(k)!r}, env {wanted.get(k)!r}" for k in diff)
         raise ValueError(
             f"the code graph was built from another environment's play data ({details})."
         )
-    if isinstance(low_level, (str, Path)) and str(low_level) == "ground_truth":
-        planning_env: EnvBase = GroundTruthModelEnv(env)
-    elif isinstance(low_level, EnvBase):
-        planning_env = low_level
-    elif isinstance(low_level, (str, Path)):
-        planning_env = WorldModelEnv(load_video_model(low_level, env), env.num_actions)
-    elif callable(getattr(low_level, "predict", None)):
-        planning_env = WorldModelEnv(low_level, env.num_actions)
-    else:
-        raise ValueError(
-            "low_level must be 'ground_truth', a planning env, a video model or a world-model "
-            f"checkpoint path, got {type(low_level).__name__}."
-        )
+    planning_env = make_planning_env(env, low_level)
     classes = {"rs": RandomShootingPlanner, "cem": CategoricalCEMPlanner}
     for name, value in (("planner", planner), ("goal_planner", goal_planner or planner)):
         if value not in classes:

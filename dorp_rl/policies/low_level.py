@@ -1,0 +1,60 @@
+"""The low level a policy imagines with: one name for the true dynamics, one factory.
+
+``make_planning_env(env, low_level)`` is what the DORP policy factory, the evaluation and
+the ``dorp`` command call to turn a ``low_level`` argument into a planning env.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torch import nn
+from torchrl.envs import EnvBase
+
+from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+
+__all__ = ["TRUE_DYNAMICS", "make_planning_env"]
+
+#: The one name of the env's own dynamics as the low level.
+TRUE_DYNAMICS = "gt"
+
+
+def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module) -> EnvBase:
+    """The planning env of ``low_level`` for ``env``'s tasks.
+
+    Args:
+        env: the acting env (its true dynamics, and the env a checkpoint must fit).
+        low_level: ``"gt"`` (:data:`TRUE_DYNAMICS`: ``env``'s own dynamics through
+            :class:`~dorp_rl.envs.GroundTruthModelEnv`), a planning env (used as it is),
+            a model with ``predict(pixels, action)`` (wrapped in
+            :class:`~dorp_rl.envs.WorldModelEnv`) or the path of a world-model checkpoint
+            (loaded against ``env``).
+
+    Raises:
+        ValueError: any other value, naming what is accepted.
+
+    Examples:
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.policies import make_planning_env
+        >>> type(make_planning_env(ObjectRearrangementEnv(num_objects=1), "gt")).__name__
+        'GroundTruthModelEnv'
+    """
+    if isinstance(low_level, EnvBase):
+        return low_level
+    if isinstance(low_level, str) and low_level == TRUE_DYNAMICS:
+        return GroundTruthModelEnv(env)
+    if isinstance(low_level, str) and low_level in ("ground_truth", "ground-truth"):
+        raise ValueError(
+            f"low_level {low_level!r}: the true dynamics are spelled {TRUE_DYNAMICS!r}."
+        )
+    if isinstance(low_level, (str, Path)):  # a checkpoint; a missing one is named there
+        from dorp_rl.trainers import load_video_model
+
+        return WorldModelEnv(load_video_model(low_level, env), env.num_actions)
+    if callable(getattr(low_level, "predict", None)):
+        return WorldModelEnv(low_level, env.num_actions)
+    raise ValueError(
+        f"low_level must be {TRUE_DYNAMICS!r} (the true dynamics), a planning env, a model with "
+        "predict(pixels, action) or the path of a world-model checkpoint, got "
+        f"{type(low_level).__name__}."
+    )
