@@ -375,7 +375,7 @@ def future_pairs(sample: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, to
     """Unpacks a :class:`FuturePairSampler` sample into (o_t, o_{t+k}, k).
 
     Returns:
-        anchor pixels ``[B, 3, 16, 16]``, future pixels ``[B, 3, 16, 16]``, offsets ``[B]``.
+        anchor pixels ``[B, C, H, W]``, future pixels ``[B, C, H, W]``, offsets ``[B]``.
     """
     if sample.batch_dims != 2 or sample.shape[-1] != 2:
         raise ValueError(

@@ -222,7 +222,9 @@ class CPCLoss(LossModule):
             )
         if anchor.dim() != 4 or anchor.shape[0] < 2:
             raise ValueError(
-                f"expected a batch of at least 2 pairs of shape [B, 3, 16, 16], got {list(anchor.shape)}."
+                "expected a batch of at least 2 pairs of shape [B, "
+                f"{', '.join(map(str, getattr(self.encoder, 'frame_shape', 'CHW')))}], "
+                f"got {list(anchor.shape)}."
             )
         batch = anchor.shape[0]
         # One pass through the encoder so that BatchNorm sees both sides.

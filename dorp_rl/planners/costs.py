@@ -5,7 +5,7 @@ acting envs and hands the cost one tensordict of batch shape ``[B, N, H]``:
 
 - ``action``: int64 ``[B, N, H, 1]``, the action taken at each step;
 - ``("next", key)``: what the planning env produced after each step, e.g.
-  ``("next", "pixels")`` uint8 ``[B, N, H, 3, 16, 16]``, the predicted frames;
+  ``("next", "pixels")`` uint8 ``[B, N, H, C, H', W']``, the predicted frames;
 - any other root key: the acting env's tensordict at planning time (the start of the
   rollout), broadcast without copies over candidates and steps. So root ``pixels`` is
   the *start* frame at every step, and ``goal_pixels`` / ``subgoal_code`` are the goal
@@ -214,7 +214,7 @@ class PixelDistanceCost(RolloutCost):
     decreasing as a block approaches from further away.
 
     Args:
-        goal_key: the goal image, uint8 ``[*B, 3, 16, 16]`` in the acting tensordict.
+        goal_key: the goal image, uint8 ``[*B, C, H, W]`` in the acting tensordict.
         pixels_key: the predicted frames in the rollout.
         out_key: where the per-step cost ``[*B, N, H]`` is written.
         step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
@@ -614,7 +614,7 @@ class CodeMatchCost(RolloutCost):
     def _encode(
         self, pixels: torch.Tensor | None, imagined: ImaginedFrames | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Codes ``[*S, C]`` and probabilities ``[*S, C, Z]`` of frames ``[*S, 3, 16, 16]``.
+        """Codes ``[*S, C]`` and probabilities ``[*S, C, Z]`` of frames ``[*S, *frame_shape]``.
 
         The frames are ``pixels``, or ``imagined`` (of which only distinct ones that the
         cache does not hold are drawn).

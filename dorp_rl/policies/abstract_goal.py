@@ -982,12 +982,12 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         return code.to(torch.int64).cpu()
 
     def _frames(self, td: TensorDictBase, key: str) -> torch.Tensor:
-        """The frames under ``key`` as uint8 ``[rows, 3, 16, 16]`` on the CPU, checked once per
+        """The frames under ``key`` as uint8 ``[rows, C, H, W]`` on the CPU, checked once per
         call against the planning env (:func:`~dorp_rl.validation.check_task_frames`)."""
         value = td.get(key, None)
         if value is None:
             raise MissingKeyError(
-                f"AbstractGoalPolicy needs {key!r} in the tensordict (uint8 [*B, 3, 16, 16], or "
+                f"AbstractGoalPolicy needs {key!r} in the tensordict (uint8 [*B, C, H, W], or "
                 "floats in [0, 1])."
             )
         env = self.waypoint_planner.env
