@@ -80,6 +80,14 @@ class KeyRoomEnv(GridWorldEnv):
         self.goal_cells = free.flatten().nonzero().squeeze(-1)
         self._frame_table = self._build_frame_table()
 
+    #: Which ground-truth code diagnostics fit this env (``dorp_rl.eval.diagnostics``).
+    DIAGNOSTICS = "key_room"
+
+    def oracle_layout(self) -> tuple[torch.Tensor, bool]:
+        """What :class:`~dorp_rl.modules.OracleCodeEncoder` codes: the agent by the
+        position of its colour, and a key bit (the key's colour gone from the frame)."""
+        return torch.tensor([AGENT_COLOUR, KEY_COLOUR], dtype=torch.int64), True
+
     def config(self) -> dict:
         return {**super().config(), "layout": self.LAYOUT}
 

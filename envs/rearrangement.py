@@ -146,6 +146,14 @@ class ObjectRearrangementEnv(GridWorldEnv):
             raise ValueError(f"block sides must be in [1, {GRID_SIZE}], got {shapes.tolist()}.")
         return shapes
 
+    #: Which ground-truth code diagnostics fit this env (``dorp_rl.eval.diagnostics``).
+    DIAGNOSTICS = "rearrangement"
+
+    def oracle_layout(self) -> tuple[torch.Tensor, bool]:
+        """What :class:`~dorp_rl.modules.OracleCodeEncoder` codes: each block by the
+        position of its colour (int64 ``[K, 3]``), no key bit."""
+        return self.colours.to(torch.int64), False
+
     def config(self) -> dict:
         return {
             **super().config(),

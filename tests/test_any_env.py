@@ -364,3 +364,19 @@ def test_dorp_with_the_true_dynamics_of_an_env_written_here():
     other = PushBlocksEnv((1, 8, 8), batch_size=(4,))
     with pytest.raises(ValueError, match="another environment's play data"):
         make_dorp_policy(other, encoder, graph, low_level=model, seed=0)
+
+
+def test_ground_truth_parts_need_what_the_env_declares():
+    """Oracle codes and ground-truth diagnostics come from hooks an env declares, not from
+    its class: an env without them is refused with a message saying what is missing."""
+    from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
+    from dorp_rl.eval import ground_truth_diagnostics
+    from dorp_rl.modules import OracleCodeEncoder
+
+    env = PushBlocksEnv((3, 16, 16), batch_size=(2,))
+    with pytest.raises(ValueError, match=r"env must declare oracle_layout\(\)"):
+        OracleCodeEncoder(env)
+    with pytest.raises(ValueError, match="PushBlocksEnv declares no ground-truth diagnostics"):
+        ground_truth_diagnostics(env, lambda pixels: pixels)
+    assert OracleCodeEncoder(ObjectRearrangementEnv(num_objects=3)).code_sizes == (16, 16, 16)
+    assert OracleCodeEncoder(KeyWallEnv()).code_sizes == (16, 2)

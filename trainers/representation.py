@@ -15,7 +15,7 @@ from torchrl.data import TensorDictReplayBuffer
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
-from dorp_rl.envs import GridWorldEnv, KeyRoomEnv
+from dorp_rl.envs import GridWorldEnv
 from dorp_rl.eval.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
@@ -279,14 +279,11 @@ class RepresentationConfig(TrainerConfig):
 def diagnose(
     env: GridWorldEnv, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
 ) -> dict:
-    """Ground-truth diagnostics of an encoder's codes on ``env`` (see :mod:`dorp_rl.eval`)."""
-    from dorp_rl.eval.diagnostics import key_room_diagnostics, rearrangement_diagnostics
+    """Ground-truth diagnostics of an encoder's codes on ``env``: those of the kind the env
+    declares (:func:`~dorp_rl.eval.diagnostics.ground_truth_diagnostics`)."""
+    from dorp_rl.eval.diagnostics import ground_truth_diagnostics
 
-    encode = encoder.encode
-    if isinstance(env, KeyRoomEnv):
-        result = key_room_diagnostics(env, encode)
-    else:
-        result = rearrangement_diagnostics(env, encode, num_samples=num_samples, seed=seed)
+    result = ground_truth_diagnostics(env, encoder.encode, num_samples=num_samples, seed=seed)
     return result.to_dict() if hasattr(result, "to_dict") else dict(result)
 
 

@@ -23,7 +23,7 @@ from torchrl.data.replay_buffers.storages import Storage
 from dorp_rl.validation import MissingKeyError, check_float, check_int
 
 
-def _column(storage: Storage, key: str) -> torch.Tensor:
+def stored_column(storage: Storage, key: str) -> torch.Tensor:
     """One column of the stored transitions, without reading the pixels."""
     length = len(storage)
     inner = getattr(storage, "_storage", None)
@@ -52,8 +52,8 @@ class _WindowSampler(Sampler):
                 starts = torch.empty(0, dtype=torch.int64)
             else:
                 self._check_keys(storage)
-                traj = _column(storage, self.traj_key)
-                step = _column(storage, self.step_key)
+                traj = stored_column(storage, self.traj_key)
+                step = stored_column(storage, self.step_key)
                 last = torch.arange(length - 1, n)
                 first = last - (length - 1)
                 ok = (traj[first] == traj[last]) & (step[last] - step[first] == length - 1)
@@ -82,8 +82,8 @@ class _WindowSampler(Sampler):
         if n == 0:
             return 0
         self._check_keys(storage)
-        traj = _column(storage, self.traj_key)
-        step = _column(storage, self.step_key)
+        traj = stored_column(storage, self.traj_key)
+        step = stored_column(storage, self.step_key)
         breaks = ((traj[1:] != traj[:-1]) | (step[1:] - step[:-1] != 1)).nonzero().squeeze(-1)
         edges = torch.cat([torch.tensor([-1]), breaks, torch.tensor([n - 1])])
         return int(edges.diff().max())

@@ -2,9 +2,11 @@
 
 from dorp_rl.eval.code_information import code_dynamics, code_information, play_code_dynamics
 from dorp_rl.eval.diagnostics import (
+    GROUND_TRUTH_DIAGNOSTICS,
     best_assignment,
     connected_fraction,
     encode_pixels,
+    ground_truth_diagnostics,
     key_room_code_maps,
     key_room_diagnostics,
     rearrangement_code_maps,
@@ -49,11 +51,13 @@ __all__ = [
     "write_results",
     "best_assignment",
     "check_task_set",
+    "GROUND_TRUTH_DIAGNOSTICS",
     "code_dynamics",
     "code_information",
     "play_code_dynamics",
     "connected_fraction",
     "encode_pixels",
+    "ground_truth_diagnostics",
     "evaluate_policy",
     "key_room_code_maps",
     "key_room_diagnostics",

@@ -167,15 +167,16 @@ def play_code_dynamics(
     Encodes both frames of every transition (:func:`~dorp_rl.planners.encode_transitions`)
     and orders them by the buffer's ``traj_id`` and ``step_count``.
     """
+    from dorp_rl.data.samplers import stored_column
     from dorp_rl.planners.code_graph import encode_transitions
 
     codes, next_codes = encode_transitions(buffer, encoder, chunk_size=chunk_size)
     storage = getattr(buffer, "storage", None)
-    data = storage[torch.arange(len(buffer))] if storage is not None else buffer
-    return code_dynamics(
-        codes,
-        next_codes,
-        data.get("traj_id", None),
-        data.get("step_count", None),
-        window=window,
-    )
+    if storage is None:  # a TensorDict of transitions
+        columns = [buffer.get(key, None) for key in ("traj_id", "step_count")]
+    else:  # the two columns only, not the frames
+        present = storage[:1].keys()
+        columns = [
+            stored_column(storage, k) if k in present else None for k in ("traj_id", "step_count")
+        ]
+    return code_dynamics(codes, next_codes, *columns, window=window)

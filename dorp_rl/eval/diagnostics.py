@@ -52,9 +52,11 @@ _MAX_ASSIGNMENT_SIDE = 20
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "Encoder",
+    "GROUND_TRUTH_DIAGNOSTICS",
     "best_assignment",
     "connected_fraction",
     "encode_pixels",
+    "ground_truth_diagnostics",
     "key_room_code_maps",
     "key_room_diagnostics",
     "rearrangement_code_maps",
@@ -751,3 +753,38 @@ def key_room_code_maps(
         env, encode, key_onehot, agent_onehot, chunk_size, with_steps=False
     )
     return torch.tensor(result["code_map_without_key"]), torch.tensor(result["code_map_with_key"])
+
+
+def _rearrangement(env: Any, encode: Encoder, num_samples: int, seed: int) -> Any:
+    return rearrangement_diagnostics(env, encode, num_samples=num_samples, seed=seed)
+
+
+def _key_room(env: Any, encode: Encoder, num_samples: int, seed: int) -> Any:
+    return key_room_diagnostics(env, encode)
+
+
+#: Ground-truth diagnostics by the kind an env declares as its ``DIAGNOSTICS``; a new kind
+#: is a function ``(env, encode, num_samples, seed)`` added here.
+GROUND_TRUTH_DIAGNOSTICS: dict[str, Callable[..., Any]] = {
+    "rearrangement": _rearrangement,
+    "key_room": _key_room,
+}
+
+
+def ground_truth_diagnostics(
+    env: Any, encode: Encoder, *, num_samples: int = 2048, seed: int = 0
+) -> Any:
+    """The ground-truth diagnostics of the kind ``env`` declares (``env.DIAGNOSTICS``).
+
+    Raises:
+        ValueError: an env that declares none, or a kind not in
+            :data:`GROUND_TRUTH_DIAGNOSTICS`.
+    """
+    kind = getattr(env, "DIAGNOSTICS", None)
+    if kind not in GROUND_TRUTH_DIAGNOSTICS:
+        raise ValueError(
+            f"{type(env).__name__} declares no ground-truth diagnostics (DIAGNOSTICS is "
+            f"{kind!r}, known: {sorted(GROUND_TRUTH_DIAGNOSTICS)}); the label-free "
+            "dorp_rl.eval.play_code_dynamics needs none."
+        )
+    return GROUND_TRUTH_DIAGNOSTICS[kind](env, encode, num_samples, seed)

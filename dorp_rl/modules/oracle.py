@@ -16,8 +16,6 @@ import torch
 from torch import nn
 
 from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
-from dorp_rl.envs.key_rooms import AGENT_COLOUR, KEY_COLOUR, KeyRoomEnv
-from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
 from dorp_rl.validation import check_int, frames_to_uint8
 
 
@@ -48,18 +46,16 @@ class OracleCodeEncoder(nn.Module):
         super().__init__()
         self.cell_size = check_int("cell_size", cell_size, low=1)
         side = math.ceil(GRID_SIZE / self.cell_size)
-        if isinstance(env, ObjectRearrangementEnv):
-            colours = env.colours.to(torch.int64)
-            self.has_key_bit = False
-            self.code_sizes = (side * side,) * env.num_objects
-        elif isinstance(env, KeyRoomEnv):
-            colours = torch.tensor([AGENT_COLOUR, KEY_COLOUR], dtype=torch.int64)
-            self.has_key_bit = True
-            self.code_sizes = (side * side, 2)
-        else:
+        layout = getattr(env, "oracle_layout", None)
+        if not callable(layout):
             raise ValueError(
-                f"env must be an ObjectRearrangementEnv or a KeyRoomEnv, got {type(env).__name__}."
+                f"env must declare oracle_layout() (the colours the oracle finds, and whether "
+                f"the last one is a key bit), as an ObjectRearrangementEnv or a KeyRoomEnv "
+                f"does; got {type(env).__name__}."
             )
+        colours, self.has_key_bit = layout()
+        positions = len(colours) - (1 if self.has_key_bit else 0)
+        self.code_sizes = (side * side,) * positions + ((2,) if self.has_key_bit else ())
         self.side = side
         self.num_onehots = len(self.code_sizes)
         self.max_codes = max(self.code_sizes)

@@ -1204,6 +1204,7 @@ def make_dorp_policy(
     check_keywords(planner_kwargs, passed_on, "make_dorp_policy (for its planners)")
     if not isinstance(env, EnvBase):
         raise ValueError(f"env must be a TorchRL EnvBase, got {type(env).__name__}.")
+    identity = env_identity(env)
     suited = {**GENERIC_DORP_OPTIONS, **getattr(env, "DORP_OPTIONS", {})}
     reenter = suited["reenter"] if reenter is None else reenter
     replan_on_miss = suited["replan_on_miss"] if replan_on_miss is None else replan_on_miss
@@ -1212,9 +1213,9 @@ def make_dorp_policy(
     if isinstance(encoder, (str, Path)):
         encoder = load_encoder(encoder, env)
     if isinstance(graph, (str, Path)):
-        graph = CodeGraph.load(graph, encoder=encoder, env_config=env_identity(env))
-    elif graph.env_config is not None and graph.env_config != env_identity(env):
-        stored, wanted = graph.env_config, env_identity(env)
+        graph = CodeGraph.load(graph, encoder=encoder, env_config=identity)
+    elif graph.env_config is not None and graph.env_config != identity:
+        stored, wanted = graph.env_config, identity
         diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
         details = "; ".join(f"{k}: graph {stored.get(k)!r}, env {wanted.get(k)!r}" for k in diff)
         raise ValueError(
