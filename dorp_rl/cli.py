@@ -402,20 +402,33 @@ def _read_stages(path: Path) -> dict[str, Any]:
     return stages
 
 
-def _holder(directory: Path) -> str:
-    """Who holds the run lock of ``directory``: pid, host, since and command if recorded."""
-    try:
-        lock = json.loads((directory / RUN_LOCK).read_text())
-    except (OSError, ValueError):
+def _holder(directory: Path, settle: float = 1.0) -> str:
+    """Who holds the run lock of ``directory``: pid, host, since and command if recorded.
+
+    A command writes ``run.lock`` and then ``running.json`` just after it takes the lock,
+    so a reader that comes in between waits up to ``settle`` seconds for both to name the
+    same process before it reports what it has.
+    """
+    deadline = time.monotonic() + settle
+    while True:
+        try:
+            lock = json.loads((directory / RUN_LOCK).read_text())
+        except (OSError, ValueError):
+            lock = None
+        try:
+            holder = json.loads((directory / RUN_HOLDER).read_text())
+        except (OSError, ValueError):
+            holder = None
+        lock = lock if isinstance(lock, dict) else None
+        holder = holder if isinstance(holder, dict) else {}
+        settled = lock is not None and holder.get("pid") == lock.get("pid")
+        if settled or time.monotonic() >= deadline:
+            break
+        time.sleep(0.02)
+    if lock is None:
         return "another process"
-    if not isinstance(lock, dict):
-        return "another process"
-    try:
-        holder = json.loads((directory / RUN_HOLDER).read_text())
-    except (OSError, ValueError):
-        holder = {}
-    command = holder.get("command") if isinstance(holder, dict) else None
-    what = f"{command}, " if command and holder.get("pid") == lock.get("pid") else ""
+    command = holder.get("command") if holder.get("pid") == lock.get("pid") else None
+    what = f"{command}, " if command else ""
     return f"process {lock.get('pid')} on {lock.get('host')} ({what}since {lock.get('since')})"
 
 

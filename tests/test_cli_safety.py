@@ -227,6 +227,27 @@ def test_every_command_is_refused_on_a_busy_run(tmp_path, capsys, command) -> No
     assert snapshot(run) == before
 
 
+def test_a_command_refused_just_after_another_took_the_lock_names_its_command(
+    tmp_path, capsys
+) -> None:
+    # The holder writes running.json a moment after it takes run.lock: a refused command
+    # that looks in between still names the holder's command.
+    import threading
+
+    run = tmp_path / "run"
+    lock = DirectoryLock(run, RUN_LOCK).acquire()
+    holder = {"pid": os.getpid(), "command": "dorp collect --name run"}
+    late = threading.Timer(0.3, lambda: (run / RUN_HOLDER).write_text(json.dumps(holder)))
+    late.start()
+    try:
+        message = refused(capsys, tmp_path, *COMMANDS["collect"])
+    finally:
+        late.join()
+        lock.release()
+    assert f"the run folder {run} is in use by process {os.getpid()} on " in message
+    assert "(dorp collect --name run, since " in message
+
+
 def test_a_busy_sub_run_of_reproduce_paper_is_refused(tmp_path, capsys) -> None:
     sub = tmp_path / "run" / "1obj"
     lock = DirectoryLock(sub, RUN_LOCK).acquire()
