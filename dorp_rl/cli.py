@@ -35,6 +35,7 @@ import dataclasses
 import functools
 import json
 import logging
+import math
 import operator
 import os
 import shlex
@@ -49,9 +50,10 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import torch
+from torchrl.envs import EnvBase
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import GridWorldEnv
+from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     SETTINGS,
@@ -62,6 +64,7 @@ from dorp_rl.eval import (
     format_table,
     make_task_set,
     result_row,
+    setting_of,
     write_results,
     write_task_records,
 )
@@ -137,17 +140,21 @@ class RunOptions:
     setting: SettingName = "2obj"
     """environment, code preset and graph groups (dorp_rl.eval.SETTINGS); the codes and
     world-model fields below default to this setting's presets"""
+    env: str | None = None
+    """your own environment instead of --setting: a registered env profile or an import
+    path 'package.module:attribute' (an EnvProfile, or a function that builds a TorchRL
+    env with discrete actions and 'pixels'); its profile's presets fill in the fields below"""
     wait: bool = False
     """when another dorp command is running in the run folder: wait until it has finished,
     then go on (default: stop at once with exit code 2)"""
 
 
 def _codes_default() -> RepresentationConfig:
-    return SETTINGS["2obj"].representation_config()
+    return setting_of("2obj").representation_config()
 
 
 def _world_model_default() -> WorldModelConfig:
-    return SETTINGS["2obj"].world_model_config()
+    return setting_of("2obj").world_model_config()
 
 
 @dataclass
@@ -274,15 +281,19 @@ COMMANDS: dict[str, type] = {
 
 
 def default_command(name: str, setting: str = "2obj") -> Any:
-    """The defaults of subcommand ``name`` under ``setting`` (its presets filled in)."""
+    """The defaults of subcommand ``name`` under ``setting`` (its presets filled in): a
+    paper setting, or an env profile's name or import path (given as ``--env``)."""
     cls = COMMANDS[name]
-    values: dict[str, Any] = {"setting": setting}
+    # A setting that is no paper setting is an env profile: --env.
+    values: dict[str, Any] = (
+        {"setting": setting} if setting in SETTINGS else {"setting": "2obj", "env": setting}
+    )
     fields = {f.name for f in dataclasses.fields(cls)}
     if "codes" in fields:
         steps = {"num_steps": DEMO_CODE_STEPS} if cls is Demo else {}
-        values["codes"] = SETTINGS[setting].representation_config(**steps)
+        values["codes"] = setting_of(setting).representation_config(**steps)
     if "world_model" in fields:
-        values["world_model"] = SETTINGS[setting].world_model_config()
+        values["world_model"] = setting_of(setting).world_model_config()
     return cls(**values)
 
 
@@ -718,7 +729,7 @@ def play_stage(run: Run, codes: RepresentationConfig):
             codes.num_frames,
             directory=directory,
             seed=codes.seed,
-            trajectory_length=codes.trajectory_length,
+            trajectory_length=codes.play_trajectory_length,
             progress=progress,
         )
 
@@ -788,9 +799,9 @@ def graph_stage(
     """
     encoder, buffer = codes_stage(run, codes, codes_variant)
     path = run.dir / f"{_tagged('graph', variant, '-')}.pt"
-    groups = SETTINGS[setting].groups if groups is None else groups
+    groups = setting_of(setting).groups if groups is None else groups
     env = codes.make_env()
-    env_config, num_actions = env.config(), env.num_actions
+    env_config, num_actions = env_identity(env), DiscreteActions.of(env).num_actions
 
     def build():
         # Graphs over one codes variant (per group, full) share one encoding of the play data.
@@ -846,7 +857,7 @@ def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
     return checkpoint
 
 
-def _policy(cmd: Evaluate, method: str, env: GridWorldEnv, low_level: Any, dorp: Any):
+def _policy(cmd: Evaluate, method: str, env: EnvBase, low_level: Any, dorp: Any):
     """The policy of ``method`` for ``env``, built by the same recipe as the workers'."""
     if method == "random":
         torch.manual_seed(cmd.seed)
@@ -868,7 +879,7 @@ def _policy(cmd: Evaluate, method: str, env: GridWorldEnv, low_level: Any, dorp:
 
 def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
     """Every method of ``cmd`` on the seeded task set; returns the run's result rows."""
-    setting = SETTINGS[cmd.setting]
+    setting = setting_of(cmd.setting)
     low_level: Path | None = None  # None: the true dynamics
     low_config: Any = "gt"
     level_name = cmd.low_level
@@ -914,13 +925,15 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
             # Picklable factories: --workers/--backend rebuild env and policy per worker;
             # the policy is reseeded with seed + k per chunk k, so any --workers agrees.
             make_env = functools.partial(setting.make_env, batch_size=(batch,), seed=cmd.seed)
-            tasks = make_task_set(make_env(), cmd.tasks, seed=cmd.task_seed)
+            env = make_env()
+            tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed, profile=setting.profile)
+            limit = cmd.max_steps or setting.profile.task_limit(setting.num_objects, env)
             result = evaluate_parallel(
                 make_env,
                 functools.partial(_policy, cmd, method, low_level=low_level, dorp=dorp),
                 tasks,
                 seed=cmd.seed,
-                max_steps=cmd.max_steps,
+                max_steps=limit,
                 tasks_per_rollout=batch,
                 workers=cmd.workers,
                 backend=cmd.backend,
@@ -934,7 +947,11 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
             row["per_task"] = {  # for the steps plot and tasks.csv; not results.csv columns
                 "success": result["success"],
                 "steps": result["steps"],
-                "lower_bound": tasks["lower_bound"].tolist(),
+                "lower_bound": (  # nan: the env's profile knows no bound
+                    tasks["lower_bound"].tolist()
+                    if "lower_bound" in tasks.keys()
+                    else [math.nan] * cmd.tasks
+                ),
                 "records": result["records"],
             }
             run.say(
@@ -962,7 +979,14 @@ def _check(command: str, cmd: Any) -> None:
     checkpoint (it must be a world model of ``--setting``) are checked before anything
     is written.
     """
-    setting = SETTINGS[cmd.setting]
+    if cmd.env is not None:
+        try:
+            setting_of(cmd.env)
+        except ValueError as err:
+            raise UsageError(f"--env {cmd.env}: {err}") from None
+        if getattr(cmd, "paper", False):
+            raise UsageError("--env does not apply with --paper: it runs the paper's settings.")
+    setting = setting_of(cmd.setting)
     run_folder(cmd.root, cmd.name)
     if cmd.threads < 1:
         raise UsageError(f"--threads must be >= 1, got {cmd.threads}.")
@@ -1059,7 +1083,7 @@ def _check_world_model_file(path: str, setting: str) -> None:
     if not Path(path).is_file():
         raise UsageError(f"{what}; {path!r} is none of these.")
     try:
-        load_video_model(path, SETTINGS[setting].make_env())
+        load_video_model(path, setting_of(setting).make_env())
     except (ValueError, OSError) as err:  # another kind, env, a damaged or a text file
         raise UsageError(f"{what}: {err}") from None
 
@@ -1079,19 +1103,30 @@ def _check_paper_methods(chosen: Sequence[str], settings: Sequence[str]) -> None
         )
 
 
-def _scan(argv: Sequence[str]) -> tuple[str | None, str]:
-    """The subcommand and ``--setting`` in ``argv`` (to fill in the setting's presets)."""
-    command = next((a for a in argv if not a.startswith("-")), None)
-    setting = "2obj"
+def _option(argv: Sequence[str], name: str) -> str | None:
+    """The value of ``--<name>`` in ``argv`` (the last one given), or ``None``."""
+    value = None
     for i, arg in enumerate(argv):
-        value = None
-        if arg == "--setting" and i + 1 < len(argv):
+        if arg == f"--{name}" and i + 1 < len(argv):
             value = argv[i + 1]
-        elif arg.startswith("--setting="):
+        elif arg.startswith(f"--{name}="):
             value = arg.split("=", 1)[1]
-        if value in SETTINGS:
-            setting = value
-    return command, setting
+    return value
+
+
+def _scan(argv: Sequence[str]) -> tuple[str | None, str]:
+    """The subcommand and the setting of ``argv`` (``--env``, else ``--setting``), to fill
+    in its presets; an unknown one is left to the parser (or :func:`_check`) to name."""
+    command = next((a for a in argv if not a.startswith("-")), None)
+    env = _option(argv, "env")
+    if env is not None:
+        try:
+            setting_of(env)
+        except ValueError:
+            return command, "2obj"
+        return command, env
+    setting = _option(argv, "setting")
+    return command, setting if setting in SETTINGS else "2obj"
 
 
 def parse(argv: Sequence[str]) -> tuple[str, Any]:
@@ -1109,6 +1144,8 @@ def parse(argv: Sequence[str]) -> tuple[str, Any]:
             prog=f"dorp {command}",
             default=default_command(command, setting),
         )
+        if cmd.env is not None:
+            cmd.setting = cmd.env  # the env's profile is the setting from here on
         return command, cmd
     choices = tuple(
         Annotated[
@@ -1125,6 +1162,8 @@ def parse(argv: Sequence[str]) -> tuple[str, Any]:
         "of a run folder (<root>/<name>/). Finished stages are skipped when re-run.",
     )
     name = next(n for n, cls in COMMANDS.items() if type(cmd) is cls)
+    if cmd.env is not None:
+        cmd.setting = cmd.env
     return name, cmd
 
 
@@ -1175,6 +1214,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     if isinstance(cmd, Evaluate):
         cmd.low_level = LOW_LEVEL_NAMES.get(cmd.low_level, cmd.low_level)
     try:
+        if _option(argv, "env") is not None and _option(argv, "setting") is not None:
+            raise UsageError(
+                "--env and --setting both choose the environment: give one (--setting for "
+                "the paper's settings, --env for any env profile or import path)."
+            )
         _check(name, cmd)
         run_command(name, cmd, command_line=shlex.join(["dorp", *argv]))
     except (UsageError, DirectoryLockedError) as err:

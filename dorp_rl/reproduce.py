@@ -34,7 +34,6 @@ from dorp_rl.cli import (
     dorp_stages,
     evaluate_stage,
 )
-from dorp_rl.envs import KeyRoomEnv
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     RESULT_COLUMNS,
@@ -44,6 +43,7 @@ from dorp_rl.eval import (
     rearrangement_code_maps,
     rearrangement_diagnostics,
     rollout_chunk,
+    setting_of,
     tasks_to_draw,
     write_task_records,
 )
@@ -61,6 +61,7 @@ from dorp_rl.eval.results import (
     write_results,
     write_timings,
 )
+from dorp_rl.eval.tasks import succeeded
 from dorp_rl.progress import BarMirror, progress_bar, relay_bars
 from dorp_rl.viz import plot_results, write_diagnostic_plots
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
@@ -109,10 +110,15 @@ def _low_level_path(run: Run, cmd: Evaluate) -> Path | None:
 
 
 def _diagnostic_pictures(env: Any, encoder: Any, directory: Path, num_samples: int):
-    """Code map and factorisation histogram of ``encoder`` into ``directory``; returns the
-    waypoint maps (:func:`~dorp_rl.viz.rollouts.code_maps_for_waypoints`) and the files."""
+    """Code map and factorisation histogram of ``encoder`` into ``directory`` when ``env``
+    declares ground-truth diagnostics (``DIAGNOSTICS``); returns the waypoint maps
+    (:func:`~dorp_rl.viz.rollouts.code_maps_for_waypoints`, ``None`` without them) and
+    the files."""
     encode = encoder.encode
-    if isinstance(env, KeyRoomEnv):
+    kind = getattr(env, "DIAGNOSTICS", None)
+    if kind is None:  # no labels: the GIFs are drawn without waypoint maps
+        return None, []
+    if kind == "key_room":
         result = key_room_diagnostics(env, encode, with_steps=False)
         maps: Any = result
     else:
@@ -184,14 +190,14 @@ def _rollout_gifs(
     n = min(cmd.gifs, cmd.tasks)
     if n == 0:
         return [], [], []
-    setting = SETTINGS[cmd.setting]
+    setting = setting_of(cmd.setting)
     batch = min(cmd.tasks, cmd.tasks_per_rollout)
     records = run.stages[_evaluation_key(cmd, method)]["summary"]["per_task"].get("records")
     chosen = tasks_to_draw(records, n) if records else list(range(n))
     env = setting.make_env(batch_size=(batch,), seed=cmd.seed)
-    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed)
+    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed, profile=setting.profile)
     policy = _policy(cmd, method, env, _low_level_path(run, cmd), dorp)
-    limit = env.max_steps if cmd.max_steps is None else cmd.max_steps
+    limit = cmd.max_steps or setting.profile.task_limit(setting.num_objects, env)
     code_maps = maps.get(_codes_variant(method))
     bar = progress_bar(run.progress, total=len(chosen), desc="GIF rollouts", unit="task")
     paths: list[Path] = []
@@ -210,7 +216,7 @@ def _rollout_gifs(
                 seed=cmd.seed,
             )
             done = rollout["next", "done"].reshape(rollout.shape[0], -1)
-            success = rollout["next", "success"].reshape(rollout.shape[0], -1)
+            success = succeeded(rollout["next"]).reshape(rollout.shape[0], -1)
             for task in (t for t in chosen if t // batch == chunk_index):
                 i = task - first
                 steps = int(done[i].float().argmax()) + 1 if bool(done[i].any()) else done.shape[1]

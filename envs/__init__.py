@@ -1,4 +1,8 @@
-"""The paper's pixel environments as batched, stateless TorchRL envs.
+"""The paper's pixel environments as batched, stateless TorchRL envs, and env profiles.
+
+Each env declares its profile (:class:`EnvProfile`: name, factory, presets, DORP
+settings, task drawing) next to it; :func:`env_profile` finds a profile by name or by an
+import path, so a user's env goes through the same pipeline.
 
 Importing this package also registers the gymnasium ids ``dorp_rl/ObjectRearrangement-v0``
 (kwarg ``num_objects``), ``dorp_rl/KeyWall-v0`` and ``dorp_rl/KeyCorridor-v0``.
@@ -9,6 +13,14 @@ from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_la
 from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_envs
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.profile import (
+    EnvProfile,
+    env_profile,
+    profile_of,
+    register_env_profile,
+    registered_profiles,
+    reset_tasks,
+)
 from dorp_rl.envs.rearrangement import DEFAULT_MAX_STEPS, OBJECT_COLOURS, ObjectRearrangementEnv
 from dorp_rl.envs.spec import DiscreteActions, env_device, env_identity
 
@@ -19,6 +31,12 @@ __all__ = [
     "DIRECTIONS",
     "DiscreteActions",
     "ENV_NAMES",
+    "EnvProfile",
+    "env_profile",
+    "profile_of",
+    "register_env_profile",
+    "registered_profiles",
+    "reset_tasks",
     "env_class",
     "env_device",
     "env_identity",

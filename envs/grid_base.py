@@ -352,6 +352,13 @@ class GridWorldEnv(CheckedRolloutLength, EnvBase):
         """:meth:`lower_bound_steps` on checked states of one shape."""
         raise NotImplementedError
 
+    def true_dynamics(self) -> EnvBase:
+        """This world's dynamics as a planning env (:class:`~dorp_rl.envs.GroundTruthModelEnv`,
+        vectorised), what ``make_planning_env(env, "gt")`` uses."""
+        from dorp_rl.envs.planning import GroundTruthModelEnv
+
+        return GroundTruthModelEnv(self)
+
     def config(self) -> dict:
         """JSON-able description of the world (class and layout options, not batch or seed).
 
@@ -646,3 +653,33 @@ class GridWorldEnv(CheckedRolloutLength, EnvBase):
         return idx.view(-1, 1).expand(self.grid_size, self.grid_size), idx.view(1, -1).expand(
             self.grid_size, self.grid_size
         )
+
+
+def draw_grid_tasks(env: GridWorldEnv, num_tasks: int, seed: int) -> TensorDict:
+    """``num_tasks`` start/goal pairs from ``env``'s start and goal distributions, drawn
+    with ``seed`` (the env's own generator is left as it was); goals equal to their start
+    are redrawn. Holds ``state``, ``goal_state`` and ``lower_bound`` (int64).
+
+    The task drawing of the grid worlds' profiles.
+    """
+    saved = env.rng.get_state()
+    env.rng.manual_seed(int(seed))
+    try:
+        shape = torch.Size([int(num_tasks)])
+        state = env.sample_states(shape)
+        goal = env.sample_goal_states(shape)
+        for _ in range(100):
+            same = env.lower_bound_steps(state, goal) == 0
+            if not bool(same.any()):
+                break
+            goal[same] = env.sample_goal_states(torch.Size([int(same.sum())]))
+        else:
+            raise RuntimeError("could not draw goals different from their starts.")
+    finally:
+        env.rng.set_state(saved)
+    return TensorDict(
+        state=state,
+        goal_state=goal,
+        lower_bound=env.lower_bound_steps(state, goal).reshape(shape).to(torch.int64),
+        batch_size=shape,
+    )

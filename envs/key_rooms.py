@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import torch
 
-from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, colour_codes, paint_layers
+from dorp_rl.envs.grid_base import (
+    DIRECTIONS,
+    GRID_SIZE,
+    GridWorldEnv,
+    colour_codes,
+    draw_grid_tasks,
+    paint_layers,
+)
+from dorp_rl.envs.profile import EnvProfile, register_env_profile
 
 WALL_COLOUR = (128, 128, 128)  # grey
 DOOR_COLOUR = (150, 75, 0)  # brown
@@ -58,10 +66,6 @@ class KeyRoomEnv(GridWorldEnv):
     DEFAULT_MAX_STEPS: int = 400
     #: Length of the random walks of the paper's play data.
     PLAY_TRAJECTORY_LENGTH: int = 1000
-    #: ``make_dorp_policy``'s recovery settings that suit the key rooms: re-enter a code
-    #: another way, replan after a miss, no goal-image term in the waypoint cost (pixel
-    #: distance ignores the walls; docs/NOTES.md has the measurements).
-    DORP_OPTIONS = {"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0}
 
     def __init__(self, *, max_steps: int | None = None, **kwargs) -> None:
         cells = parse_layout(self.LAYOUT)
@@ -349,3 +353,61 @@ class KeyCorridorEnv(KeyRoomEnv):
     )
     DEFAULT_MAX_STEPS = 800
     PLAY_TRAJECTORY_LENGTH = 1500
+
+
+#: The key rooms' code recipe: 4-step pairs from long random walks, an agent one-hot plus
+#: a key bit, with motion, sparsity and usage terms (docs/NOTES.md has the measurements).
+KEY_ROOM_RECIPE: dict = {
+    "max_offset": 4,
+    "motion_weight": 1.0,
+    "sparsity_weight": 5.0,
+    "usage_weight": 1.0,
+    "num_steps": 3000,
+    "collapse_check_after": 500,
+    "collapse_min_codes": 4,
+}
+
+
+def _key_room_profile(
+    name: str,
+    env_type: type[KeyRoomEnv],
+    agent_codes: int,
+    num_frames: int,
+    world_model: dict,
+    description: str,
+) -> EnvProfile:
+    return EnvProfile(
+        name=name,
+        make_env=env_type,
+        env_type=env_type,
+        play_trajectory_length=env_type.PLAY_TRAJECTORY_LENGTH,
+        max_steps=env_type.DEFAULT_MAX_STEPS,
+        code_layout=lambda size, _: (size, 2),
+        codes=lambda _: {
+            "encoder": {"code_sizes": (agent_codes,)},
+            "num_frames": num_frames,
+            **KEY_ROOM_RECIPE,
+        },
+        world_model=lambda _: {"trajectory_length": env_type.PLAY_TRAJECTORY_LENGTH, **world_model},
+        groups=((0, 1),),
+        # Re-enter a code another way, replan after a miss, no goal-image term in the
+        # waypoint cost (pixel distance ignores the walls; docs/NOTES.md has the figures).
+        dorp={"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0},
+        draw_tasks=draw_grid_tasks,
+        description=description,
+    )
+
+
+#: The key rooms as the pipeline sees them (``--env key-wall``, ``--env key-corridor``).
+KEY_WALL = register_env_profile(
+    # Key events are rare in play: a quarter of the world model's training windows hold
+    # one (docs/NOTES.md, key-wall through the video model).
+    _key_room_profile(
+        "key-wall", KeyWallEnv, 16, 64_000, {"event_share": 0.25}, "one room behind a locked door"
+    )
+)
+KEY_CORRIDOR = register_env_profile(
+    _key_room_profile(
+        "key-corridor", KeyCorridorEnv, 32, 96_000, {}, "rooms along a corridor, one locked door"
+    )
+)

@@ -41,6 +41,7 @@ from dorp_rl.envs.grid_base import (
     describe_foreign_colours,
     foreign_colours,
 )
+from dorp_rl.envs.spec import DiscreteActions
 from dorp_rl.validation import (
     check_action,
     check_device,
@@ -717,3 +718,126 @@ class WorldModelEnv(_PlanningEnvBase):
         return self._outputs(
             tensordict.batch_size, next_pixels, tensordict.get("goal_pixels", None), reward=True
         )
+
+
+class StatelessEnvModel(CheckedRolloutLength, EnvBase):
+    """The true dynamics of any stateless TorchRL env as a planning model (any leading shape).
+
+    A stateless env reads everything it needs from the tensordict it steps (torchrl's
+    convention, e.g. ``PendulumEnv``): its state entries, here ``state``. This model
+    steps a ``[*B]`` batch of candidates by flattening it to rows and handing them to the
+    env's ``_step`` in chunks of the env's own batch (one call for an env with
+    ``batch_size=()`` that is not batch-locked), so a user's env whose batch is fixed at
+    ``(n,)`` plans as well as one of any shape. ``goal_pixels`` ride along unchanged; the
+    done flags are always ``False`` and the reward 0 (imagined rollouts run the whole
+    horizon and are scored by cost modules).
+
+    Args:
+        env: the env whose dynamics to use; it must step from a tensordict holding
+            ``state`` and an action (``_supports_set_state`` and a ``state`` entry).
+
+    Examples:
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.envs.planning import StatelessEnvModel
+        >>> model = StatelessEnvModel(ObjectRearrangementEnv(num_objects=1, batch_size=(4,)))
+        >>> td = model.reset().expand(3, 5).clone()
+        >>> td["action"] = model.action_spec.rand((3, 5))
+        >>> model.step(td)["next", "pixels"].shape
+        torch.Size([3, 5, 3, 16, 16])
+    """
+
+    _supports_set_state = True
+
+    def __init__(self, env: EnvBase) -> None:
+        if not isinstance(env, EnvBase):
+            raise ValueError(f"env must be a TorchRL EnvBase, got {type(env).__name__}.")
+        if "state" not in env.observation_spec.keys() or not getattr(
+            env, "_supports_set_state", False
+        ):
+            raise ValueError(
+                f"{type(env).__name__} cannot serve as its own true dynamics: a planning model "
+                "steps copies of a situation, so the env must write a 'state' entry, step from "
+                "it (stateless) and take it back on reset(td, set_state=True) "
+                "(_supports_set_state = True)."
+            )
+        super().__init__(device=env.device, batch_size=())
+        self.__dict__["_batch_locked"] = False
+        self.true_env = env
+        batch = len(env.batch_size)
+        self.rows = int(env.batch_size.numel()) if env.batch_locked and batch else None
+        self.observation_spec = Composite(
+            {k: env.observation_spec[k][(0,) * batch].clone() for k in env.observation_spec.keys()}
+        )
+        # Planners draw indices; a one-hot env gets them in its own layout.
+        self.actions = DiscreteActions.of(env)
+        self.action_spec = Categorical(
+            self.actions.num_actions, shape=(1,), dtype=torch.int64, device=self.device
+        )
+        self.reward_spec = Unbounded(shape=(1,), dtype=torch.float32, device=self.device)
+        flag = Categorical(2, shape=(1,), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone())
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.true_env.set_seed(seed)
+
+    def _flat_step(self, rows: TensorDictBase) -> TensorDictBase:
+        if self.rows is None:
+            return self.true_env._step(rows)
+        n, size = rows.shape[0], self.rows
+        pad = (-n) % size
+        if pad:
+            rows = torch.cat([rows, rows[:1].expand(pad).clone()], 0)
+        outs = [
+            self.true_env._step(rows[i : i + size].reshape(self.true_env.batch_size))
+            for i in range(0, rows.shape[0], size)
+        ]
+        return torch.cat([o.reshape(-1) for o in outs], 0)[:n]
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        env = self.true_env
+        if tensordict is None or not kwargs.get("set_state", False):
+            td = env.reset()
+            return td.reshape(-1)[0].select(*self.observation_spec.keys()).clone()
+        shape = tensordict.batch_size
+        rows = tensordict.reshape(-1)
+        if self.rows is None:
+            out = env.reset(rows.clone(), set_state=True)
+        else:
+            pad = (-rows.shape[0]) % self.rows
+            padded = torch.cat([rows, rows[:1].expand(pad).clone()], 0) if pad else rows
+            out = torch.cat(
+                [
+                    env.reset(
+                        padded[i : i + self.rows].reshape(env.batch_size).clone(), set_state=True
+                    ).reshape(-1)
+                    for i in range(0, padded.shape[0], self.rows)
+                ],
+                0,
+            )[: rows.shape[0]]
+        return out.select(*self.observation_spec.keys()).reshape(shape)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        shape = tensordict.batch_size
+        keys = [
+            k for k in ("state", "goal_state", "goal_pixels", "action") if k in tensordict.keys()
+        ]
+        rows = tensordict.select(*keys).reshape(-1)
+        rows.set("action", self.actions.from_index(rows.get("action")))
+        if "goal_state" not in rows.keys():  # a goal is not needed to imagine a step
+            rows.set("goal_state", rows.get("state").clone())
+        if "goal_pixels" not in rows.keys() and "goal_pixels" in self.observation_spec.keys():
+            spec = self.observation_spec["goal_pixels"]
+            rows.set("goal_pixels", spec.zero(rows.batch_size))
+        out = self._flat_step(rows).select(*self.observation_spec.keys()).reshape(shape)
+        false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        out.update(
+            {
+                "reward": torch.zeros((*shape, 1), dtype=torch.float32, device=self.device),
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            }
+        )
+        if "goal_pixels" in tensordict.keys():
+            out.set("goal_pixels", tensordict.get("goal_pixels"))
+        return out

@@ -6,7 +6,15 @@ from collections.abc import Sequence
 
 import torch
 
-from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, colour_codes, paint_layers
+from dorp_rl.envs.grid_base import (
+    DIRECTIONS,
+    GRID_SIZE,
+    GridWorldEnv,
+    colour_codes,
+    draw_grid_tasks,
+    paint_layers,
+)
+from dorp_rl.envs.profile import EnvProfile, register_env_profile
 from dorp_rl.validation import check_int
 
 #: Block colours in object order (the authors' first five, then two more).
@@ -55,11 +63,6 @@ class ObjectRearrangementEnv(GridWorldEnv):
         >>> td["pixels"].shape, td["state"].shape
         (torch.Size([4, 3, 3, 16, 16]), torch.Size([4, 3, 2, 2]))
     """
-
-    #: ``make_dorp_policy``'s recovery settings that suit rearrangement: failed hops are
-    #: removed at once (blocks stand in the way) and waypoint plans are ranked by the goal
-    #: image too (docs/NOTES.md has the measurements).
-    DORP_OPTIONS = {"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003}
 
     def __init__(
         self,
@@ -349,3 +352,37 @@ class ObjectRearrangementEnv(GridWorldEnv):
     def _lower_bound_steps(self, state: torch.Tensor, goal_state: torch.Tensor) -> torch.Tensor:
         """Sum over blocks of the Manhattan distance to the goal corner."""
         return (state - goal_state).abs().flatten(-2).sum(-1)
+
+
+def _rearrangement_codes(num_objects: int) -> dict:
+    """The code preset of k blocks: one one-hot per block (16 codes for one block, 32 for
+    more, whose maps compete), with the step and play budgets of the measured runs."""
+    several = num_objects > 1
+    return {
+        "encoder": {
+            "code_sizes": (32 if several else 16,),
+            "map_competition": "softmax" if several else "sigmoid",
+        },
+        "exclusivity_weight": 3.0 if several else 0.0,
+        "num_steps": {1: 1500, 2: 1500, 3: 2000, 6: 4000}.get(num_objects, 3000),
+        "num_frames": {1: 60_000, 2: 100_000, 3: 150_000, 6: 250_000}.get(num_objects, 200_000),
+    }
+
+
+#: k-object rearrangement as the pipeline sees it (``--env rearrangement``).
+REARRANGEMENT = register_env_profile(
+    EnvProfile(
+        name="rearrangement",
+        make_env=ObjectRearrangementEnv,
+        counts_objects=True,
+        env_type=ObjectRearrangementEnv,
+        max_steps=lambda k: DEFAULT_MAX_STEPS.get(k, 400 * k - 200),
+        code_layout=lambda size, k: (size,) * k,
+        codes=_rearrangement_codes,
+        # Failed hops are removed at once (blocks stand in the way) and waypoint plans are
+        # ranked by the goal image too (docs/NOTES.md has the measurements).
+        dorp={"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003},
+        draw_tasks=draw_grid_tasks,
+        description="k coloured 2x4 blocks on a 16x16 grid, moved one cell at a time",
+    )
+)

@@ -91,6 +91,13 @@ class DiscreteActions:
             return torch.nn.functional.one_hot(index, self.num_actions).to(self.dtype)
         return index.reshape(*batch_shape, *self.shape).to(self.dtype)
 
+    def from_index(self, index: torch.Tensor) -> torch.Tensor:
+        """Int indices ``[*B, 1]`` as actions in this layout (``[*B, *shape]``)."""
+        index = index.to(torch.int64).reshape(*index.shape[:-1])
+        if self.one_hot:
+            return torch.nn.functional.one_hot(index, self.num_actions).to(self.dtype)
+        return index.reshape(*index.shape, *self.shape).to(self.dtype)
+
     def index(self, action: torch.Tensor) -> torch.Tensor:
         """Actions in this layout as int64 indices ``[*B, 1]``."""
         if self.one_hot:

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
-from torchrl.envs import EnvBase
+from push_blocks import MOVES, PushBlocksEnv  # noqa: F401  (MOVES for readers)
+from tensordict import TensorDict
+from torchrl.data import Bounded, Composite
 
 from dorp_rl.data import (
     FuturePairSampler,
@@ -29,106 +29,6 @@ from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners import CodeGraph
 from dorp_rl.planners.code_graph import play_actions
 from dorp_rl.validation import frame_shape_of
-
-MOVES = torch.tensor([[-1, 0], [1, 0], [0, -1], [0, 1]])
-
-
-class PushBlocksEnv(EnvBase):
-    """Two blocks on an ``H x W`` canvas; action ``4 * block + direction`` moves one block.
-
-    Block 0 is 1 x 2 cells, block 1 is 2 x 1; their shades differ in every channel. The
-    state is the blocks' top-left cells, int64 ``[2, 2]``; a task is solved when it equals
-    ``goal_state``. Stateless: a step reads the state from the tensordict, so with
-    ``batch_size=()`` and ``batch_locked=False`` it steps any leading shape (its own true
-    dynamics as a planning env), and ``reset(td, set_state=True)`` starts from given states.
-    """
-
-    _supports_set_state = True
-
-    def __init__(
-        self, frame_shape=(3, 24, 32), batch_size=(4,), one_hot=False, seed=0, batch_locked=True
-    ):
-        super().__init__(batch_size=torch.Size(batch_size))
-        self.__dict__["_batch_locked"] = bool(batch_locked)
-        self.frame_shape = tuple(frame_shape)
-        c, h, w = self.frame_shape
-        self.sizes = torch.tensor([[1, 2], [2, 1]])
-        self.shades = torch.tensor([[250, 120, 40], [60, 200, 160]], dtype=torch.uint8)[:, :c]
-        if c > 3:
-            raise ValueError("at most 3 channels in this test env")
-        b = self.batch_size
-        image = Bounded(0, 255, (*b, c, h, w), dtype=torch.uint8)
-        cells = Unbounded((*b, 2, 2), dtype=torch.int64)
-        self.observation_spec = Composite(
-            pixels=image, goal_pixels=image.clone(), state=cells, goal_state=cells.clone(), shape=b
-        )
-        if one_hot:
-            self.action_spec = OneHot(8, shape=(*b, 8))
-        else:
-            self.action_spec = Categorical(8, shape=(*b, 1))
-        self.reward_spec = Unbounded((*b, 1))
-        self.rng = torch.Generator()
-        self.set_seed(seed)
-
-    def _set_seed(self, seed):
-        self.rng.manual_seed(int(seed) if seed is not None else 0)
-
-    def render_state(self, state):
-        c, h, w = self.frame_shape
-        rows = torch.arange(h).view(h, 1)
-        cols = torch.arange(w).view(1, w)
-        frames = torch.zeros(*state.shape[:-2], c, h, w, dtype=torch.uint8)
-        for block in range(2):
-            top = state[..., block, 0, None, None]
-            left = state[..., block, 1, None, None]
-            dh, dw = self.sizes[block].tolist()
-            inside = (rows >= top) & (rows < top + dh) & (cols >= left) & (cols < left + dw)
-            shade = self.shades[block].view(c, 1, 1)
-            frames = torch.where(inside.unsqueeze(-3), shade, frames)
-        return frames
-
-    def _limits(self):
-        _, h, w = self.frame_shape
-        return torch.tensor([h, w]) - self.sizes  # highest top-left cell per block
-
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        shape = self.batch_size if tensordict is None else tensordict.batch_size
-        given = tensordict if kwargs.get("set_state", False) else None
-        high = self._limits() + 1
-        out = {}
-        for key in ("state", "goal_state"):
-            value = None if given is None else given.get(key, None)
-            if value is None:
-                value = (torch.rand(*shape, 2, 2, generator=self.rng) * high).long()
-            out[key] = value.clone()
-        return TensorDict(
-            pixels=self.render_state(out["state"]),
-            goal_pixels=self.render_state(out["goal_state"]),
-            **out,
-            batch_size=shape,
-        )
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        shape = tensordict.batch_size
-        action = DiscreteActions.of(self).index(tensordict["action"]).reshape(-1)
-        state = tensordict["state"].reshape(-1, 2, 2).clone()
-        block, move = action // 4, MOVES[action % 4]
-        rows = torch.arange(state.shape[0])
-        moved = state[rows, block] + move
-        state[rows, block] = torch.minimum(moved.clamp(min=0), self._limits()[block])
-        state = state.reshape(*shape, 2, 2)
-        goal = tensordict["goal_state"]
-        success = (state == goal).flatten(-2).all(-1, keepdim=True)
-        return TensorDict(
-            pixels=self.render_state(state),
-            goal_pixels=tensordict["goal_pixels"],
-            state=state,
-            goal_state=goal,
-            reward=success.float(),
-            done=success,
-            terminated=success,
-            batch_size=shape,
-        )
 
 
 @pytest.mark.parametrize(
@@ -380,3 +280,69 @@ def test_ground_truth_parts_need_what_the_env_declares():
         ground_truth_diagnostics(env, lambda pixels: pixels)
     assert OracleCodeEncoder(ObjectRearrangementEnv(num_objects=3)).code_sizes == (16, 16, 16)
     assert OracleCodeEncoder(KeyWallEnv()).code_sizes == (16, 2)
+
+
+def test_the_true_dynamics_of_a_batch_locked_one_hot_env_step_any_shape():
+    """make_planning_env(env, 'gt') over an env fixed at batch (4,) with one-hot actions:
+    [3, 5] candidates step in chunks of 4, with index actions, as the env itself would."""
+    from dorp_rl.envs.planning import StatelessEnvModel
+    from dorp_rl.policies import make_planning_env
+
+    env = PushBlocksEnv((1, 8, 8), batch_size=(4,), one_hot=True, seed=3)
+    model = make_planning_env(env, "gt")
+    assert isinstance(model, StatelessEnvModel) and model.action_spec.shape == (1,)
+    start = env.reset()
+    td = start[:3].unsqueeze(1).expand(3, 5).clone()
+    td["action"] = torch.randint(0, 8, (3, 5, 1), generator=torch.Generator().manual_seed(0))
+    out = model.step(td)["next"]
+    assert out["pixels"].shape == (3, 5, 1, 8, 8) and not bool(out["done"].any())
+    free = PushBlocksEnv((1, 8, 8), batch_size=(), one_hot=True, batch_locked=False)
+    for i, j in ((0, 0), (1, 3), (2, 4)):
+        one = td[i, j].clone()
+        one["action"] = torch.nn.functional.one_hot(one["action"].squeeze(-1), 8)
+        assert torch.equal(free._step(one)["state"], out["state"][i, j])
+    # Set states come back as given, in any leading shape.
+    reset = model.reset(td.select("state", "goal_state"), set_state=True)
+    assert torch.equal(reset["state"], td["state"])
+    # An env without a settable state cannot be its own true dynamics.
+    env._supports_set_state = False
+    with pytest.raises(ValueError, match="cannot serve as its own true dynamics"):
+        StatelessEnvModel(env)
+
+
+def test_a_profile_is_found_by_name_import_path_or_env(tmp_path):
+    from dorp_rl.envs import (
+        EnvProfile,
+        ObjectRearrangementEnv,
+        env_profile,
+        profile_of,
+        register_env_profile,
+    )
+    from dorp_rl.trainers import RepresentationConfig
+
+    profile = env_profile("push_blocks:PUSH_BLOCKS")
+    assert profile.name == "push-blocks" and profile.play_trajectory_length == 20
+    bare = env_profile("push_blocks:make_small_env")
+    assert bare.name == "push_blocks:make_small_env" and bare.play_trajectory_length == 1
+    env = bare.build(batch_size=(2,), seed=0)
+    assert tuple(env.batch_size) == (2,)
+    assert profile_of(ObjectRearrangementEnv(num_objects=2)).name == "rearrangement"
+    assert profile_of(env) is None
+    # Configs keep the name they were given, so they resolve again after a reload.
+    cfg = RepresentationConfig.for_env("push_blocks:PUSH_BLOCKS")
+    assert cfg.env == "push_blocks:PUSH_BLOCKS" and cfg.code_sizes == (6, 6)
+    assert RepresentationConfig.from_dict(cfg.to_dict()).code_sizes == (6, 6)
+    with pytest.raises(ValueError, match="applies to envs that count objects"):
+        RepresentationConfig.for_env("push_blocks:PUSH_BLOCKS", num_objects=3)
+    mine = EnvProfile(name="test-mine", make_env=lambda **_: PushBlocksEnv((3, 8, 8)))
+    register_env_profile(mine)
+    try:
+        assert env_profile("test-mine") is mine
+        with pytest.raises(ValueError, match="already registered"):
+            register_env_profile(EnvProfile(name="test-mine", make_env=lambda **_: None))
+    finally:
+        from dorp_rl.envs import profile as profiles
+
+        del profiles._REGISTRY["test-mine"]
+    with pytest.raises(ValueError, match="must return a TorchRL EnvBase"):
+        EnvProfile(name="bad", make_env=lambda **_: 3).build()

@@ -25,6 +25,7 @@ from dorp_rl.trainers import (
     WorldModelConfig,
     WorldModelTrainer,
 )
+from dorp_rl.trainers.base import EnvName
 from dorp_rl.validation import Choice, Device, Flag, Float, Int, Ints, Seed, Text
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -66,6 +67,13 @@ def bad_values(rule) -> list:
         low = 1 if rule.low is None else rule.low
         out = [((low, low - 1), f">= {low}"), ((low, 2.5), "integer")]
         return out + ([((), "at least")] if rule.min_length > 0 else [])
+    if isinstance(rule, EnvName):
+        return [
+            ("no-such-env", "neither a registered profile"),
+            ("no_such_module_xyz:make_env", "cannot import"),
+            ("dorp_rl.envs:no_such_factory", "has no attribute"),
+            (3, "profile name or import path"),
+        ]
     if isinstance(rule, Nested):  # the nested config's own bad values, given as a dict
         nested = [
             ({k: v}, text) for k, r in rule.cls.FIELD_RULES.items() for v, text in bad_values(r)

@@ -265,7 +265,7 @@ def always_right(td: TensorDictBase) -> TensorDictBase:
 
 @pytest.mark.parametrize("env", ["env", None, 4, TensorDict()])
 def test_make_task_set_needs_an_env(env):
-    with pytest.raises(ValueError, match="env must be a dorp_rl GridWorldEnv"):
+    with pytest.raises(ValueError, match="env must be a TorchRL EnvBase"):
         make_task_set(env, 4)
 
 
@@ -275,14 +275,14 @@ def test_evaluators_need_an_env_and_a_policy():
     for policy in ("random", None, 3):
         with pytest.raises(ValueError, match="policy must be a TensorDict policy"):
             evaluate_policy(env, policy, tasks)
-    with pytest.raises(ValueError, match="env must be a dorp_rl GridWorldEnv"):
+    with pytest.raises(ValueError, match="env must be a TorchRL EnvBase"):
         evaluate_policy("env", greedy, tasks)
     spec = EvalSpec("1obj", "random")
     with pytest.raises(ValueError, match="make_env must be a callable"):
         evaluate_parallel("1obj", spec.make_policy, tasks)
     with pytest.raises(ValueError, match="make_policy must be a callable"):
         evaluate_parallel(spec.make_env, "random", tasks)
-    with pytest.raises(ValueError, match=r"the env of make_env\(\) must be a dorp_rl GridWorldEnv"):
+    with pytest.raises(ValueError, match=r"the env of make_env\(\) must be a TorchRL EnvBase"):
         evaluate_parallel(lambda: "env", spec.make_policy, tasks, workers=2)
 
 

@@ -265,7 +265,7 @@ def test_bad_arguments_get_clear_errors(dorp_spec, monkeypatch):
         evaluate_parallel(spec.make_env, spec.make_policy, tasks, backend="ray", workers=2, **run)
     with pytest.raises(ValueError, match="method must be one of"):
         EvalSpec("1obj", "magic")
-    with pytest.raises(ValueError, match="setting must be one of"):
+    with pytest.raises(ValueError, match="setting .9obj. is none of"):
         EvalSpec("9obj", "random")
     with pytest.raises(ValueError, match="'dorp' needs encoder"):
         EvalSpec("1obj", "dorp", encoder="oracle")

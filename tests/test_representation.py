@@ -481,7 +481,7 @@ def test_config_presets_and_validation():
     assert RepresentationConfig.rearrangement(1).code_sizes == (16,)
     assert RepresentationConfig.key_wall().code_sizes == (16, 2)
     assert RepresentationConfig.key_corridor().env == "key-corridor"
-    with pytest.raises(ValueError, match="env must be one of"):
+    with pytest.raises(ValueError, match="env must be an env profile name or import path"):
         RepresentationConfig(env="maze").validate()
     with pytest.raises(ValueError, match="unknown RepresentationConfig fields"):
         RepresentationConfig.from_dict({"colour": 1})

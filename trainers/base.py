@@ -14,17 +14,43 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
+from torchrl.envs import EnvBase
 from torchrl.trainers import TrainerHookBase
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.config import ConfigMixin, config_differences, format_differences
-from dorp_rl.envs import ENV_NAMES, GridWorldEnv, env_class, make_env
+from dorp_rl.envs import (
+    EnvProfile,
+    env_identity,
+    env_profile,
+    register_env_profile,
+    registered_profiles,
+)
 from dorp_rl.integrity import DirectoryLock, IntegrityError
 from dorp_rl.progress import progress_bar
-from dorp_rl.validation import Choice, Device, Flag, Int, Seed, Text
+from dorp_rl.validation import Device, Flag, Int, Seed, Text
 
 #: Upper bound of ``num_objects`` (the default colour palette).
 MAX_OBJECTS = 8
+
+
+@dataclass(frozen=True)
+class EnvName:
+    """Rule of an ``env`` field: a registered profile name or an import path
+    ``"package.module:attribute"`` (:func:`~dorp_rl.envs.env_profile`)."""
+
+    def __call__(self, name: str, value: Any) -> str:
+        if isinstance(value, EnvProfile):  # kept by name: registered so that it resolves
+            if value.name not in registered_profiles():
+                register_env_profile(value)
+            value = value.name
+        if not isinstance(value, str) or not value:
+            raise ValueError(f"{name} must be an env profile name or import path, got {value!r}.")
+        try:
+            env_profile(value)
+        except ValueError as err:
+            raise ValueError(f"{name} must be an env profile name or import path; {err}") from None
+        return value
 
 
 @dataclass
@@ -35,13 +61,15 @@ class TrainerConfig(ConfigMixin):
     :class:`~dorp_rl.trainers.WorldModelConfig` add their model's config (a nested
     field), loss and optimisation fields. ``num_objects=None`` means
     :attr:`default_num_objects` for rearrangement and 1 for the key rooms (one agent);
-    any other count with a key room would be ignored, so it is refused. Stored configs
-    of older versions (whose key-room presets kept the rearrangement default) are read
-    with ``num_objects=1``.
+    any other count with an env that does not count objects would be ignored, so it is
+    refused. ``env`` is any env profile (:func:`~dorp_rl.envs.env_profile`): a registered
+    name or an import path such as ``"mypkg.envs:make_env"``. Stored configs of older
+    versions (whose key-room presets kept the rearrangement default) are read with
+    ``num_objects=1``.
     """
 
     FIELD_RULES = {
-        "env": Choice(ENV_NAMES),
+        "env": EnvName(),
         "num_objects": Int(low=1, high=MAX_OBJECTS, optional=True),
         "num_frames": Int(low=1),
         "num_envs": Int(low=1),
@@ -61,15 +89,17 @@ class TrainerConfig(ConfigMixin):
 
     # environment and play data
     env: str = "rearrangement"
-    """environment: rearrangement, key-wall or key-corridor"""
+    """environment: a registered profile (rearrangement, key-wall, key-corridor) or an
+    import path 'package.module:attribute' (an EnvProfile or a function building the env)"""
     num_objects: int | None = None
-    """objects of a rearrangement env (None: the config's default; 1 for the key rooms)"""
+    """objects of an env that counts them, such as rearrangement (None: the config's
+    default; 1 for the others)"""
     num_frames: int = 100_000
     """play transitions to collect"""
     num_envs: int = 64
     """envs collecting play data side by side"""
     trajectory_length: int | None = None
-    """steps per play trajectory (None: the env's, 1 for rearrangement)"""
+    """steps per play trajectory (None: the env profile's, 1 for rearrangement)"""
     data_dir: str | None = None
     """folder of the play data (None: kept in memory)"""
     # bookkeeping
@@ -96,19 +126,44 @@ class TrainerConfig(ConfigMixin):
         self.check_num_objects()
 
     def check_num_objects(self) -> None:
-        if self.num_objects is None:
-            self.num_objects = self.default_num_objects if self.env == "rearrangement" else 1
-        elif self.env != "rearrangement" and self.num_objects != 1:
-            raise ValueError(
-                f"num_objects={self.num_objects} applies to env='rearrangement' only; "
-                f"{self.env} has one agent (use num_objects=1 or None)."
-            )
+        profile = self.profile
+        if self.num_objects is None and profile.counts_objects:
+            self.num_objects = self.default_num_objects
+        self.num_objects = profile.resolve_num_objects(self.num_objects)
 
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
-        if values.get("env", "rearrangement") != "rearrangement":
+        if values.get("env", "rearrangement") in ("key-wall", "key-corridor"):
             values["num_objects"] = 1  # it never had an effect on key rooms
         return values
+
+    @classmethod
+    def for_env(
+        cls, env: str | EnvProfile, num_objects: int | None = None, **overrides: Any
+    ) -> Any:
+        """The preset of ``env`` (its profile's overrides of this config), then ``overrides``.
+
+        Examples:
+            >>> from dorp_rl.trainers import RepresentationConfig
+            >>> cfg = RepresentationConfig.for_env("key-wall")
+            >>> cfg.code_sizes, cfg.play_trajectory_length
+            ((16, 2), 1000)
+        """
+        profile = env_profile(env)
+        if num_objects is None and profile.counts_objects:
+            num_objects = cls.default_num_objects
+        base = cls(env=env, num_objects=profile.resolve_num_objects(num_objects))
+        return base.replace(**cls.profile_overrides(profile, base.num_objects)).replace(**overrides)
+
+    @classmethod
+    def profile_overrides(cls, profile: EnvProfile, num_objects: int) -> dict[str, Any]:
+        """The fields of this config that ``profile`` sets (subclasses pick their preset)."""
+        return {}
+
+    @property
+    def profile(self) -> EnvProfile:
+        """The env profile of :attr:`env`."""
+        return env_profile(self.env)
 
     @classmethod
     def pop_flat_fields(
@@ -130,11 +185,12 @@ class TrainerConfig(ConfigMixin):
     @property
     def play_trajectory_length(self) -> int:
         """Steps of each play trajectory: ``trajectory_length`` or the env's default."""
-        return self.trajectory_length or env_class(self.env).PLAY_TRAJECTORY_LENGTH
+        return self.trajectory_length or self.profile.play_trajectory_length
 
-    def make_env(self, **kwargs: Any) -> GridWorldEnv:
-        """The environment this config trains on (``kwargs`` go to :func:`~dorp_rl.envs.make_env`)."""
-        return make_env(self.env, num_objects=self.num_objects, device=self.device, **kwargs)
+    def make_env(self, **kwargs: Any) -> EnvBase:
+        """The environment this config trains on (``kwargs``, such as ``batch_size``, go to
+        the profile's factory, :meth:`~dorp_rl.envs.EnvProfile.build`)."""
+        return self.profile.build(self.num_objects, device=self.device, **kwargs)
 
 
 class TrainerHook(TrainerHookBase):
@@ -235,7 +291,7 @@ class OfflineTrainer:
     #: config fields a resume takes from the new config, with a warning
     resume_adjustable_fields: ClassVar[tuple[str, ...]] = ("num_steps",)
 
-    def __init__(self, config: Any, env: GridWorldEnv, logger: Any | None = None) -> None:
+    def __init__(self, config: Any, env: EnvBase, logger: Any | None = None) -> None:
         self.config = config
         self.env = env
         self.out_dir = Path(config.out_dir)
@@ -346,7 +402,7 @@ class OfflineTrainer:
             path or self.checkpoint_path,
             kind=self.kind,
             config=self.config.to_dict(),
-            env_config=self.env.config(),
+            env_config=env_identity(self.env),
             state=self.state_dict(),
             step=self.step,
             rng={"torch": torch.get_rng_state(), "data": self.data_generator.get_state()},
@@ -372,7 +428,7 @@ class OfflineTrainer:
         """
         path = path or self.checkpoint_path
         payload = load_checkpoint(
-            path, kind=self.kind, env_config=self.env.config(), state_keys=self.state_keys
+            path, kind=self.kind, env_config=env_identity(self.env), state_keys=self.state_keys
         )
         rng = payload.get("rng") or {}
         missing = [k for k in ("torch", "data") if k not in rng]

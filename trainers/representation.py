@@ -11,30 +11,18 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 from torchrl.data import TensorDictReplayBuffer
+from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
-from dorp_rl.envs import GridWorldEnv
+from dorp_rl.envs import env_identity
 from dorp_rl.eval.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
-from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed
-
-#: What the key-room presets share: the motion-coverage term (puts the agent's object map
-#: on the agent), the map-sparsity and code-usage terms, and a collapse restart when the
-#: agent one-hot is left with a few codes.
-KEY_ROOM_RECIPE: dict[str, Any] = {
-    "max_offset": 4,
-    "motion_weight": 1.0,
-    "sparsity_weight": 5.0,
-    "usage_weight": 1.0,
-    "num_steps": 3000,
-    "collapse_check_after": 500,
-    "collapse_min_codes": 4,
-}
+from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed, frame_shape_of
 
 #: Flat fields of older representation configs that now live in ``encoder``.
 _FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extractor_kernel_size")
@@ -162,42 +150,25 @@ class RepresentationConfig(TrainerConfig):
     """play frames scoring each screened initialisation"""
 
     @classmethod
+    def profile_overrides(cls, profile: Any, num_objects: int) -> dict[str, Any]:
+        """The env profile's code preset (:attr:`~dorp_rl.envs.EnvProfile.codes`)."""
+        return profile.code_overrides(num_objects)
+
+    @classmethod
     def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
-        """k-object rearrangement: one-step play pairs, one one-hot per object (maps compete with several)."""
-        base = cls(
-            env="rearrangement",
-            num_objects=num_objects,
-            encoder=EncoderConfig.small(
-                (16 if num_objects == 1 else 32,),
-                map_competition="softmax" if num_objects > 1 else "sigmoid",
-            ),
-            exclusivity_weight=3.0 if num_objects > 1 else 0.0,
-        )
-        return base.replace(**overrides)
+        """k-object rearrangement: one-step play pairs, one one-hot per object (maps compete
+        with several); the preset of its env profile."""
+        return cls.for_env("rearrangement", num_objects, **overrides)
 
     @classmethod
     def key_wall(cls, **overrides: Any) -> RepresentationConfig:
         """Key-wall: 4-step pairs from long random walks, a 16-code agent one-hot plus a key bit."""
-        base = cls(
-            env="key-wall",
-            num_objects=1,
-            encoder=EncoderConfig.small((16,)),
-            num_frames=64_000,
-            **KEY_ROOM_RECIPE,
-        )
-        return base.replace(**overrides)
+        return cls.for_env("key-wall", **overrides)
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> RepresentationConfig:
         """Key-corridor: the key-wall recipe with a 32-code agent one-hot and more play data."""
-        base = cls(
-            env="key-corridor",
-            num_objects=1,
-            encoder=EncoderConfig.small((32,)),
-            num_frames=96_000,
-            **KEY_ROOM_RECIPE,
-        )
-        return base.replace(**overrides)
+        return cls.for_env("key-corridor", **overrides)
 
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -224,31 +195,28 @@ class RepresentationConfig(TrainerConfig):
 
     @property
     def code_sizes(self) -> tuple[int, ...]:
-        """Codes of each one-hot: ``encoder.code_sizes``, one number laid out by the env."""
-        sizes = tuple(self.encoder.code_sizes)
-        return self._layout(sizes[0]) if len(sizes) == 1 else sizes
-
-    def _layout(self, size: int) -> tuple[int, ...]:
-        if self.env == "rearrangement":
-            return (size,) * self.num_objects
-        return (size, 2)
+        """Codes of each one-hot: ``encoder.code_sizes``, one number laid out by the env
+        profile's :attr:`~dorp_rl.envs.EnvProfile.code_layout`."""
+        return self.profile.code_sizes(tuple(self.encoder.code_sizes), self.num_objects)
 
     def check_relations(self) -> None:
         """Rules between fields; each message names the fields and what they allow."""
         super().check_relations()
         sizes = tuple(self.encoder.code_sizes)
-        if len(sizes) > 1:
-            expected = self._layout(sizes[0])
-            if len(sizes) != len(expected) or (self.env != "rearrangement" and sizes[1] != 2):
-                shape = (
-                    f"{self.num_objects} one-hot(s), one per object"
-                    if self.env == "rearrangement"
-                    else "an agent one-hot and a 2-way key bit, e.g. (16, 2)"
-                )
+        layout = self.profile.code_layout
+        if len(sizes) > 1 and layout is not None:
+            expected = tuple(layout(sizes[0], self.num_objects))
+            # Entries the layout gives whatever the number (a key bit's 2) are fixed.
+            bigger = layout(sizes[0] + 1, self.num_objects)
+            fixed = [a == b for a, b in zip(expected, bigger, strict=True)]
+            fits = len(sizes) == len(expected) and all(
+                s == e for s, e, f in zip(sizes, expected, fixed, strict=True) if f
+            )
+            if not fits:
                 raise ValueError(
                     f"encoder.code_sizes {sizes} does not fit env={self.env!r} with "
-                    f"num_objects={self.num_objects}: it needs {shape}, or one number, the "
-                    "size of every object one-hot."
+                    f"num_objects={self.num_objects}: its layout is like {expected} (for one "
+                    f"number {sizes[0]}); give sizes of that form, or one number."
                 )
         if not self.min_offset <= self.max_offset <= self.play_trajectory_length:
             raise ValueError(
@@ -277,7 +245,7 @@ class RepresentationConfig(TrainerConfig):
 
 
 def diagnose(
-    env: GridWorldEnv, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
+    env: EnvBase, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
 ) -> dict:
     """Ground-truth diagnostics of an encoder's codes on ``env``: those of the kind the env
     declares (:func:`~dorp_rl.eval.diagnostics.ground_truth_diagnostics`)."""
@@ -467,7 +435,7 @@ class CandidateScreening(TrainerHook):
             payload = load_checkpoint(
                 best["path"],
                 kind=trainer.kind,
-                env_config=trainer.env.config(),
+                env_config=env_identity(trainer.env),
                 state_keys=trainer.state_keys,
             )
             trainer.load_state_dict(payload["state"])
@@ -544,7 +512,12 @@ class RepresentationTrainer(OfflineTrainer):
         logger: Any | None = None,
     ) -> None:
         config.validate()
-        super().__init__(config, config.make_env(batch_size=(config.num_envs,)), logger)
+        env = config.make_env(batch_size=(config.num_envs,))
+        frame_shape = frame_shape_of(env)
+        if tuple(config.encoder.frame_shape) != frame_shape:
+            # The encoder is sized by the env's frames; the checkpoint's config says so.
+            config = config.replace(encoder={"frame_shape": frame_shape})
+        super().__init__(config, env, logger)
         self.device = torch.device(config.device)
         self.sampler = FuturePairSampler(config.min_offset, config.max_offset)
         if buffer is not None:
@@ -556,7 +529,7 @@ class RepresentationTrainer(OfflineTrainer):
                 config.num_frames,
                 directory=config.data_dir,
                 seed=config.seed,
-                trajectory_length=config.trajectory_length,
+                trajectory_length=config.play_trajectory_length,
                 sampler=self.sampler,
                 batch_size=config.batch_size,
                 progress=config.progress,
@@ -580,7 +553,7 @@ class RepresentationTrainer(OfflineTrainer):
         cfg = self.config
         torch.manual_seed(seed)
         self.encoder = DiscreteCodeEncoder(cfg.encoder_config()).to(self.device)
-        self.encoder.env_config = self.env.config()
+        self.encoder.env_config = env_identity(self.env)
         sim_kwargs: dict[str, Any] = {}
         if cfg.similarity == "dddp":
             sim_kwargs = {"alpha": cfg.alpha, "sign": cfg.dddp_sign}
@@ -763,6 +736,14 @@ class RepresentationTrainer(OfflineTrainer):
         step a resume went on from, ``None`` for a fresh run).
         """
         result = super().train(resume=resume)
+        dead = (result.get("evaluation") or {}).get("dead_onehots") or []
+        if dead:
+            warnings.warn(
+                f"one-hot(s) {dead} never change along the play data: they code nothing "
+                "about play (dead); two-code one-hots such as a key bit are counted too.",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         metrics = result["metrics"]
         final_reason = self.collapse_hook.reason(metrics) if metrics else None
         if final_reason is not None:
@@ -787,19 +768,35 @@ class RepresentationTrainer(OfflineTrainer):
         return self.config.diagnostics_every
 
     def evaluate(self) -> dict[str, Any]:
-        """The ground-truth diagnostics of the current encoder (see :func:`diagnose`)."""
-        return diagnose(
-            self.config.make_env(),
-            self.encoder,
-            num_samples=self.config.diagnostics_samples,
-            seed=self.config.seed,
-        )
+        """Diagnostics of the current encoder: always the label-free code dynamics of
+        ``diagnostics_samples`` play transitions (``code_dynamics``: codes used, change
+        and undo rates and ``dead`` one-hots per one-hot, two-code ones included,
+        :func:`~dorp_rl.eval.code_dynamics`), and the ground-truth diagnostics when the
+        env declares them (:func:`diagnose`; never computed on another env's states)."""
+        from dorp_rl.eval.code_information import play_code_dynamics
+
+        env = self.config.make_env()
+        result: dict[str, Any] = {}
+        if getattr(env, "DIAGNOSTICS", None) is not None:
+            result = diagnose(
+                env,
+                self.encoder,
+                num_samples=self.config.diagnostics_samples,
+                seed=self.config.seed,
+            )
+        n = min(len(self.buffer), self.config.diagnostics_samples)
+        was_training = self.encoder.training
+        dynamics = play_code_dynamics(self.buffer[:n], self.encoder.eval())
+        self.encoder.train(was_training)
+        result["code_dynamics"] = dynamics
+        result["dead_onehots"] = [i for i, dead in enumerate(dynamics["dead"]) if dead]
+        return result
 
     diagnose = evaluate
 
 
 def load_encoder(
-    path: str | Path, env: GridWorldEnv | None = None, device: str | torch.device = "cpu"
+    path: str | Path, env: EnvBase | None = None, device: str | torch.device = "cpu"
 ) -> DiscreteCodeEncoder:
     """The trained encoder of a representation checkpoint, in eval mode.
 
@@ -818,7 +815,7 @@ def load_encoder(
     payload = load_checkpoint(
         path,
         kind="representation",
-        env_config=None if env is None else env.config(),
+        env_config=None if env is None else env_identity(env),
         state_keys=("encoder",),
     )
     cfg = RepresentationConfig.from_dict(payload["config"])

@@ -10,6 +10,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
+from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested
@@ -20,7 +21,7 @@ from dorp_rl.data import (
     collect_play_data,
     play_segment_length,
 )
-from dorp_rl.envs import GridWorldEnv, make_env
+from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.eval.world_model import open_loop_accuracy
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
@@ -134,9 +135,14 @@ class WorldModelConfig(TrainerConfig):
     """training steps"""
 
     @classmethod
+    def profile_overrides(cls, profile: Any, num_objects: int) -> dict[str, Any]:
+        """The env profile's world-model preset (:attr:`~dorp_rl.envs.EnvProfile.world_model`)."""
+        return profile.world_model_overrides(num_objects)
+
+    @classmethod
     def rearrangement(cls, num_objects: int = 3, **overrides: Any) -> WorldModelConfig:
         """k-object rearrangement: 16-step random-action trajectories, 14-step windows."""
-        return cls(env="rearrangement", num_objects=num_objects).replace(**overrides)
+        return cls.for_env("rearrangement", num_objects, **overrides)
 
     @classmethod
     def key_wall(cls, **overrides: Any) -> WorldModelConfig:
@@ -145,14 +151,12 @@ class WorldModelConfig(TrainerConfig):
         About 1% of uniform windows hold a key pickup (the door opening with it);
         ``event_share=0.25`` puts one in every fourth window.
         """
-        return cls(env="key-wall", num_objects=1, trajectory_length=1000, event_share=0.25).replace(
-            **overrides
-        )
+        return cls.for_env("key-wall", **overrides)
 
     @classmethod
     def key_corridor(cls, **overrides: Any) -> WorldModelConfig:
         """Key-corridor: windows from the 1500-step random walks of the play data."""
-        return cls(env="key-corridor", num_objects=1, trajectory_length=1500).replace(**overrides)
+        return cls.for_env("key-corridor", **overrides)
 
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -268,9 +272,9 @@ class WorldModelTrainer(OfflineTrainer):
         torch.manual_seed(config.seed)
         self.data_generator.manual_seed(derive_seed(config.seed, 1))
         palette = palette_from_frames(buffer[: min(len(buffer), 20_000)]["pixels"])
-        self.model = VideoPredictionModel(self.env.num_actions, palette, config.model_config()).to(
-            self.device
-        )
+        self.model = VideoPredictionModel(
+            DiscreteActions.of(self.env).num_actions, palette, config.model_config()
+        ).to(self.device)
         self.loss = VideoPredictionLoss(
             self.model,
             open_loop_length=1,
@@ -390,7 +394,7 @@ def event_windows(
 
 
 def load_video_model(
-    path: str | Path, env: GridWorldEnv | None = None, device: str | torch.device = "cpu"
+    path: str | Path, env: EnvBase | None = None, device: str | torch.device = "cpu"
 ) -> VideoPredictionModel:
     """The trained video model of a world-model checkpoint, in eval mode.
 
@@ -409,14 +413,14 @@ def load_video_model(
     payload = load_checkpoint(
         path,
         kind=WorldModelTrainer.kind,
-        env_config=None if env is None else env.config(),
+        env_config=None if env is None else env_identity(env),
         state_keys=("model",),
     )
     cfg = WorldModelConfig.from_dict(payload["config"])
     state = payload["state"]["model"]
     if "palette" not in state:
         raise IntegrityError(f"checkpoint {path} is incomplete: its model has no 'palette'.")
-    num_actions = make_env(cfg.env, num_objects=cfg.num_objects).num_actions
+    num_actions = DiscreteActions.of(cfg.make_env()).num_actions
     model = VideoPredictionModel(num_actions, state["palette"], cfg.model_config())
     load_module_state(model, state, path, "model")
     return model.to(device).eval()

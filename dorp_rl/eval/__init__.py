@@ -22,7 +22,7 @@ from dorp_rl.eval.failures import (
 )
 from dorp_rl.eval.parallel import BACKENDS, EvalSpec, evaluate_parallel
 from dorp_rl.eval.results import RESULT_COLUMNS, format_table, result_row, write_results
-from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting
+from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting, setting_of
 from dorp_rl.eval.tasks import (
     check_task_set,
     evaluate_policy,
@@ -40,6 +40,7 @@ __all__ = [
     "PAPER_SUCCESS",
     "RESULT_COLUMNS",
     "SETTINGS",
+    "setting_of",
     "Setting",
     "failure_section",
     "format_failures",

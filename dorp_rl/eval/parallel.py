@@ -57,9 +57,9 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
 
-from dorp_rl.envs.grid_base import GridWorldEnv
-from dorp_rl.eval.settings import SETTINGS
+from dorp_rl.eval.settings import setting_of
 from dorp_rl.eval.tasks import (
     _ChunkFile,
     check_env,
@@ -67,6 +67,7 @@ from dorp_rl.eval.tasks import (
     check_task_set,
     evaluate_policy,
     summarize_chunks,
+    task_limit,
 )
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
@@ -85,7 +86,8 @@ class EvalSpec:
     """A picklable recipe for the acting env and a policy, rebuilt inside every worker.
 
     Attributes:
-        setting: a :data:`~dorp_rl.eval.SETTINGS` name (environment and object count).
+        setting: a :data:`~dorp_rl.eval.SETTINGS` name (environment and object count), or
+            an env profile's name or import path (:func:`~dorp_rl.eval.setting_of`).
         method: ``"dorp"``, ``"vf-rs"``, ``"vf-cem"`` or ``"random"``.
         encoder: DORP only: ``"oracle"`` (:class:`~dorp_rl.modules.OracleCodeEncoder`
             with ``oracle_cell_size``), a representation checkpoint path, or an encoder.
@@ -127,7 +129,7 @@ class EvalSpec:
     oracle_cell_size: int = 4
 
     def __post_init__(self) -> None:
-        check_choice("setting", self.setting, sorted(SETTINGS))
+        setting_of(self.setting)  # a setting or an env profile, else named
         check_choice("method", self.method, METHODS)
         check_choice("dorp_planner", self.dorp_planner, ("rs", "cem"))
         for name in ("tasks_per_rollout", "candidates", "planning_horizon", "waypoint_budget"):
@@ -144,13 +146,13 @@ class EvalSpec:
                 f"low_level must be 'gt' or a world-model checkpoint file, got {self.low_level!r}."
             )
 
-    def make_env(self) -> GridWorldEnv:
+    def make_env(self) -> EnvBase:
         """The acting env, ``batch_size=(tasks_per_rollout,)``."""
-        return SETTINGS[self.setting].make_env(
+        return setting_of(self.setting).make_env(
             batch_size=(self.tasks_per_rollout,), seed=self.seed, **self.env_kwargs
         )
 
-    def make_policy(self, env: GridWorldEnv) -> Policy:
+    def make_policy(self, env: EnvBase) -> Policy:
         """The policy of :attr:`method` for ``env`` (``env.rand_action`` for random)."""
         from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy, make_planning_env
 
@@ -162,17 +164,18 @@ class EvalSpec:
                 from dorp_rl.modules import OracleCodeEncoder
 
                 encoder = OracleCodeEncoder(env, cell_size=self.oracle_cell_size)
+            suited = dict(setting_of(self.setting).profile.dorp)  # the env's DORP settings
             return make_dorp_policy(
                 env,
                 encoder,
                 self.graph,
+                **{**suited, **self.planner_kwargs},
                 low_level=self.low_level,
                 planner=self.dorp_planner,
                 planning_horizon=self.planning_horizon,
                 num_candidates=self.candidates,
                 waypoint_budget=self.waypoint_budget,
                 seed=self.seed,
-                **self.planner_kwargs,
             )
         return VisualForesightPolicy(
             make_planning_env(env, self.low_level),
@@ -190,8 +193,8 @@ class _ChunkRunner:
 
     def __init__(
         self,
-        make_env: Callable[[], GridWorldEnv],
-        make_policy: Callable[[GridWorldEnv], Policy],
+        make_env: Callable[[], EnvBase],
+        make_policy: Callable[[EnvBase], Policy],
         options: dict[str, Any],
     ) -> None:
         torch.set_num_threads(1)
@@ -247,8 +250,8 @@ def exit_with_parent() -> None:
 
 
 def _init_local_worker(
-    make_env: Callable[[], GridWorldEnv],
-    make_policy: Callable[[GridWorldEnv], Policy],
+    make_env: Callable[[], EnvBase],
+    make_policy: Callable[[EnvBase], Policy],
     options: dict[str, Any],
 ) -> None:
     global _RUNNER
@@ -344,8 +347,8 @@ def _run_ray(
 
 # --------------------------------------------------------------------------- entry point
 def evaluate_parallel(
-    make_env: Callable[[], GridWorldEnv],
-    make_policy: Callable[[GridWorldEnv], Policy],
+    make_env: Callable[[], EnvBase],
+    make_policy: Callable[[EnvBase], Policy],
     tasks: TensorDictBase,
     *,
     seed: int = 0,
@@ -445,7 +448,7 @@ def evaluate_parallel(
 
     # Check the env here, before any worker starts, and resolve the step limit.
     env = check_env(make_env(), "the env of make_env()")
-    limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
+    limit = task_limit(env, max_steps)
     check_rollout_batch(env, tasks_per_rollout, name="the env of make_env()")
     check_task_set(tasks, env)
     del env

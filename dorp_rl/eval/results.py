@@ -222,7 +222,7 @@ def pool_seeds(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def steps_over_bound(result: dict[str, Any], tasks: TensorDictBase) -> float:
     """Mean over the solved tasks of steps taken / the task's lower bound (``nan`` if none)."""
     solved = torch.tensor(result["success"], dtype=torch.bool)
-    if not bool(solved.any()):
+    if not bool(solved.any()) or "lower_bound" not in tasks.keys():
         return math.nan
     steps = torch.tensor(result["steps"], dtype=torch.float32)
     bound = tasks["lower_bound"].float()

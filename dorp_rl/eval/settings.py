@@ -11,16 +11,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from dorp_rl.envs import GridWorldEnv, make_env
+from torchrl.envs import EnvBase
+
+from dorp_rl.envs import EnvProfile, env_profile
 
 
 @dataclass(frozen=True)
 class Setting:
-    """One planning setting.
+    """One planning setting: an env profile, its object count and the graph's groups.
 
     Attributes:
-        env: environment name (:func:`~dorp_rl.envs.make_env`).
-        num_objects: objects of a rearrangement setting (1 for the key rooms).
+        env: env profile name or import path (:func:`~dorp_rl.envs.env_profile`).
+        num_objects: objects of an env that counts them (1 for the others).
         groups: graph groups (:meth:`~dorp_rl.planners.CodeGraph.from_play_data`):
             ``"onehot"``, ``"full"`` or tuples of one-hot indices.
         paper: the paper's figure for DORP, for comparison in result tables.
@@ -39,36 +41,52 @@ class Setting:
     groups: Any
     paper: str
 
+    @classmethod
+    def of_env(cls, env: str | EnvProfile, num_objects: int | None = None) -> Setting:
+        """The setting of an env profile: its object count (default: the profile's) and
+        its graph groups, no paper figure."""
+        profile = env_profile(env)
+        count = profile.resolve_num_objects(num_objects)
+        name = env if isinstance(env, str) else profile.name
+        return cls(name, count, profile.graph_groups(count), "")
+
+    @property
+    def profile(self) -> EnvProfile:
+        """The env profile of this setting."""
+        return env_profile(self.env)
+
     def representation_config(self, **overrides: Any):
-        """The representation preset of this setting, with the step and data budgets of
-        the representation benchmark's runs (docs/RESULTS.md), then ``overrides``."""
+        """The representation preset of this setting's env profile, then ``overrides``."""
         from dorp_rl.trainers import RepresentationConfig
 
-        if self.env == "key-wall":
-            return RepresentationConfig.key_wall(**overrides)
-        if self.env == "key-corridor":
-            return RepresentationConfig.key_corridor(**overrides)
-        budget = {
-            "num_steps": {1: 1500, 2: 1500, 3: 2000, 6: 4000}.get(self.num_objects, 3000),
-            "num_frames": {1: 60_000, 2: 100_000, 3: 150_000, 6: 250_000}.get(
-                self.num_objects, 200_000
-            ),
-        }
-        return RepresentationConfig.rearrangement(self.num_objects, **{**budget, **overrides})
+        return RepresentationConfig.for_env(self.env, self.num_objects, **overrides)
 
     def world_model_config(self, **overrides: Any):
-        """The world-model preset of this setting, then ``overrides``."""
+        """The world-model preset of this setting's env profile, then ``overrides``."""
         from dorp_rl.trainers import WorldModelConfig
 
-        if self.env == "key-wall":
-            return WorldModelConfig.key_wall(**overrides)
-        if self.env == "key-corridor":
-            return WorldModelConfig.key_corridor(**overrides)
-        return WorldModelConfig.rearrangement(self.num_objects, **overrides)
+        return WorldModelConfig.for_env(self.env, self.num_objects, **overrides)
 
-    def make_env(self, **kwargs: Any) -> GridWorldEnv:
+    def make_env(self, **kwargs: Any) -> EnvBase:
         """The acting environment of this setting."""
-        return make_env(self.env, num_objects=self.num_objects, **kwargs)
+        return self.profile.build(self.num_objects, **kwargs)
+
+
+def setting_of(name: str) -> Setting:
+    """The setting called ``name``: one of :data:`SETTINGS`, else the setting of the env
+    profile ``name`` (a registered profile or an import path, :meth:`Setting.of_env`).
+
+    Raises:
+        ValueError: ``name`` is neither, naming the settings.
+    """
+    if name in SETTINGS:
+        return SETTINGS[name]
+    try:
+        return Setting.of_env(name)
+    except ValueError as err:
+        raise ValueError(
+            f"setting {name!r} is none of {sorted(SETTINGS)} and no env profile: {err}"
+        ) from None
 
 
 SETTINGS: dict[str, Setting] = {

@@ -1,10 +1,14 @@
 """Seeded task sets and the evaluation harness: success rate and steps of a policy.
 
 A task is a start ``state`` and a ``goal_state``; a task set is a TensorDict of them
-(``[num_tasks]``), drawn from the environment's own start and goal distributions with
-a fixed seed, so every method is measured on the same tasks. :func:`evaluate_policy`
-runs a policy on every task with ``env.rollout`` (success = exact equality with the goal
-within the step limit) and reports the steps next to the lower bound of each task.
+(``[num_tasks]``), drawn by the env's profile (:attr:`~dorp_rl.envs.EnvProfile.draw_tasks`,
+by default the env's own reset) with a fixed seed, so every method is measured on the
+same tasks. :func:`evaluate_policy` runs a policy on every task with ``env.rollout``
+from ``env.reset(tasks, set_state=True)`` and counts a task solved when the env says so
+within the step limit (its ``success`` entry, else ``terminated``); it reports the steps
+next to the lower bound of each task when the profile knows one. Any TorchRL env that
+starts from a given ``state`` / ``goal_state`` on ``reset(td, set_state=True)`` can be
+evaluated.
 
 Seeding rule: with ``seed`` given, :func:`evaluate_policy` reseeds the policy before the
 chunk of tasks ``[k * tasks_per_rollout, (k + 1) * tasks_per_rollout)`` with ``seed + k``
@@ -25,8 +29,9 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
 
-from dorp_rl.envs.grid_base import GridWorldEnv
+from dorp_rl.envs.profile import EnvProfile, profile_of
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import MissingKeyError, check_int, check_seed, derive_seed
 
@@ -44,14 +49,45 @@ def seed_policy(policy: Any, seed: int) -> None:
         torch.manual_seed(seed)
 
 
-def check_env(env: Any, name: str = "env") -> GridWorldEnv:
-    """``env`` if it is a dorp_rl :class:`~dorp_rl.envs.GridWorldEnv`, else ``ValueError`` naming ``name``."""
-    if not isinstance(env, GridWorldEnv):
+def check_env(env: Any, name: str = "env") -> EnvBase:
+    """``env`` if it is a TorchRL env that tasks can be set on (it writes ``state`` and
+    ``goal_state`` and starts from them on ``reset(td, set_state=True)``), else
+    ``ValueError`` naming ``name`` and what is missing."""
+    if not isinstance(env, EnvBase):
         raise ValueError(
-            f"{name} must be a dorp_rl GridWorldEnv (e.g. ObjectRearrangementEnv(num_objects=2) "
-            f"or make_env('key-wall')), got {type(env).__name__} {env!r:.60}."
+            f"{name} must be a TorchRL EnvBase (e.g. ObjectRearrangementEnv(num_objects=2), "
+            f"make_env('key-wall') or your own), got {type(env).__name__} {env!r:.60}."
+        )
+    keys = set(env.observation_spec.keys())
+    missing = [k for k in ("state", "goal_state") if k not in keys]
+    if missing:
+        raise ValueError(
+            f"{name} ({type(env).__name__}) has no {missing} in its observation spec: a task "
+            "is a start state and a goal state the env is reset to (reset(td, set_state=True))."
+        )
+    if not getattr(env, "_supports_set_state", False):
+        raise ValueError(
+            f"{name} ({type(env).__name__}) does not declare _supports_set_state = True: "
+            "tasks start from given states through env.reset(td, set_state=True)."
         )
     return env
+
+
+def task_limit(env: EnvBase, max_steps: int | None = None) -> int:
+    """The step limit of a task on ``env``: ``max_steps``, else the env's ``max_steps``,
+    else its profile's (:meth:`~dorp_rl.envs.EnvProfile.task_limit`)."""
+    if max_steps is not None:
+        return check_int("max_steps", max_steps, low=1)
+    limit = getattr(env, "max_steps", None)
+    if limit is None:
+        profile = profile_of(env)
+        limit = profile.task_limit(env=env) if profile is not None else 200
+    return check_int("max_steps", limit, low=1)
+
+
+def _state_shape(env: EnvBase) -> tuple[int, ...]:
+    spec = env.observation_spec["state"]
+    return tuple(spec.shape[len(env.batch_size) :])
 
 
 def check_policy(policy: Any, name: str = "policy") -> Callable[[TensorDictBase], TensorDictBase]:
@@ -66,16 +102,15 @@ def check_policy(policy: Any, name: str = "policy") -> Callable[[TensorDictBase]
     return policy
 
 
-def check_task_set(
-    tasks: Any, env: GridWorldEnv | None = None, name: str = "tasks"
-) -> TensorDictBase:
+def check_task_set(tasks: Any, env: EnvBase | None = None, name: str = "tasks") -> TensorDictBase:
     """Checks a task set (:func:`make_task_set`) before anything runs on it; returns it.
 
     A task set is a TensorDict ``[num_tasks]`` (``num_tasks >= 1``) holding int64
     ``state`` and ``goal_state``; its optional ``lower_bound`` holds one finite number
     ``>= 0`` per task (steps cannot be negative, and a NaN bound would be averaged into
     ``mean_lower_bound``). With ``env``, starts and goals must be states of ``env``: its
-    state shape, on the grid and by its rules (:meth:`~GridWorldEnv.check_state`).
+    state shape and, when the env declares ``check_state``, its rules (the grid worlds'
+    :meth:`~dorp_rl.envs.GridWorldEnv.check_state`).
 
     Raises:
         ValueError: naming ``name``, the entry and what it must be.
@@ -118,9 +153,12 @@ def check_task_set(
                 f"env cannot reach), got {bound[first].item()} at task {first}."
             )
     if env is not None:
-        shape = (tasks.shape[0], *env.state_shape)
+        shape = (tasks.shape[0], *_state_shape(env))
+        check_state = getattr(env, "check_state", None)
         for key in ("state", "goal_state"):
-            value = env.check_state(tasks.get(key), f"{name}[{key!r}]")
+            value = tasks.get(key)
+            if callable(check_state):
+                value = check_state(value, f"{name}[{key!r}]")
             if tuple(value.shape) != shape:
                 raise ValueError(
                     f"{name}[{key!r}] must have shape {list(shape)} ([num_tasks, "
@@ -129,16 +167,21 @@ def check_task_set(
     return tasks
 
 
-def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDict:
-    """``num_tasks`` start/goal pairs drawn with ``seed`` from ``env``'s distributions.
+def make_task_set(
+    env: EnvBase, num_tasks: int, seed: int = 0, profile: EnvProfile | None = None
+) -> TensorDictBase:
+    """``num_tasks`` start/goal pairs of ``env`` drawn with ``seed`` by its profile.
 
-    Tasks whose start already equals the goal are redrawn. The env's own generator is
-    left as it was. The task set is checked (:func:`check_task_set`) before it is
-    returned: a lower bound the env gives as negative (an unreachable goal) is refused.
+    ``profile`` (default: the registered profile of ``env``, :func:`~dorp_rl.envs.profile_of`,
+    else the generic one) draws them (:meth:`~dorp_rl.envs.EnvProfile.tasks`): the grid
+    worlds from their start and goal distributions, leaving the env's generator as it was;
+    by default what ``env.reset()`` draws after ``env.set_seed(seed)``. Starts equal to
+    their goal are redrawn. The task set is checked (:func:`check_task_set`) before it is
+    returned: a lower bound given as negative (an unreachable goal) is refused.
 
     Returns:
-        TensorDict ``[num_tasks]`` with ``state``, ``goal_state`` (int64) and
-        ``lower_bound`` (int64 ``[num_tasks]``, :meth:`~GridWorldEnv.lower_bound_steps`).
+        TensorDict ``[num_tasks]`` with ``state``, ``goal_state`` (int64) and, when the
+        profile knows one, ``lower_bound`` (int64 ``[num_tasks]``).
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -150,36 +193,18 @@ def make_task_set(env: GridWorldEnv, num_tasks: int, seed: int = 0) -> TensorDic
     env = check_env(env)
     num_tasks = check_int("num_tasks", num_tasks, low=1)
     seed = check_seed(seed)
-    saved = env.rng.get_state()
-    env.rng.manual_seed(seed)
+    if profile is None:
+        profile = profile_of(env) or EnvProfile(name=type(env).__name__, make_env=type(env))
+    tasks = profile.tasks(env, num_tasks, seed)
     try:
-        shape = torch.Size([int(num_tasks)])
-        state = env.sample_states(shape)
-        goal = env.sample_goal_states(shape)
-        for _ in range(100):
-            same = env.lower_bound_steps(state, goal) == 0
-            if not bool(same.any()):
-                break
-            goal[same] = env.sample_goal_states(torch.Size([int(same.sum())]))
-        else:
-            raise RuntimeError("could not draw goals different from their starts.")
-    finally:
-        env.rng.set_state(saved)
-    tasks = TensorDict(
-        state=state,
-        goal_state=goal,
-        lower_bound=env.lower_bound_steps(state, goal).reshape(shape).to(torch.int64),
-        batch_size=shape,
-    )
-    try:
-        return check_task_set(tasks)
+        return check_task_set(tasks, env)
     except ValueError as err:
         raise ValueError(
             f"make_task_set: the tasks drawn from {type(env).__name__} are no task set: {err}"
         ) from None
 
 
-def check_rollout_batch(env: GridWorldEnv, tasks_per_rollout: int, name: str = "env") -> None:
+def check_rollout_batch(env: EnvBase, tasks_per_rollout: int, name: str = "env") -> None:
     """Refuses a batch-locked ``env`` whose batch is not ``(tasks_per_rollout,)``.
 
     Raises:
@@ -195,7 +220,7 @@ def check_rollout_batch(env: GridWorldEnv, tasks_per_rollout: int, name: str = "
 
 
 def evaluate_policy(
-    env: GridWorldEnv,
+    env: EnvBase,
     policy: Callable[[TensorDictBase], TensorDictBase],
     tasks: TensorDictBase,
     *,
@@ -265,7 +290,7 @@ def evaluate_policy(
     """
     env = check_env(env)
     policy = check_policy(policy)
-    limit = check_int("max_steps", env.max_steps if max_steps is None else max_steps, low=1)
+    limit = task_limit(env, max_steps)
     tasks_per_rollout = check_int("tasks_per_rollout", tasks_per_rollout, low=1)
     seed = check_seed(seed, optional=True)
     tasks = check_task_set(tasks, env)
@@ -336,7 +361,7 @@ def summarize_chunks(
 
 
 def rollout_chunk(
-    env: GridWorldEnv,
+    env: EnvBase,
     policy: Callable[[TensorDictBase], TensorDictBase],
     chunk: TensorDictBase,
     first: int = 0,
@@ -368,7 +393,7 @@ def rollout_chunk(
         that started at their goal).
     """
     rows = chunk.shape[0]
-    limit = env.max_steps if max_steps is None else max_steps
+    limit = task_limit(env, max_steps)
     tasks_per_rollout = rows if tasks_per_rollout is None else tasks_per_rollout
     locked = env.batch_locked and env.batch_size != torch.Size([])
     if seed is not None:
@@ -381,7 +406,7 @@ def rollout_chunk(
     td = env.reset(given, set_state=True)
     # A task that starts at its goal is solved before any action (the first one may move
     # a block away from it).
-    at_goal = td["success"].reshape(-1)[:rows].cpu()
+    at_goal = _at_goal(td).reshape(-1)[:rows].cpu()
 
     def tick(_env: Any, step: TensorDictBase) -> None:
         # The bar moves as tasks finish, not only per chunk, so it can tell time left.
@@ -402,8 +427,22 @@ def rollout_chunk(
     return rollout, at_goal
 
 
+def succeeded(td: TensorDictBase) -> torch.Tensor:
+    """Bool ``[*B, 1]``: the env's ``success`` where it writes one, else ``terminated``."""
+    key = "success" if "success" in td.keys() else "terminated"
+    return td.get(key).reshape(*td.batch_size, 1).bool()
+
+
+def _at_goal(td: TensorDictBase) -> torch.Tensor:
+    """Bool ``[*B]``: rows of a reset tensordict that start at their goal."""
+    if "success" in td.keys():
+        return td.get("success").reshape(td.batch_size).bool()
+    state, goal = td.get("state"), td.get("goal_state")
+    return (state == goal).reshape(*td.batch_size, -1).all(-1)
+
+
 def _run_chunk(
-    env: GridWorldEnv,
+    env: EnvBase,
     policy: Callable[[TensorDictBase], TensorDictBase],
     chunk: TensorDictBase,
     first: int,
@@ -426,7 +465,7 @@ def _run_chunk(
         bar=bar,
     )
     done = rollout["next", "done"].squeeze(-1)[:rows]  # [rows, T]
-    won = rollout["next", "success"].squeeze(-1)[:rows]
+    won = succeeded(rollout["next"]).squeeze(-1)[:rows]
     t = done.shape[-1]
     first_done = torch.where(
         done.any(-1),

@@ -368,12 +368,12 @@ def _blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
 def _blur_matrix(taps: torch.Tensor, size: int) -> torch.Tensor:
     """``[size, size]`` matrix of a 1-D blur with ``taps``, mirrored at both ends."""
     radius = taps.shape[0] // 2
-    if radius > size:
-        raise ValueError(f"a blur of radius {radius} needs frames of at least that size.")
     source = torch.arange(size, device=taps.device).unsqueeze(1) + torch.arange(
         -radius, radius + 1, device=taps.device
     )
-    source = torch.where(source < 0, -source - 1, source)
+    # Mirrored as often as needed (period 2 * size): a blur wider than a small frame
+    # folds back into it and keeps all of its mass.
+    source = source.remainder(2 * size)
     source = torch.where(source >= size, 2 * size - 1 - source, source)
     matrix = torch.zeros(size, size, dtype=taps.dtype, device=taps.device)
     return matrix.scatter_add_(1, source, taps.expand(size, -1).contiguous())

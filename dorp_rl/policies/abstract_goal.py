@@ -81,7 +81,8 @@ from torch import nn
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, TensorDictPrimer
 
-from dorp_rl.envs.spec import env_identity
+from dorp_rl.envs.profile import profile_of
+from dorp_rl.envs.spec import DiscreteActions, env_identity
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.cem import CategoricalCEMPlanner
@@ -139,8 +140,8 @@ PRIOR_KEY = "subgoal_action_prior"
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
 DORP_RECIPE = 3
-#: make_dorp_policy's recovery settings for an env that declares none (``DORP_OPTIONS``,
-#: a dict of these keys on the env class, overrides them): the paper's loop.
+#: make_dorp_policy's recovery settings for an env whose profile declares none (the
+#: profile's ``dorp``, a dict of these keys, overrides them): the paper's loop.
 GENERIC_DORP_OPTIONS = {"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.0}
 #: make_dorp_policy's ``action_prior_mix`` for graphs with action counts.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
@@ -254,6 +255,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         goal_code_weight: float | None = None,
         goal_patience: int | None = 14,
         action_prior_mix: float = 0.0,
+        actions: DiscreteActions | None = None,
         pixels_key: str = "pixels",
         goal_pixels_key: str = "goal_pixels",
     ) -> None:
@@ -403,6 +405,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 [pixels_key, goal_pixels_key, *planner_keys, *self.state_keys, "is_init", "done"]
             )
         )
+        #: the acting env's action layout: the planners' indices are written in it
+        #: (a one-hot env gets one-hot actions); ``None``: int64 indices ``[*B, 1]``
+        self.actions = actions
         self.out_keys = list(
             dict.fromkeys(
                 ["action", *self.state_keys, *waypoint_planner.state_keys, *goal_planner.state_keys]
@@ -670,6 +675,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         if self.goal_patience is not None:
             self._watch_goal_progress(state, outputs, in_goal)
 
+        if self.actions is not None:
+            action = self.actions.from_index(action)
         out = {"action": action, **state, **outputs}
         for key, value in out.items():
             tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(tensordict.device))
@@ -1143,7 +1150,7 @@ def make_dorp_policy(
             places far apart, so a block can hold its goal code many cells from its goal
             place; the pixel distance then needs more than a fixed budget to get it there.
         reenter, replan_on_miss: see :class:`AbstractGoalPolicy`; ``None`` (default):
-            the env's ``DORP_OPTIONS`` (else :data:`GENERIC_DORP_OPTIONS`): on in the key
+            the ``dorp`` settings of the env's profile (:attr:`~dorp_rl.envs.EnvProfile.dorp`, else :data:`GENERIC_DORP_OPTIONS`): on in the key
             rooms, off in rearrangement. A key room's learned codes often
             cover separate rooms, where re-entering helps and a plan that misses its
             waypoint only wanders (key-corridor, 50 tasks: 0.46 with neither, 0.92 with
@@ -1170,7 +1177,7 @@ def make_dorp_policy(
             ranks plans among themselves, so that of those reaching the waypoint the one
             whose frame is closest to the goal image wins, and a plan that misses moves
             blocks towards their goal places instead of anywhere. ``None`` (default):
-            the env's ``DORP_OPTIONS`` (else 0): 0.003 in rearrangement, 0 (the code-match cost alone, as the paper) in the key
+            the ``dorp`` settings of the env's profile (else 0): 0.003 in rearrangement, 0 (the code-match cost alone, as the paper) in the key
             rooms, where pixel distance ignores the walls and pulled the agent into the
             wrong part of a code (key-corridor, 50 tasks: 0.98 without, 0.88 with it; 3
             objects: 3.25x -> 2.47x the lower bound, both 50 of 50).
@@ -1205,7 +1212,8 @@ def make_dorp_policy(
     if not isinstance(env, EnvBase):
         raise ValueError(f"env must be a TorchRL EnvBase, got {type(env).__name__}.")
     identity = env_identity(env)
-    suited = {**GENERIC_DORP_OPTIONS, **getattr(env, "DORP_OPTIONS", {})}
+    profile = profile_of(env)
+    suited = {**GENERIC_DORP_OPTIONS, **(profile.dorp if profile is not None else {})}
     reenter = suited["reenter"] if reenter is None else reenter
     replan_on_miss = suited["replan_on_miss"] if replan_on_miss is None else replan_on_miss
     if waypoint_goal_weight is None:
@@ -1306,4 +1314,5 @@ def make_dorp_policy(
         goal_code_weight=float(goal_code_weight) if goal_code_weight > 0 else None,
         goal_patience=goal_patience,
         action_prior_mix=action_prior_mix,
+        actions=DiscreteActions.of(env),
     )

@@ -11,7 +11,7 @@ from pathlib import Path
 from torch import nn
 from torchrl.envs import EnvBase
 
-from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.planning import StatelessEnvModel, WorldModelEnv
 
 __all__ = ["TRUE_DYNAMICS", "make_planning_env"]
 
@@ -24,8 +24,11 @@ def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module)
 
     Args:
         env: the acting env (its true dynamics, and the env a checkpoint must fit).
-        low_level: ``"gt"`` (:data:`TRUE_DYNAMICS`: ``env``'s own dynamics through
-            :class:`~dorp_rl.envs.GroundTruthModelEnv`), a planning env (used as it is),
+        low_level: ``"gt"`` (:data:`TRUE_DYNAMICS`: ``env``'s own dynamics: what its
+            ``true_dynamics()`` returns when it declares one, as the grid worlds do
+            (:class:`~dorp_rl.envs.GroundTruthModelEnv`); else the env itself when it
+            steps any leading shape (``batch_size=()``, not batch-locked); else
+            :class:`~dorp_rl.envs.planning.StatelessEnvModel` over it), a planning env (used as it is),
             a model with ``predict(pixels, action)`` (wrapped in
             :class:`~dorp_rl.envs.WorldModelEnv`) or the path of a world-model checkpoint
             (loaded against ``env``).
@@ -42,7 +45,12 @@ def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module)
     if isinstance(low_level, EnvBase):
         return low_level
     if isinstance(low_level, str) and low_level == TRUE_DYNAMICS:
-        return GroundTruthModelEnv(env)
+        declared = getattr(env, "true_dynamics", None)
+        if callable(declared):
+            return declared()
+        if env.batch_size == () and not env.batch_locked:
+            return env
+        return StatelessEnvModel(env)
     if isinstance(low_level, str) and low_level in ("ground_truth", "ground-truth"):
         raise ValueError(
             f"low_level {low_level!r}: the true dynamics are spelled {TRUE_DYNAMICS!r}."

@@ -344,9 +344,16 @@ def write_diagnostic_plots(
     Returns:
         Picture name -> path of the written PNG.
     """
+    kind = getattr(env, "DIAGNOSTICS", None)
+    if kind not in ("rearrangement", "key_room"):
+        raise ValueError(
+            f"{type(env).__name__} declares no ground-truth diagnostics (DIAGNOSTICS is "
+            f"{kind!r}; 'rearrangement' and 'key_room' are drawn): code maps need the true "
+            "state of each frame."
+        )
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if isinstance(env, ObjectRearrangementEnv):
+    if kind == "rearrangement":
         if result is None:
             result = rearrangement_diagnostics(env, encode, num_samples, seed, chunk_size)
         maps: Any = result
@@ -362,22 +369,18 @@ def write_diagnostic_plots(
                 result, out_dir / "factorization_histogram.png"
             ),
         }
-    if isinstance(env, KeyRoomEnv):
-        if result is None:
-            result = key_room_diagnostics(env, encode, chunk_size=chunk_size, with_steps=False)
-        return {
-            "code_map": plot_key_room_code_map(
-                env,
-                result["code_map_without_key"],
-                result["code_map_with_key"],
-                out_dir / "code_map.png",
-            ),
-            "factorization_histogram": plot_factorization_histogram(
-                result,
-                out_dir / "factorization_histogram.png",
-                title="one-hots changed on key events and agent moves (hatched: expected)",
-            ),
-        }
-    raise ValueError(
-        f"env must be an ObjectRearrangementEnv or a KeyRoomEnv, got {type(env).__name__}."
-    )
+    if result is None:
+        result = key_room_diagnostics(env, encode, chunk_size=chunk_size, with_steps=False)
+    return {
+        "code_map": plot_key_room_code_map(
+            env,
+            result["code_map_without_key"],
+            result["code_map_with_key"],
+            out_dir / "code_map.png",
+        ),
+        "factorization_histogram": plot_factorization_histogram(
+            result,
+            out_dir / "factorization_histogram.png",
+            title="one-hots changed on key events and agent moves (hatched: expected)",
+        ),
+    }

@@ -1,0 +1,137 @@
+"""The ``dorp`` command on envs written in the tests, named by an import path."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from push_blocks import PushBlocksEnv
+
+from dorp_rl.cli import main
+from dorp_rl.envs import env_identity
+from dorp_rl.planners import CodeGraph
+from dorp_rl.trainers import load_encoder
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+TINY = (
+    "--codes.num-frames", "400",
+    "--codes.num-envs", "8",
+    "--codes.num-steps", "5",
+    "--codes.batch-size", "16",
+    "--codes.diagnostics-samples", "64",
+    "--tasks", "3",
+    "--tasks-per-rollout", "3",
+    "--candidates", "20",
+    "--planning-horizon", "3",
+    "--max-steps", "5",
+    "--gifs", "1",
+    "--no-progress",
+)  # fmt: skip
+
+
+def test_evaluate_an_env_given_by_import_path_through_every_stage(tmp_path):
+    main(
+        [
+            "evaluate",
+            "--root",
+            str(tmp_path),
+            "--name",
+            "pb",
+            "--env",
+            "push_blocks:PUSH_BLOCKS",
+            *TINY,
+        ]
+    )
+    run = tmp_path / "pb"
+    stages = json.loads((run / "stages.json").read_text())
+    assert {"play", "codes", "graph", "evaluate:dorp:gt", "pictures"} <= set(stages)
+    assert stages["play"]["summary"]["frames"] == 400
+    # The profile's play trajectories (20 steps) and code preset (two one-hots of 6).
+    assert stages["play"]["config"]["env"] == "push_blocks:PUSH_BLOCKS"
+    row = stages["evaluate:dorp:gt"]["summary"]
+    assert row["setting"] == "push_blocks:PUSH_BLOCKS" and row["tasks"] == 3
+    # The profile's lower bound (Manhattan distance) is each task's bound.
+    assert all(b >= 1 for b in row["per_task"]["lower_bound"])
+    assert all(s <= 5 for s in row["per_task"]["steps"])
+
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    encoder = load_encoder(run / "codes" / "checkpoints" / "last.pt", env)
+    assert encoder.frame_shape == (3, 24, 32) and tuple(encoder.code_sizes) == (6, 6)
+    assert encoder.env_config == env_identity(env)
+    graph = CodeGraph.load(run / "graph.pt", encoder=encoder, env_config=env_identity(env))
+    assert graph.num_groups == 2
+    # Codes and graph of this env are refused against another env.
+    other = PushBlocksEnv((1, 8, 8), batch_size=(4,))
+    with pytest.raises(ValueError, match="another|environment"):
+        load_encoder(run / "codes" / "checkpoints" / "last.pt", other)
+    with pytest.raises(ValueError, match="environment"):
+        CodeGraph.load(run / "graph.pt", encoder=encoder, env_config=env_identity(other))
+    assert (run / "pictures" / "rollout_0.gif").exists()
+    # No ground-truth pictures for an env that declares no state-to-objects diagnostics.
+    assert not (run / "pictures" / "code_map.png").exists()
+
+
+def test_a_gray_8x8_env_with_one_hot_actions_through_the_command(tmp_path):
+    """A bare factory (no profile): the generic defaults, one one-hot of 32 codes."""
+    main(
+        [
+            "evaluate",
+            "--root",
+            str(tmp_path),
+            "--name",
+            "gray",
+            "--env",
+            "push_blocks:make_small_env",
+            *TINY,
+        ]
+    )
+    stages = json.loads((tmp_path / "gray" / "stages.json").read_text())
+    row = stages["evaluate:dorp:gt"]["summary"]
+    assert row["tasks"] == 3 and len(row["per_task"]["success"]) == 3
+    # No lower bound is known for a bare factory: recorded as unknown, not made up.
+    assert all(b != b for b in row["per_task"]["lower_bound"])  # nan
+    encoder = load_encoder(tmp_path / "gray" / "codes" / "checkpoints" / "last.pt")
+    assert encoder.frame_shape == (1, 8, 8)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--env", "push_blocks:PUSH_BLOCKS", "--setting", "1obj"], "--env and --setting both"),
+        (["--env", "no_such_module_xyz:make_env"], "cannot import"),
+        (["--env", "push_blocks:nothing_here"], "has no attribute"),
+        (["--env", "push_blocks:MOVES"], "must be an EnvProfile or a function"),
+    ],
+)
+def test_a_bad_env_is_a_usage_error_naming_it(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as stop:
+        main(["collect", "--root", str(tmp_path), "--name", "bad", *argv, "--no-progress"])
+    assert stop.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad" / "stages.json").exists()
+
+
+def test_the_dead_two_code_onehot_is_reported(tmp_path):
+    """A two-code one-hot that never changes along play is reported dead (with a warning)."""
+    from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+
+    cfg = RepresentationConfig.for_env(
+        "push_blocks:PUSH_BLOCKS",
+        encoder={"code_sizes": (6, 2)},
+        num_frames=400,
+        num_envs=8,
+        num_steps=3,
+        batch_size=16,
+        diagnostics_samples=64,
+        out_dir=str(tmp_path / "codes"),
+        progress=False,
+    )
+    trainer = RepresentationTrainer(cfg)
+    for p in trainer.encoder.parameters():  # every frame gets the same codes
+        torch.nn.init.zeros_(p)
+    result = trainer.evaluate()
+    assert trainer.encoder.code_sizes[1] == 2  # the two-code one-hot is not left out
+    assert result["dead_onehots"] == [0, 1]
+    assert result["code_dynamics"]["codes_used"] == [1, 1]
