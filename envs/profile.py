@@ -110,6 +110,10 @@ class EnvProfile:
             ``goal_state`` (default :func:`reset_tasks`).
         lower_bound: ``(env, state, goal_state) -> [num_tasks]`` steps no policy can beat
             (``None``: unknown; results then report no bound).
+        objects: ``state [N, ...] -> int [N, K]``, a position id per object (equal ids,
+            same place): the labels of the ground-truth code diagnostics
+            (:func:`~dorp_rl.eval.object_diagnostics`: selectivity and purity per
+            one-hot); ``None``: label-free diagnostics only.
         description: one line for listings and messages.
 
     Examples:
@@ -134,6 +138,7 @@ class EnvProfile:
     dorp: Mapping[str, Any] = field(default_factory=dict)
     draw_tasks: Callable[[EnvBase, int, int], TensorDictBase] | None = None
     lower_bound: Callable[[EnvBase, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+    objects: Callable[[torch.Tensor], torch.Tensor] | None = None
     description: str = ""
 
     def __post_init__(self) -> None:

@@ -142,5 +142,6 @@ PUSH_BLOCKS = EnvProfile(
         "exclusivity_weight": 1.0,
     },
     lower_bound=manhattan,
+    objects=lambda state: state[..., 0] * 100 + state[..., 1],  # each block's cell
     description="two blocks of different shapes on a 3 x 24 x 32 canvas",
 )

@@ -47,6 +47,10 @@ def test_evaluate_an_env_given_by_import_path_through_every_stage(tmp_path):
     run = tmp_path / "pb"
     stages = json.loads((run / "stages.json").read_text())
     assert {"play", "codes", "graph", "evaluate:dorp:gt", "pictures"} <= set(stages)
+    # The profile maps states to block cells: purity per one-hot, from this env's play.
+    codes = stages["codes"]["summary"]
+    assert len(codes["purity"]) == 2 and all(0.0 < p <= 1.0 for p in codes["purity"])
+    assert 0.0 <= codes["selectivity"] <= 1.0
     assert stages["play"]["summary"]["frames"] == 400
     # The profile's play trajectories (20 steps) and code preset (two one-hots of 6).
     assert stages["play"]["config"]["env"] == "push_blocks:PUSH_BLOCKS"
@@ -111,6 +115,28 @@ def test_a_bad_env_is_a_usage_error_naming_it(tmp_path, capsys, argv, message):
     assert stop.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "bad" / "stages.json").exists()
+
+
+def test_object_diagnostics_tell_factorized_codes_from_swapped_and_constant_ones():
+    from dorp_rl.eval import object_diagnostics
+
+    g = torch.Generator().manual_seed(0)
+    pos = torch.randint(0, 9, (400, 2), generator=g)
+    nxt = pos.clone()
+    mover = torch.randint(0, 2, (400,), generator=g)
+    nxt[torch.arange(400), mover] = torch.randint(0, 9, (400,), generator=g)
+    # One-hot 0 codes object 1's cell, one-hot 1 object 0's in 3-cell regions.
+    codes = torch.stack([pos[:, 1], pos[:, 0] // 3], -1)
+    next_codes = torch.stack([nxt[:, 1], nxt[:, 0] // 3], -1)
+    good = object_diagnostics(codes, next_codes, pos, nxt)
+    assert good["onehot_object"] == [1, 0] and good["min_purity"] == 1.0
+    assert good["selectivity"] == 1.0
+    # Codes that ignore the objects: no place predicts them; changes land anywhere.
+    noise = torch.randint(0, 9, (400, 2), generator=g)
+    flat = object_diagnostics(noise, torch.randint(0, 9, (400, 2), generator=g), pos, nxt)
+    assert flat["min_purity"] < 0.6 and flat["selectivity"] < 0.7
+    with pytest.raises(ValueError, match="must match in shape"):
+        object_diagnostics(codes, next_codes[:, :1], pos, nxt)
 
 
 def test_the_dead_two_code_onehot_is_reported(tmp_path):

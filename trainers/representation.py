@@ -772,7 +772,9 @@ class RepresentationTrainer(OfflineTrainer):
         ``diagnostics_samples`` play transitions (``code_dynamics``: codes used, change
         and undo rates and ``dead`` one-hots per one-hot, two-code ones included,
         :func:`~dorp_rl.eval.code_dynamics`), and the ground-truth diagnostics when the
-        env declares them (:func:`diagnose`; never computed on another env's states)."""
+        env declares them (:func:`diagnose`) or its profile maps states to object
+        positions (``objects``: :func:`~dorp_rl.eval.object_diagnostics` on the play
+        data's own states; never computed on another env's states)."""
         from dorp_rl.eval.code_information import play_code_dynamics
 
         env = self.config.make_env()
@@ -790,6 +792,15 @@ class RepresentationTrainer(OfflineTrainer):
         self.encoder.train(was_training)
         result["code_dynamics"] = dynamics
         result["dead_onehots"] = [i for i, dead in enumerate(dynamics["dead"]) if dead]
+        objects = self.config.profile.objects
+        if objects is not None:  # labels from this env's own play states
+            from dorp_rl.eval.diagnostics import play_object_diagnostics
+
+            labelled = play_object_diagnostics(self.buffer[:n], self.encoder.eval(), objects)
+            self.encoder.train(was_training)
+            result["objects"] = labelled
+            for key in ("selectivity", "purity", "min_purity"):
+                result.setdefault(key, labelled[key])
         return result
 
     diagnose = evaluate

@@ -788,3 +788,110 @@ def ground_truth_diagnostics(
             "dorp_rl.eval.play_code_dynamics needs none."
         )
     return GROUND_TRUTH_DIAGNOSTICS[kind](env, encode, num_samples, seed)
+
+
+def object_diagnostics(
+    codes: torch.Tensor,
+    next_codes: torch.Tensor,
+    positions: torch.Tensor,
+    next_positions: torch.Tensor,
+) -> dict[str, Any]:
+    """How codes follow objects, from transitions labelled with each object's position.
+
+    The ground-truth diagnostics of any env whose profile maps its state to object
+    positions (:attr:`~dorp_rl.envs.EnvProfile.objects`).
+
+    Args:
+        codes, next_codes: int ``[N, C]`` codes of the transitions' frames and next frames.
+        positions, next_positions: int ``[N, K]`` a position id per object (any ints:
+            equal ids are the same place) in those frames.
+
+    Returns:
+        ``change_matrix`` (``[K, C]``: moves of object k alone that changed one-hot c),
+        ``assignment`` (object -> one-hot, :func:`best_assignment` of it),
+        ``onehot_object``, ``selectivity`` (of the one-hot changes on single-object moves,
+        the share on the moved object's one-hot), ``purity`` per one-hot (majority-code
+        accuracy over frames grouped by its object's position; ``nan`` unassigned),
+        ``min_purity`` and ``positions_seen`` per object.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.eval.diagnostics import object_diagnostics
+        >>> pos = torch.tensor([[0, 5], [1, 5], [1, 6], [2, 6]])
+        >>> nxt = torch.tensor([[1, 5], [1, 6], [2, 6], [2, 7]])
+        >>> out = object_diagnostics(pos.flip(-1), nxt.flip(-1), pos, nxt)
+        >>> out["assignment"], out["selectivity"], out["min_purity"]
+        ([1, 0], 1.0, 1.0)
+    """
+    codes, next_codes = codes.long(), next_codes.long()
+    positions, next_positions = positions.long(), next_positions.long()
+    if codes.shape != next_codes.shape or positions.shape != next_positions.shape:
+        raise ValueError(
+            "codes / next_codes and positions / next_positions must match in shape, got "
+            f"{list(codes.shape)}, {list(next_codes.shape)}, {list(positions.shape)}, "
+            f"{list(next_positions.shape)}."
+        )
+    if codes.dim() != 2 or positions.dim() != 2 or codes.shape[0] != positions.shape[0]:
+        raise ValueError(
+            f"codes must be [N, C] and positions [N, K] with the same N, got "
+            f"{list(codes.shape)} and {list(positions.shape)}."
+        )
+    k, c = positions.shape[1], codes.shape[1]
+    moved = positions != next_positions  # [N, K]
+    alone = moved.sum(-1) == 1
+    changed = (codes != next_codes)[alone]  # [M, C]
+    mover = moved[alone].long().argmax(-1)  # [M]
+    change_matrix = torch.zeros((k, c), dtype=torch.int64)
+    change_matrix.index_add_(0, mover, changed.long())
+    assignment = best_assignment(change_matrix)
+    onehot_object: list[int | None] = [None] * c
+    for obj, onehot in enumerate(assignment):
+        if onehot is not None:
+            onehot_object[onehot] = obj
+    total = int(change_matrix.sum())
+    matched = sum(int(change_matrix[o, h]) for o, h in enumerate(assignment) if h is not None)
+    purity: list[float] = []
+    for onehot, obj in enumerate(onehot_object):
+        if obj is None:
+            purity.append(math.nan)
+            continue
+        _, groups = torch.unique(positions[:, obj], return_inverse=True)
+        _, accuracy = _majority_codes(groups, codes[:, onehot], int(groups.max()) + 1)
+        purity.append(accuracy)
+    assigned = [p for p, o in zip(purity, onehot_object, strict=True) if o is not None]
+    return {
+        "num_transitions": int(codes.shape[0]),
+        "change_matrix": change_matrix.tolist(),
+        "assignment": assignment,
+        "onehot_object": onehot_object,
+        "selectivity": matched / total if total else math.nan,
+        "purity": purity,
+        "min_purity": min(assigned, default=math.nan),
+        "positions_seen": [int(torch.unique(positions[:, o]).numel()) for o in range(k)],
+    }
+
+
+def play_object_diagnostics(
+    buffer: Any,
+    encoder: Any,
+    objects: Callable[[torch.Tensor], torch.Tensor],
+    *,
+    chunk_size: int = 1024,
+) -> dict[str, Any]:
+    """:func:`object_diagnostics` of an encoder on play transitions (a buffer or a
+    TensorDict of them holding ``state`` and ``("next", "state")``), with ``objects``
+    mapping a state ``[N, ...]`` to position ids ``[N, K]`` (a profile's
+    :attr:`~dorp_rl.envs.EnvProfile.objects`)."""
+    from dorp_rl.planners.code_graph import encode_transitions
+
+    codes, next_codes = encode_transitions(buffer, encoder, chunk_size=chunk_size)
+    data = buffer if not hasattr(buffer, "storage") else buffer[: len(buffer)]
+    for key in ("state", ("next", "state")):
+        if key not in data.keys(True):
+            raise ValueError(
+                f"object diagnostics need the play data's {key!r} (the true state of each "
+                "frame), which it does not hold."
+            )
+    positions = objects(data.get("state"))
+    next_positions = objects(data.get(("next", "state")))
+    return object_diagnostics(codes, next_codes, positions, next_positions)
