@@ -11,6 +11,7 @@ Importing this package also registers the gymnasium ids ``dorp_rl/ObjectRearrang
 from dorp_rl.envs.factory import ENV_NAMES, env_class, make_env
 from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_layers
 from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_envs
+from dorp_rl.envs.gymnasium_goals import GymGoalEnv, draw_reachable_tasks
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.envs.profile import (
@@ -43,7 +44,9 @@ __all__ = [
     "GRID_SIZE",
     "GridWorldEnv",
     "GroundTruthModelEnv",
+    "GymGoalEnv",
     "GymnasiumGridEnv",
+    "draw_reachable_tasks",
     "KeyCorridorEnv",
     "KeyRoomEnv",
     "KeyWallEnv",

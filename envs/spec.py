@@ -125,9 +125,10 @@ def env_identity(env: Any) -> dict:
         >>> env_identity(KeyWallEnv(batch_size=(2,)))["env"]
         'KeyWallEnv'
     """
-    config = getattr(env, "config", None)
-    if callable(config):
-        return config()
+    # Looked up on the class: batched envs (SerialEnv, ParallelEnv) forward unknown
+    # attributes to their sub-envs, which may not exist yet.
+    if callable(getattr(type(env), "config", None)):
+        return env.config()
     batch = len(getattr(env, "batch_size", ()))
 
     def describe(spec: Any) -> dict:

@@ -455,7 +455,12 @@ def load_play_data(
             raise ValueError(
                 f"{what} does not match the request ({lines}); collect into another directory."
             )
-    missing = [_key_name(k) for k in PLAY_KEYS if _key_name(k) not in tensors]
+    # An env with no state entry stores none (play_keys); a state without its next is cut.
+    states = [_key_name(k) for k in ("state", ("next", "state"))]
+    needed = [_key_name(k) for k in PLAY_KEYS if _key_name(k) not in states]
+    if any(k in tensors for k in states):
+        needed += states
+    missing = [k for k in needed if k not in tensors]
     if missing:
         raise IntegrityError(
             f"{what} is incomplete: it holds no {missing} (files under "

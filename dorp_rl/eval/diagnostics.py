@@ -812,7 +812,8 @@ def object_diagnostics(
         ``onehot_object``, ``selectivity`` (of the one-hot changes on single-object moves,
         the share on the moved object's one-hot), ``purity`` per one-hot (majority-code
         accuracy over frames grouped by its object's position; ``nan`` unassigned),
-        ``min_purity`` and ``positions_seen`` per object.
+        ``min_purity``, and per object ``positions_seen`` and ``moves_per_object`` (its
+        moves alone).
 
     Examples:
         >>> import torch
@@ -868,6 +869,7 @@ def object_diagnostics(
         "purity": purity,
         "min_purity": min(assigned, default=math.nan),
         "positions_seen": [int(torch.unique(positions[:, o]).numel()) for o in range(k)],
+        "moves_per_object": torch.bincount(mover, minlength=k).tolist(),
     }
 
 
