@@ -31,8 +31,16 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from dorp_rl.envs.grid_base import CheckedRolloutLength
+from dorp_rl.envs.planning import distinct_rows
 
 __all__ = ["GymGoalEnv", "draw_reachable_tasks"]
+
+
+def _distinct(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Distinct rows of an int64 ``[n, D]`` tensor and the inverse (``None``: all rows
+    kept, after a hash collision), grouped by a hash of their bytes (no row sort)."""
+    distinct, inverse = distinct_rows(rows.contiguous().view(torch.uint8))
+    return distinct.view(torch.int64), inverse
 
 
 class _Dynamics:
@@ -227,22 +235,28 @@ class GymGoalEnv(CheckedRolloutLength, EnvBase):
         return dist.get(tuple(int(v) for v in goal), -1)
 
     def render_states(self, state: torch.Tensor) -> torch.Tensor:
-        """uint8 ``[*B, C, H, W]`` frames of int64 states ``[*B, S]``."""
-        rows = state.reshape(-1, state.shape[-1]).tolist()
-        frames = np.stack([self.dynamics.frame(tuple(r)) for r in rows]) if rows else None
-        shape = self.observation_spec["pixels"].shape[len(self.batch_size) :]
-        if frames is None:
-            return torch.zeros(*state.shape[:-1], *shape, dtype=torch.uint8)
+        """uint8 ``[*B, C, H, W]`` frames of int64 states ``[*B, S]`` (each distinct state
+        drawn once: one lookup per distinct row, then a gather)."""
+        shape = tuple(self.observation_spec["pixels"].shape[len(self.batch_size) :])
+        rows = state.reshape(-1, state.shape[-1]).cpu()
+        if rows.shape[0] == 0:
+            return torch.zeros(*state.shape[:-1], *shape, dtype=torch.uint8, device=self.device)
+        distinct, inverse = _distinct(rows)
+        frames = np.stack([self.dynamics.frame(tuple(r)) for r in distinct.tolist()])
         out = torch.from_numpy(frames).permute(0, 3, 1, 2)
+        out = out if inverse is None else out[inverse]
         return out.reshape(*state.shape[:-1], *shape).to(self.device)
 
     def transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Next states int64 ``[*B, S]`` of states ``[*B, S]`` and actions ``[*B]``."""
-        rows = state.reshape(-1, state.shape[-1]).tolist()
-        actions = action.reshape(-1).tolist()
-        nxt = [self.dynamics.step(tuple(r), int(a)) for r, a in zip(rows, actions, strict=True)]
-        out = torch.tensor(nxt, dtype=torch.int64).reshape(state.shape)
-        return out.to(self.device)
+        """Next states int64 ``[*B, S]`` of states ``[*B, S]`` and actions ``[*B]`` (each
+        distinct (state, action) looked up once, then a gather)."""
+        rows = state.reshape(-1, state.shape[-1]).cpu().to(torch.int64)
+        pairs = torch.cat([rows, action.reshape(-1, 1).cpu().to(torch.int64)], -1)
+        distinct, inverse = _distinct(pairs)
+        nxt = [self.dynamics.step(tuple(p[:-1]), int(p[-1])) for p in distinct.tolist()]
+        out = torch.tensor(nxt, dtype=torch.int64).reshape(-1, rows.shape[-1])
+        out = out if inverse is None else out[inverse]
+        return out.reshape(state.shape).to(self.device)
 
     # ------------------------------------------------------------------ EnvBase
     def _draw(self, shape: torch.Size, avoid: torch.Tensor | None = None) -> torch.Tensor:
