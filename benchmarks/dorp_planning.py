@@ -35,7 +35,12 @@ from dorp_rl.eval.settings import SETTINGS, Setting
 from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import make_dorp_policy
-from dorp_rl.trainers import RepresentationTrainer, load_encoder, load_video_model
+from dorp_rl.trainers import (
+    RepresentationConfig,
+    RepresentationTrainer,
+    load_encoder,
+    load_video_model,
+)
 
 
 def codes_name(setting: Setting) -> str:
@@ -59,7 +64,9 @@ def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[An
     """The encoder (trained or oracle) and its code graph, from disk when already built."""
     name = f"{codes_name(setting)}-seed{args.code_seed}"
     play_dir = args.out_dir / "play" / name
-    cfg = setting.representation_config(
+    cfg = RepresentationConfig.for_env(
+        setting.env,
+        setting.num_objects,
         seed=args.code_seed,
         out_dir=str(args.out_dir / "codes" / name),
         data_dir=str(play_dir),

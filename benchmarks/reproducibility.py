@@ -52,12 +52,14 @@ def run_once(args: argparse.Namespace) -> dict:
     from dorp_rl.eval import SETTINGS, evaluate_policy, make_task_set
     from dorp_rl.planners import CodeGraph
     from dorp_rl.policies import make_dorp_policy
-    from dorp_rl.trainers import RepresentationTrainer
+    from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
 
     torch.set_num_threads(args.threads)
     setting = SETTINGS[f"{args.objects}obj"]
     out = Path(args.out)
-    cfg = setting.representation_config(
+    cfg = RepresentationConfig.for_env(
+        setting.env,
+        setting.num_objects,
         num_steps=args.steps,
         num_frames=args.frames,
         seed=0,

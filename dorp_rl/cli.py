@@ -150,11 +150,11 @@ class RunOptions:
 
 
 def _codes_default() -> RepresentationConfig:
-    return setting_of("2obj").representation_config()
+    return RepresentationConfig.for_env("rearrangement", 2)
 
 
 def _world_model_default() -> WorldModelConfig:
-    return setting_of("2obj").world_model_config()
+    return WorldModelConfig.for_env("rearrangement", 2)
 
 
 @dataclass
@@ -291,9 +291,11 @@ def default_command(name: str, setting: str = "2obj") -> Any:
     fields = {f.name for f in dataclasses.fields(cls)}
     if "codes" in fields:
         steps = {"num_steps": DEMO_CODE_STEPS} if cls is Demo else {}
-        values["codes"] = setting_of(setting).representation_config(**steps)
+        chosen = setting_of(setting)
+        values["codes"] = RepresentationConfig.for_env(chosen.env, chosen.num_objects, **steps)
     if "world_model" in fields:
-        values["world_model"] = setting_of(setting).world_model_config()
+        chosen = setting_of(setting)
+        values["world_model"] = WorldModelConfig.for_env(chosen.env, chosen.num_objects)
     return cls(**values)
 
 

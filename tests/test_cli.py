@@ -284,10 +284,10 @@ def test_reproduce_and_demo_run_dorp_and_vf_cem(tmp_path, dorp) -> None:
 
 def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
     from dorp_rl.cli import DEMO_CODE_STEPS, default_command
-    from dorp_rl.eval import SETTINGS
+    from dorp_rl.trainers import RepresentationConfig
 
     demo = default_command("demo")
-    preset = SETTINGS["2obj"].representation_config()
+    preset = RepresentationConfig.for_env("rearrangement", 2)
     assert demo.setting == "2obj" and demo.tasks == 10
     assert default_command("reproduce").tasks == 50 and default_command("evaluate").tasks == 10
     assert set(demo.methods) == {"dorp", "vf-cem"} and demo.low_level == "gt"

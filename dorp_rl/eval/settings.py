@@ -1,7 +1,8 @@
-"""The paper's planning settings: environment, code preset, graph groups and paper figures.
+"""The paper's planning settings: environment, object count, graph groups and paper figures.
 
 One table that the ``dorp`` command (and any script) uses to build the same codes, graph
-and task set per setting: :data:`SETTINGS` maps a name (``"2obj"``, ``"keywall"``, ...)
+and task set per setting (the code and world-model presets come from the env profile:
+``RepresentationConfig.for_env(setting.env, setting.num_objects)``): :data:`SETTINGS` maps a name (``"2obj"``, ``"keywall"``, ...)
 to a :class:`Setting`; :data:`PAPER_SUCCESS` holds the paper's success rates per setting
 and method, to draw next to ours.
 """
@@ -54,18 +55,6 @@ class Setting:
     def profile(self) -> EnvProfile:
         """The env profile of this setting."""
         return env_profile(self.env)
-
-    def representation_config(self, **overrides: Any):
-        """The representation preset of this setting's env profile, then ``overrides``."""
-        from dorp_rl.trainers import RepresentationConfig
-
-        return RepresentationConfig.for_env(self.env, self.num_objects, **overrides)
-
-    def world_model_config(self, **overrides: Any):
-        """The world-model preset of this setting's env profile, then ``overrides``."""
-        from dorp_rl.trainers import WorldModelConfig
-
-        return WorldModelConfig.for_env(self.env, self.num_objects, **overrides)
 
     def make_env(self, **kwargs: Any) -> EnvBase:
         """The acting environment of this setting."""

@@ -515,9 +515,8 @@ class CodeMatchCost(RolloutCost):
         out_key: where the per-step cost ``[*B, N, H]`` is written.
         tie_break: weight of the confidence term; small so it only breaks ties.
         step_penalty: cost per step of a matching frame (e.g. ``2 * tie_break``), so
-            that earlier arrival wins; 0 (default) scores every matching step alike. In
-            DORP at 2 and 3 objects ``2e-3`` cut the steps from 2.24x / 3.05x the lower
-            bound to 1.90x / 2.53x, but 3-object success fell from 50 to 48 of 50.
+            that earlier arrival wins; 0 (default) scores every matching step alike
+            (docs/NOTES.md has what it did to DORP's steps and success).
         step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
         chunk_size: frames per encoder call (bounds memory).
         cache_size: frames whose codes are kept between calls (0: no cache). The

@@ -1138,10 +1138,10 @@ def make_dorp_policy(
         planning_horizon, num_candidates, action_repeat: the low-level planners' shape.
         action_persistence: the random-shooting planners' probability that a sampled
             action repeats the one before it
-            (:class:`~dorp_rl.planners.RandomShootingPlanner`). ``None`` (default): 0.5.
-            With uniform draws over ``4 k`` actions, plans that push one block several
-            cells the same way are so rare that hops failed for want of a candidate and
-            executed plans wandered; 0 draws uniformly, as the paper.
+            (:class:`~dorp_rl.planners.RandomShootingPlanner`). ``None`` (default): 0.5,
+            so that plans pushing one object several cells the same way are common
+            among the candidates (with uniform draws over many actions they are rare);
+            0 draws uniformly, as the paper.
         goal_planner: the planner of the goal-image phase (default: as ``planner``).
         order, waypoint_budget, max_removed_edges, max_misses, forget_blocked_edges,
             restore_when_stuck, max_reentries: see :class:`AbstractGoalPolicy`.
@@ -1150,16 +1150,13 @@ def make_dorp_policy(
             places far apart, so a block can hold its goal code many cells from its goal
             place; the pixel distance then needs more than a fixed budget to get it there.
         reenter, replan_on_miss: see :class:`AbstractGoalPolicy`; ``None`` (default):
-            the ``dorp`` settings of the env's profile (:attr:`~dorp_rl.envs.EnvProfile.dorp`, else :data:`GENERIC_DORP_OPTIONS`): on in the key
-            rooms, off in rearrangement. A key room's learned codes often
-            cover separate rooms, where re-entering helps and a plan that misses its
-            waypoint only wanders (key-corridor, 50 tasks: 0.46 with neither, 0.92 with
-            re-entry, 0.96 with both); in rearrangement hops fail because blocks stand in
-            the way, and following a missing plan moves them (5 objects, 10 tasks: 0.90
-            with neither, 0.80 replanning on misses, 0.70 with both). ``reenter="goal"``
-            gets a goal phase out of two blocks standing in each other's goal places (3
-            objects: 49 -> 50 of 50) but cost tasks at 5 objects, where a group's code
-            joins several blocks (50 tasks: 0.88 without, 0.76 with it).
+            the ``dorp`` settings of the env's profile (:attr:`~dorp_rl.envs.EnvProfile.dorp`,
+            else :data:`GENERIC_DORP_OPTIONS`): on in the key rooms, where learned codes
+            often cover separate rooms and a plan that misses its waypoint only wanders;
+            off in rearrangement, where hops fail because blocks stand in the way and
+            following a missing plan moves them. ``reenter="goal"`` also re-enters from a
+            goal phase stuck with two blocks in each other's goal places (docs/NOTES.md
+            has the measurements of each choice).
         goal_code_weight: in the goal-image phase, the cost of a frame whose codes are
             not the goal's, added to its pixel distance (0: pixel distance alone, as the
             paper). Without it the pixel cost can pull objects out of their goal codes,
@@ -1172,15 +1169,14 @@ def make_dorp_policy(
             term is dropped for the task (see :class:`AbstractGoalPolicy`).
         waypoint_goal_weight: weight of the goal image's pixel distance (the goal
             phase's blurred :class:`~dorp_rl.planners.PixelDistanceCost`) added to the
-            waypoint cost. Small enough (at most 0.1 for a 16 x 16 frame at 0.003) that it
-            never turns a plan that misses the waypoint into one that reaches it: it only
-            ranks plans among themselves, so that of those reaching the waypoint the one
-            whose frame is closest to the goal image wins, and a plan that misses moves
-            blocks towards their goal places instead of anywhere. ``None`` (default):
-            the ``dorp`` settings of the env's profile (else 0): 0.003 in rearrangement, 0 (the code-match cost alone, as the paper) in the key
-            rooms, where pixel distance ignores the walls and pulled the agent into the
-            wrong part of a code (key-corridor, 50 tasks: 0.98 without, 0.88 with it; 3
-            objects: 3.25x -> 2.47x the lower bound, both 50 of 50).
+            waypoint cost. Kept small enough (at most 0.1 for a 16 x 16 frame at 0.003)
+            that it never turns a plan that misses the waypoint into one that reaches it:
+            it only ranks plans, so that of those reaching the waypoint the one whose
+            frame is closest to the goal image wins, and a plan that misses moves objects
+            towards their goal places instead of anywhere. ``None`` (default): the
+            ``dorp`` settings of the env's profile (else 0, the code-match cost alone, as
+            the paper): 0.003 in rearrangement, 0 in the key rooms, where pixel distance
+            ignores the walls (docs/NOTES.md has the measurements).
         waypoint_step_penalty: the waypoint cost's cost per step of a frame at the
             waypoint (:func:`make_waypoint_cost`): earlier arrival wins; 0 (default)
             scores every step at the waypoint alike.
