@@ -1,8 +1,8 @@
 """A gymnasium env, MiniGrid DoorKey, through play data, codes, code graph and DORP.
 
 MiniGrid's DoorKey 5x5 with one fixed layout (every reset uses the same layout seed),
-drawn by its own renderer (``render_mode="rgb_array"``, 8-pixel tiles: 3 x 40 x 40
-frames) and played with its own actions, less the two that do nothing here: turn left,
+drawn by its own renderer (``render_mode="rgb_array"``, 4-pixel tiles by default: 3 x 20
+x 20 frames) and played with its own actions, less the two that do nothing here: turn left,
 turn right, forward, pickup, toggle.
 
 Two ways in:
@@ -19,7 +19,7 @@ Two ways in:
 
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
-Run: ``python examples/gymnasium_env.py [--frames 30000] [--steps 2000] [--tasks 50]``.
+Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 4]``.
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
 
 #: MiniGrid's action ids of turn left, turn right, forward, pickup and toggle
 ACTIONS = (0, 1, 2, 3, 5)
+#: pixels per grid cell of MiniGrid's renderer (frames are 5 x TILE_SIZE on a side)
+TILE_SIZE = 4
 
 
 class FixedLayout(gym.Wrapper):
@@ -57,15 +59,16 @@ class FixedLayout(gym.Wrapper):
         return self.env.step(ACTIONS[int(action)])
 
 
-def make_door_key_gym(tile_size: int = 8, layout_seed: int = 0) -> FixedLayout:
-    """The gymnasium env: DoorKey 5x5, one layout, 5 actions, frames ``[5 * tile]^2 x 3``."""
+def make_door_key_gym(tile_size: int | None = None, layout_seed: int = 0) -> FixedLayout:
+    """The gymnasium env: DoorKey 5x5, one layout, 5 actions, frames ``[5 * tile]^2 x 3``
+    (``tile_size`` default :data:`TILE_SIZE`)."""
+    tile = TILE_SIZE if tile_size is None else tile_size
     return FixedLayout(
-        gym.make("MiniGrid-DoorKey-5x5-v0", render_mode="rgb_array", tile_size=tile_size),
-        layout_seed,
+        gym.make("MiniGrid-DoorKey-5x5-v0", render_mode="rgb_array", tile_size=tile), layout_seed
     )
 
 
-def make_door_key(tile_size: int = 8, layout_seed: int = 0) -> TransformedEnv:
+def make_door_key(tile_size: int | None = None, layout_seed: int = 0) -> TransformedEnv:
     """One DoorKey env through ``GymWrapper``, frames ``[3, 5 * tile, 5 * tile]`` uint8."""
     env = GymWrapper(make_door_key_gym(tile_size, layout_seed), from_pixels=True, pixels_only=True)
     return TransformedEnv(env, PermuteTransform((-1, -3, -2), in_keys=["pixels"]))
@@ -136,8 +139,8 @@ CODES = {
     "usage_weight": 1.0,
     "collapse_check_after": 500,
     "collapse_min_codes": 4,
-    "num_frames": 30_000,
-    "num_steps": 2000,
+    "num_frames": 64_000,
+    "num_steps": 3000,
 }
 
 #: DoorKey through GymWrapper: play data, codes and graph only.
@@ -181,13 +184,15 @@ def key_gates(labelled: dict) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=30_000, help="play transitions")
-    parser.add_argument("--steps", type=int, default=2000, help="code training steps")
+    parser.add_argument("--frames", type=int, default=64_000, help="play transitions")
+    parser.add_argument("--steps", type=int, default=3000, help="code training steps")
     parser.add_argument("--tasks", type=int, default=50, help="seeded goal images")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tile", type=int, default=TILE_SIZE, help="pixels per grid cell")
     parser.add_argument("--out", default="outputs/gymnasium_env")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    globals()["TILE_SIZE"] = args.tile
 
     config = RepresentationConfig.for_env(
         PROFILE, num_frames=args.frames, num_steps=args.steps, seed=args.seed, out_dir=args.out

@@ -164,7 +164,7 @@ def test_the_dead_two_code_onehot_is_reported(tmp_path):
 
 
 def test_a_minigrid_env_through_torchrl_gym_wrapper_to_codes_and_graph(tmp_path, monkeypatch):
-    """MiniGrid DoorKey (examples/gymnasium_env.py): its renderer's 3 x 40 x 40 frames and
+    """MiniGrid DoorKey (examples/gymnasium_env.py): its renderer's 3 x 20 x 20 frames and
     5 of its actions through torchrl's GymWrapper and SerialEnv, by the command."""
     pytest.importorskip("minigrid")
     from pathlib import Path
@@ -185,12 +185,12 @@ def test_a_minigrid_env_through_torchrl_gym_wrapper_to_codes_and_graph(tmp_path,
     assert stages["play"]["summary"]["frames"] == 400
     assert stages["graph"]["summary"]["nodes"][0] >= 1
     encoder = load_encoder(tmp_path / "mg" / "codes" / "checkpoints" / "last.pt")
-    assert encoder.frame_shape == (3, 40, 40) and tuple(encoder.code_sizes) == (16, 2)
+    assert encoder.frame_shape == (3, 20, 20) and tuple(encoder.code_sizes) == (16, 2)
     from dorp_rl.data import load_play_data
 
     play = load_play_data(tmp_path / "mg" / "play")[:400]
     assert play["action"].shape == (400, 5)  # GymWrapper's one-hot actions, 5 of them
-    assert play["pixels"].dtype == torch.uint8 and play["pixels"].shape[1:] == (3, 40, 40)
+    assert play["pixels"].dtype == torch.uint8 and play["pixels"].shape[1:] == (3, 20, 20)
 
 
 def _door_key(monkeypatch):
