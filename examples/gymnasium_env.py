@@ -25,6 +25,7 @@ Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks
 from __future__ import annotations
 
 import argparse
+import json
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the MiniGrid ids)
@@ -190,12 +191,25 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tile", type=int, default=TILE_SIZE, help="pixels per grid cell")
     parser.add_argument("--out", default="outputs/gymnasium_env")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=(),
+        metavar="FIELD=JSON",
+        help="more RepresentationConfig fields, e.g. max_offset=1 encoder='{\"channels\": 32}'",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     globals()["TILE_SIZE"] = args.tile
+    extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
 
     config = RepresentationConfig.for_env(
-        PROFILE, num_frames=args.frames, num_steps=args.steps, seed=args.seed, out_dir=args.out
+        PROFILE,
+        num_frames=args.frames,
+        num_steps=args.steps,
+        seed=args.seed,
+        out_dir=args.out,
+        **extra,
     )
     trainer = RepresentationTrainer(config)
     trainer.train()
