@@ -1,6 +1,6 @@
 """``dorp reproduce --paper`` (the paper's Table 1) and the pictures of a run folder.
 
-:func:`reproduce_paper` runs the single-setting pipeline of :mod:`dorp_rl.cli` once per
+:func:`reproduce_paper` runs the single-setting pipeline of :mod:`dorp_rl.pipeline` once per
 setting, each in a sub-run ``<run>/<setting>/`` with its own stages (so a finished stage is
 skipped when the command runs again), and gathers the rows into one table next to the
 paper's figures and one table of stage wall-clock times. :func:`pictures_stage` draws, as
@@ -24,16 +24,6 @@ from typing import Any
 
 import torch
 
-from dorp_rl.cli import (
-    DORP_VARIANTS,
-    Evaluate,
-    Reproduce,
-    Run,
-    _policy,
-    default_command,
-    dorp_stages,
-    evaluate_stage,
-)
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     RESULT_COLUMNS,
@@ -62,6 +52,16 @@ from dorp_rl.eval.results import (
     write_timings,
 )
 from dorp_rl.eval.tasks import succeeded
+from dorp_rl.pipeline import (
+    DORP_VARIANTS,
+    Evaluate,
+    Reproduce,
+    Run,
+    _policy,
+    default_command,
+    dorp_stages,
+    evaluate_stage,
+)
 from dorp_rl.progress import BarMirror, progress_bar, relay_bars
 from dorp_rl.viz import plot_results, write_diagnostic_plots
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
@@ -129,7 +129,7 @@ def _diagnostic_pictures(env: Any, encoder: Any, directory: Path, num_samples: i
 
 
 def pictures_stage(run: Run, cmd: Evaluate) -> list[Path]:
-    """Pictures of the DORP methods of ``cmd`` (after :func:`~dorp_rl.cli.evaluate_stage`).
+    """Pictures of the DORP methods of ``cmd`` (after :func:`~dorp_rl.pipeline.evaluate_stage`).
 
     Writes into ``<run>/pictures/``: ``code_map.png`` and ``factorization_histogram.png``
     of DORP's codes (``arbitrary/`` and ``identity/`` for the ablations' codes), and

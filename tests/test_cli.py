@@ -296,16 +296,16 @@ def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
 
 
 def test_graphs_over_one_codes_variant_share_one_encoding(tmp_path, dorp, monkeypatch) -> None:
-    import dorp_rl.cli as cli
+    import dorp_rl.pipeline as pipeline
 
     calls = []
-    encode = cli.encode_transitions
+    encode = pipeline.encode_transitions
 
     def counting(buffer, encoder, **kwargs):
         calls.append(encoder_fingerprint(encoder))
         return encode(buffer, encoder, **kwargs)
 
-    monkeypatch.setattr(cli, "encode_transitions", counting)
+    monkeypatch.setattr(pipeline, "encode_transitions", counting)
     dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "dorp", "dorp-full")
     assert len(calls) == 1  # the per-one-hot and the full graph: one encoding
     assert (tmp_path / "run" / "graph.pt").exists()
