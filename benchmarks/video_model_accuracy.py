@@ -29,7 +29,7 @@ import torch
 
 from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.data import SequenceSampler, changed_pixels, collect_play_data, event_transitions
-from dorp_rl.eval.world_model import open_loop_accuracy
+from dorp_rl.metrics.world_model import open_loop_accuracy
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
 from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer, load_video_model
 from dorp_rl.trainers.world_model import HELD_OUT_SEED_OFFSET, event_windows

@@ -37,7 +37,6 @@ from dorp_rl.eval import (
     tasks_to_draw,
     write_task_records,
 )
-from dorp_rl.eval.diagnostics import key_room_diagnostics
 from dorp_rl.eval.parallel import exit_with_parent
 from dorp_rl.eval.results import (
     PAPER_COLUMNS,
@@ -52,6 +51,7 @@ from dorp_rl.eval.results import (
     write_timings,
 )
 from dorp_rl.eval.tasks import succeeded
+from dorp_rl.metrics.diagnostics import key_room_diagnostics
 from dorp_rl.pipeline import (
     DORP_VARIANTS,
     Evaluate,

@@ -84,7 +84,7 @@ class KeyRoomEnv(GridWorldEnv):
         self.goal_cells = free.flatten().nonzero().squeeze(-1)
         self._frame_table = self._build_frame_table()
 
-    #: Which ground-truth code diagnostics fit this env (``dorp_rl.eval.diagnostics``).
+    #: Which ground-truth code diagnostics fit this env (``dorp_rl.metrics.diagnostics``).
     DIAGNOSTICS = "key_room"
 
     def oracle_layout(self) -> tuple[torch.Tensor, bool]:

@@ -149,7 +149,7 @@ class ObjectRearrangementEnv(GridWorldEnv):
             raise ValueError(f"block sides must be in [1, {GRID_SIZE}], got {shapes.tolist()}.")
         return shapes
 
-    #: Which ground-truth code diagnostics fit this env (``dorp_rl.eval.diagnostics``).
+    #: Which ground-truth code diagnostics fit this env (``dorp_rl.metrics.diagnostics``).
     DIAGNOSTICS = "rearrangement"
 
     def oracle_layout(self) -> tuple[torch.Tensor, bool]:

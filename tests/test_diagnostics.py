@@ -1,4 +1,4 @@
-"""Code-quality diagnostics (``dorp_rl.eval.diagnostics``) and their pictures.
+"""Code-quality diagnostics (``dorp_rl.metrics.diagnostics``) and their pictures.
 
 The encoders here are hand-made from the true state, read back from the pixels (the
 diagnostics only ever give ``encode`` pixels): an oracle (one one-hot per object, code =
@@ -20,7 +20,7 @@ import torch
 
 from dorp_rl.envs import OBJECT_COLOURS, KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.envs.key_rooms import AGENT_COLOUR, DOOR_COLOUR
-from dorp_rl.eval.diagnostics import (
+from dorp_rl.metrics.diagnostics import (
     best_assignment,
     connected_fraction,
     encode_pixels,

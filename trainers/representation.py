@@ -17,7 +17,7 @@ from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
 from dorp_rl.envs import env_identity
-from dorp_rl.eval.code_information import code_information
+from dorp_rl.metrics.code_information import code_information
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
@@ -248,8 +248,8 @@ def diagnose(
     env: EnvBase, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
 ) -> dict:
     """Ground-truth diagnostics of an encoder's codes on ``env``: those of the kind the env
-    declares (:func:`~dorp_rl.eval.diagnostics.ground_truth_diagnostics`)."""
-    from dorp_rl.eval.diagnostics import ground_truth_diagnostics
+    declares (:func:`~dorp_rl.metrics.diagnostics.ground_truth_diagnostics`)."""
+    from dorp_rl.metrics.diagnostics import ground_truth_diagnostics
 
     result = ground_truth_diagnostics(env, encoder.encode, num_samples=num_samples, seed=seed)
     return result.to_dict() if hasattr(result, "to_dict") else dict(result)
@@ -469,7 +469,7 @@ class RepresentationTrainer(OfflineTrainer):
       initialisations end in a poor local optimum that longer training does not leave,
       with no higher contrastive loss to show it. The trainer first trains
       ``num_candidates`` initialisations for ``candidate_steps`` steps each, scores each
-      by :func:`~dorp_rl.eval.code_information`'s ``unique_information`` of its codes on
+      by :func:`~dorp_rl.metrics.code_information`'s ``unique_information`` of its codes on
       ``screening_frames`` evenly spaced stored play frames (the one-hots' entropies
       minus what pairs of them share; no ground truth), and continues only the highest.
       The chosen candidate's steps count towards ``num_steps``; the others add
@@ -775,7 +775,7 @@ class RepresentationTrainer(OfflineTrainer):
         env declares them (:func:`diagnose`) or its profile maps states to object
         positions (``objects``: :func:`~dorp_rl.eval.object_diagnostics` on the play
         data's own states; never computed on another env's states)."""
-        from dorp_rl.eval.code_information import play_code_dynamics
+        from dorp_rl.metrics.code_information import play_code_dynamics
 
         env = self.config.make_env()
         result: dict[str, Any] = {}
@@ -794,7 +794,7 @@ class RepresentationTrainer(OfflineTrainer):
         result["dead_onehots"] = [i for i, dead in enumerate(dynamics["dead"]) if dead]
         objects = self.config.profile.objects
         if objects is not None:  # labels from this env's own play states
-            from dorp_rl.eval.diagnostics import play_object_diagnostics
+            from dorp_rl.metrics.diagnostics import play_object_diagnostics
 
             labelled = play_object_diagnostics(self.buffer[:n], self.encoder.eval(), objects)
             self.encoder.train(was_training)

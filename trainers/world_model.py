@@ -22,8 +22,8 @@ from dorp_rl.data import (
     play_segment_length,
 )
 from dorp_rl.envs import DiscreteActions, env_identity
-from dorp_rl.eval.world_model import open_loop_accuracy
 from dorp_rl.integrity import IntegrityError
+from dorp_rl.metrics.world_model import open_loop_accuracy
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
@@ -202,7 +202,7 @@ class WorldModelTrainer(OfflineTrainer):
     Play data (collected, or loaded from ``config.data_dir``) are sampled as windows of
     ``horizon`` steps by a :class:`~dorp_rl.data.SequenceSampler`; held-out play data
     from another seed give ``eval_sequences`` fixed windows on which
-    :func:`~dorp_rl.eval.world_model.open_loop_accuracy` is measured every
+    :func:`~dorp_rl.metrics.world_model.open_loop_accuracy` is measured every
     ``eval_every`` steps and at the end. The palette is read off the play data. Adam
     with a cosine learning-rate decay from ``lr`` to ``lr_final`` and gradient-norm
     clipping. Logging, checkpoints and ``train(resume=True)`` follow

@@ -1,20 +1,6 @@
-"""Evaluation: code diagnostics, open-loop accuracy of world models, task sets and the harness."""
+"""Evaluation: task sets and the harness, results and failure records; the measures of
+codes and models (:mod:`dorp_rl.metrics`) are re-exported here."""
 
-from dorp_rl.eval.code_information import code_dynamics, code_information, play_code_dynamics
-from dorp_rl.eval.diagnostics import (
-    GROUND_TRUTH_DIAGNOSTICS,
-    best_assignment,
-    connected_fraction,
-    encode_pixels,
-    ground_truth_diagnostics,
-    key_room_code_maps,
-    key_room_diagnostics,
-    object_diagnostics,
-    play_object_diagnostics,
-    rearrangement_code_maps,
-    rearrangement_diagnostics,
-    sample_rearrangement_states,
-)
 from dorp_rl.eval.failures import (
     failure_section,
     format_failures,
@@ -32,7 +18,22 @@ from dorp_rl.eval.tasks import (
     rollout_chunk,
     seed_policy,
 )
-from dorp_rl.eval.world_model import open_loop_accuracy
+from dorp_rl.metrics.code_information import code_dynamics, code_information, play_code_dynamics
+from dorp_rl.metrics.diagnostics import (
+    GROUND_TRUTH_DIAGNOSTICS,
+    best_assignment,
+    connected_fraction,
+    encode_pixels,
+    ground_truth_diagnostics,
+    key_room_code_maps,
+    key_room_diagnostics,
+    object_diagnostics,
+    play_object_diagnostics,
+    rearrangement_code_maps,
+    rearrangement_diagnostics,
+    sample_rearrangement_states,
+)
+from dorp_rl.metrics.world_model import open_loop_accuracy
 
 __all__ = [
     "BACKENDS",

@@ -22,7 +22,7 @@ from matplotlib.patches import Patch, Rectangle
 
 from dorp_rl.envs.key_rooms import KeyRoomEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
-from dorp_rl.eval.diagnostics import (
+from dorp_rl.metrics.diagnostics import (
     DEFAULT_CHUNK_SIZE,
     Encoder,
     key_room_diagnostics,
@@ -118,13 +118,13 @@ def plot_rearrangement_code_map(
     Args:
         result_or_codes: one of
 
-            - the dict of :func:`~dorp_rl.eval.diagnostics.rearrangement_diagnostics`
+            - the dict of :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics`
               (its ``code_maps``: one panel per assigned one-hot, majority code over
               its object's positions);
             - an int ``[rows, cols]`` map (one panel; 15 x 13 for 2x4 blocks), or
               ``[C, rows, cols]`` (one panel per one-hot);
             - a list of per-one-hot maps (``None`` entries are skipped), as returned
-              by :func:`~dorp_rl.eval.diagnostics.rearrangement_code_maps`.
+              by :func:`~dorp_rl.metrics.diagnostics.rearrangement_code_maps`.
 
             ``-1`` marks positions without a code (drawn white).
         path: PNG file to write (parent directories are created).
@@ -242,8 +242,8 @@ def plot_factorization_histogram(
 
     Args:
         change_matrix: int ``[R, C]`` counts, or the dict of
-            :func:`~dorp_rl.eval.diagnostics.rearrangement_diagnostics` /
-            :func:`~dorp_rl.eval.diagnostics.key_room_diagnostics` (counts, totals,
+            :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics` /
+            :func:`~dorp_rl.metrics.diagnostics.key_room_diagnostics` (counts, totals,
             labels and assignment are then taken from it).
         path: PNG file to write.
         totals: ``[R]`` moves per row, to turn counts into rates.
@@ -336,7 +336,7 @@ def write_diagnostic_plots(
         encode: ``encode(uint8 [n, 3, 16, 16]) -> int64 [n, C]``.
         out_dir: directory (created if needed).
         num_samples, seed: for rearrangement, as in
-            :func:`~dorp_rl.eval.diagnostics.rearrangement_diagnostics`.
+            :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics`.
         result: an already computed diagnostics dict for this env and encoder, to
             avoid recomputing it.
         chunk_size: frames per call of ``encode``.

@@ -1,6 +1,6 @@
 """Label-free statistics of discrete codes: how much each one-hot says, and how much of it is its own.
 
-Ground-truth diagnostics (:mod:`dorp_rl.eval.diagnostics`) need the environment's state.
+Ground-truth diagnostics (:mod:`dorp_rl.metrics.diagnostics`) need the environment's state.
 These need only codes of unlabeled frames, so a trainer can use them to compare runs.
 """
 
@@ -47,7 +47,7 @@ def code_information(codes: torch.Tensor) -> dict[str, object]:
 
     Examples:
         >>> import torch
-        >>> from dorp_rl.eval import code_information
+        >>> from dorp_rl.metrics import code_information
         >>> a = torch.arange(1000) % 4
         >>> info = code_information(torch.stack([a, a], -1))  # one one-hot repeated
         >>> round(info["entropy"][0], 3), round(info["unique_information"], 3)
@@ -101,7 +101,7 @@ def code_dynamics(
 
     Examples:
         >>> import torch
-        >>> from dorp_rl.eval import code_dynamics
+        >>> from dorp_rl.metrics import code_dynamics
         >>> codes = torch.tensor([[0, 1], [1, 1], [0, 1], [0, 1]])
         >>> next_codes = torch.tensor([[1, 1], [0, 1], [0, 1], [0, 1]])
         >>> out = code_dynamics(codes, next_codes, torch.zeros(4), torch.arange(4), window=2)

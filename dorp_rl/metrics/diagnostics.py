@@ -158,7 +158,7 @@ def best_assignment(matrix: torch.Tensor | np.ndarray | Sequence[Sequence[float]
         a column and the others get ``None``.
 
     Examples:
-        >>> from dorp_rl.eval import best_assignment
+        >>> from dorp_rl.metrics import best_assignment
         >>> best_assignment([[0.1, 0.9], [0.8, 0.3]])  # object 0 -> one-hot 1, 1 -> 0
         [1, 0]
     """
@@ -237,7 +237,7 @@ def connected_fraction(code_map: torch.Tensor) -> tuple[float, int]:
 
     Examples:
         >>> import torch
-        >>> from dorp_rl.eval import connected_fraction
+        >>> from dorp_rl.metrics import connected_fraction
         >>> code_map = torch.tensor([[0, 0, 1, 1], [0, 2, 1, 1], [2, 2, 0, -1]])
         >>> connected_fraction(code_map)  # code 0 is split in two regions
         (0.6666666666666666, 3)
@@ -817,7 +817,7 @@ def object_diagnostics(
 
     Examples:
         >>> import torch
-        >>> from dorp_rl.eval.diagnostics import object_diagnostics
+        >>> from dorp_rl.metrics.diagnostics import object_diagnostics
         >>> pos = torch.tensor([[0, 5], [1, 5], [1, 6], [2, 6]])
         >>> nxt = torch.tensor([[1, 5], [1, 6], [2, 6], [2, 7]])
         >>> out = object_diagnostics(pos.flip(-1), nxt.flip(-1), pos, nxt)
