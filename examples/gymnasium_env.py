@@ -64,9 +64,12 @@ def make_door_key_gym(tile_size: int | None = None, layout_seed: int = 0) -> Fix
     """The gymnasium env: DoorKey 5x5, one layout, 5 actions, frames ``[5 * tile]^2 x 3``
     (``tile_size`` default :data:`TILE_SIZE`)."""
     tile = TILE_SIZE if tile_size is None else tile_size
-    return FixedLayout(
-        gym.make("MiniGrid-DoorKey-5x5-v0", render_mode="rgb_array", tile_size=tile), layout_seed
+    # highlight=False: MiniGrid otherwise lightens the agent's field of view, so a turn
+    # changes large parts of the frame that are no object at all.
+    env = gym.make(
+        "MiniGrid-DoorKey-5x5-v0", render_mode="rgb_array", tile_size=tile, highlight=False
     )
+    return FixedLayout(env, layout_seed)
 
 
 def make_door_key(tile_size: int | None = None, layout_seed: int = 0) -> TransformedEnv:
