@@ -853,6 +853,15 @@ def _policy(cmd: Evaluate, method: str, env: EnvBase, low_level: Any, dorp: Any)
     return spec.make_policy(env)
 
 
+def task_set(cmd: Evaluate, env: EnvBase) -> tuple[Any, int]:
+    """The seeded task set of ``cmd`` on ``env`` (drawn by the setting's env profile) and
+    the step limit (``--max-steps``, else the profile's): what the evaluation runs, and
+    the rollout GIFs run again."""
+    setting = setting_of(cmd.setting)
+    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed, profile=setting.profile)
+    return tasks, cmd.max_steps or setting.profile.task_limit(setting.num_objects, env)
+
+
 def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
     """Every method of ``cmd`` on the seeded task set; returns the run's result rows."""
     setting = setting_of(cmd.setting)
@@ -901,9 +910,7 @@ def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
             # Picklable factories: --workers/--backend rebuild env and policy per worker;
             # the policy is reseeded with seed + k per chunk k, so any --workers agrees.
             make_env = functools.partial(setting.make_env, batch_size=(batch,), seed=cmd.seed)
-            env = make_env()
-            tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed, profile=setting.profile)
-            limit = cmd.max_steps or setting.profile.task_limit(setting.num_objects, env)
+            tasks, limit = task_set(cmd, make_env())
             result = evaluate_parallel(
                 make_env,
                 functools.partial(_policy, cmd, method, low_level=low_level, dorp=dorp),

@@ -29,7 +29,6 @@ from dorp_rl.eval import (
     RESULT_COLUMNS,
     SETTINGS,
     failure_section,
-    make_task_set,
     rearrangement_code_maps,
     rearrangement_diagnostics,
     rollout_chunk,
@@ -61,6 +60,7 @@ from dorp_rl.pipeline import (
     default_command,
     dorp_stages,
     evaluate_stage,
+    task_set,
 )
 from dorp_rl.progress import BarMirror, progress_bar, relay_bars
 from dorp_rl.viz import plot_results, write_diagnostic_plots
@@ -195,9 +195,8 @@ def _rollout_gifs(
     records = run.stages[_evaluation_key(cmd, method)]["summary"]["per_task"].get("records")
     chosen = tasks_to_draw(records, n) if records else list(range(n))
     env = setting.make_env(batch_size=(batch,), seed=cmd.seed)
-    tasks = make_task_set(env, cmd.tasks, seed=cmd.task_seed, profile=setting.profile)
+    tasks, limit = task_set(cmd, env)
     policy = _policy(cmd, method, env, _low_level_path(run, cmd), dorp)
-    limit = cmd.max_steps or setting.profile.task_limit(setting.num_objects, env)
     code_maps = maps.get(_codes_variant(method))
     bar = progress_bar(run.progress, total=len(chosen), desc="GIF rollouts", unit="task")
     paths: list[Path] = []

@@ -63,6 +63,7 @@ class _Dynamics:
         self.steps: dict[tuple, tuple] = {}
         self.frames: dict[tuple, np.ndarray] = {}
         self._reachable: list[tuple] | None = None
+        self._distances: dict[tuple, dict[tuple, int]] = {}
         #: gymnasium steps and renders made (the cost the tables save)
         self.gym_calls = 0
 
@@ -97,21 +98,18 @@ class _Dynamics:
         return self.frames[state]
 
     def reachable(self, num_actions: int) -> list[tuple]:
-        """Every state reachable from the start (breadth first, in a fixed order)."""
+        """Every state reachable from the start, in a fixed (sorted) order."""
         if self._reachable is None:
-            seen, queue = {self.start}, deque([self.start])
-            while queue:
-                state = queue.popleft()
-                for action in range(num_actions):
-                    nxt = self.step(state, action)
-                    if nxt not in seen:
-                        seen.add(nxt)
-                        queue.append(nxt)
-            self._reachable = sorted(seen)
+            self._reachable = sorted(self.distances(self.start, num_actions))
         return self._reachable
 
     def distances(self, start: tuple, num_actions: int) -> dict[tuple, int]:
-        """Fewest steps from ``start`` to each reachable state."""
+        """Fewest steps from ``start`` to each reachable state (searched once per start)."""
+        if start not in self._distances:
+            self._distances[start] = self._search(start, num_actions)
+        return self._distances[start]
+
+    def _search(self, start: tuple, num_actions: int) -> dict[tuple, int]:
         dist, queue = {start: 0}, deque([start])
         while queue:
             state = queue.popleft()

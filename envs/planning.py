@@ -780,17 +780,17 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.true_env.set_seed(seed)
 
-    def _flat_step(self, rows: TensorDictBase) -> TensorDictBase:
+    def _by_rows(self, rows: TensorDictBase, call) -> TensorDictBase:
+        """``call`` on flat ``rows`` ``[n]``: at once for an env of any shape, else in
+        chunks of the env's batch (the last one padded with repeats); ``[n]`` back."""
         if self.rows is None:
-            return self.true_env._step(rows)
+            return call(rows)
         n, size = rows.shape[0], self.rows
         pad = (-n) % size
         if pad:
             rows = torch.cat([rows, rows[:1].expand(pad).clone()], 0)
-        outs = [
-            self.true_env._step(rows[i : i + size].reshape(self.true_env.batch_size))
-            for i in range(0, rows.shape[0], size)
-        ]
+        batch = self.true_env.batch_size
+        outs = [call(rows[i : i + size].reshape(batch)) for i in range(0, rows.shape[0], size)]
         return torch.cat([o.reshape(-1) for o in outs], 0)[:n]
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -798,23 +798,10 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
         if tensordict is None or not kwargs.get("set_state", False):
             td = env.reset()
             return td.reshape(-1)[0].select(*self.observation_spec.keys()).clone()
-        shape = tensordict.batch_size
-        rows = tensordict.reshape(-1)
-        if self.rows is None:
-            out = env.reset(rows.clone(), set_state=True)
-        else:
-            pad = (-rows.shape[0]) % self.rows
-            padded = torch.cat([rows, rows[:1].expand(pad).clone()], 0) if pad else rows
-            out = torch.cat(
-                [
-                    env.reset(
-                        padded[i : i + self.rows].reshape(env.batch_size).clone(), set_state=True
-                    ).reshape(-1)
-                    for i in range(0, padded.shape[0], self.rows)
-                ],
-                0,
-            )[: rows.shape[0]]
-        return out.select(*self.observation_spec.keys()).reshape(shape)
+        out = self._by_rows(
+            tensordict.reshape(-1), lambda rows: env.reset(rows.clone(), set_state=True)
+        )
+        return out.select(*self.observation_spec.keys()).reshape(tensordict.batch_size)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = tensordict.batch_size
@@ -828,7 +815,8 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
         if "goal_pixels" not in rows.keys() and "goal_pixels" in self.observation_spec.keys():
             spec = self.observation_spec["goal_pixels"]
             rows.set("goal_pixels", spec.zero(rows.batch_size))
-        out = self._flat_step(rows).select(*self.observation_spec.keys()).reshape(shape)
+        out = self._by_rows(rows, self.true_env._step)
+        out = out.select(*self.observation_spec.keys()).reshape(shape)
         false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
         out.update(
             {

@@ -30,7 +30,7 @@ from dorp_rl.eval import (
     play_code_dynamics,
     play_object_diagnostics,
 )
-from dorp_rl.planners import CodeGraph
+from dorp_rl.planners import CodeGraph, encode_transitions
 from dorp_rl.policies import make_dorp_policy
 from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
 
@@ -194,9 +194,11 @@ def main() -> None:
     play = collect_play_data(make_env(), 20_000, seed=args.seed + 1, trajectory_length=50)
     graph = CodeGraph.from_play_data(play, encoder, num_actions=8)
     print(f"graph nodes per group: {[graph.num_nodes(g) for g in range(graph.num_groups)]}")
-    print(f"dead one-hots on new play: {play_code_dynamics(play, encoder)['dead']}")
+    codes = encode_transitions(play, encoder)  # once, for both diagnostics
+    dead = play_code_dynamics(play, encoder, transitions=codes)["dead"]
+    print(f"dead one-hots on new play: {dead}")
     # Ground truth from the profile's objects mapping, on this held-out play data.
-    labelled = play_object_diagnostics(play, encoder, PROFILE.objects)
+    labelled = play_object_diagnostics(play, encoder, PROFILE.objects, transitions=codes)
     print(
         f"held-out play: selectivity {labelled['selectivity']:.3f}, purity per one-hot "
         f"{[round(p, 3) for p in labelled['purity']]} (object of each one-hot: "

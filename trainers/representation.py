@@ -17,10 +17,12 @@ from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
 from dorp_rl.envs import env_identity
-from dorp_rl.metrics.code_information import code_information
+from dorp_rl.metrics.code_information import code_information, play_code_dynamics
+from dorp_rl.metrics.diagnostics import ground_truth_diagnostics, play_object_diagnostics
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
+from dorp_rl.planners.code_graph import encode_transitions
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
 from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed, frame_shape_of
 
@@ -249,8 +251,6 @@ def diagnose(
 ) -> dict:
     """Ground-truth diagnostics of an encoder's codes on ``env``: those of the kind the env
     declares (:func:`~dorp_rl.metrics.diagnostics.ground_truth_diagnostics`)."""
-    from dorp_rl.metrics.diagnostics import ground_truth_diagnostics
-
     result = ground_truth_diagnostics(env, encoder.encode, num_samples=num_samples, seed=seed)
     return result.to_dict() if hasattr(result, "to_dict") else dict(result)
 
@@ -775,8 +775,6 @@ class RepresentationTrainer(OfflineTrainer):
         env declares them (:func:`diagnose`) or its profile maps states to object
         positions (``objects``: :func:`~dorp_rl.eval.object_diagnostics` on the play
         data's own states; never computed on another env's states)."""
-        from dorp_rl.metrics.code_information import play_code_dynamics
-
         env = self.config.make_env()
         result: dict[str, Any] = {}
         if getattr(env, "DIAGNOSTICS", None) is not None:
@@ -786,18 +784,18 @@ class RepresentationTrainer(OfflineTrainer):
                 num_samples=self.config.diagnostics_samples,
                 seed=self.config.seed,
             )
-        n = min(len(self.buffer), self.config.diagnostics_samples)
+        sample = self.buffer[: min(len(self.buffer), self.config.diagnostics_samples)]
         was_training = self.encoder.training
-        dynamics = play_code_dynamics(self.buffer[:n], self.encoder.eval())
+        transitions = encode_transitions(sample, self.encoder.eval())  # once, for both
         self.encoder.train(was_training)
+        dynamics = play_code_dynamics(sample, self.encoder, transitions=transitions)
         result["code_dynamics"] = dynamics
         result["dead_onehots"] = [i for i, dead in enumerate(dynamics["dead"]) if dead]
         objects = self.config.profile.objects
         if objects is not None:  # labels from this env's own play states
-            from dorp_rl.metrics.diagnostics import play_object_diagnostics
-
-            labelled = play_object_diagnostics(self.buffer[:n], self.encoder.eval(), objects)
-            self.encoder.train(was_training)
+            labelled = play_object_diagnostics(
+                sample, self.encoder, objects, transitions=transitions
+            )
             result["objects"] = labelled
             for key in ("selectivity", "purity", "min_purity"):
                 result.setdefault(key, labelled[key])

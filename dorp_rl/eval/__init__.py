@@ -1,6 +1,7 @@
 """Evaluation: task sets and the harness, results and failure records; the measures of
 codes and models (:mod:`dorp_rl.metrics`) are re-exported here."""
 
+from dorp_rl import metrics as _metrics
 from dorp_rl.eval.failures import (
     failure_section,
     format_failures,
@@ -18,22 +19,7 @@ from dorp_rl.eval.tasks import (
     rollout_chunk,
     seed_policy,
 )
-from dorp_rl.metrics.code_information import code_dynamics, code_information, play_code_dynamics
-from dorp_rl.metrics.diagnostics import (
-    GROUND_TRUTH_DIAGNOSTICS,
-    best_assignment,
-    connected_fraction,
-    encode_pixels,
-    ground_truth_diagnostics,
-    key_room_code_maps,
-    key_room_diagnostics,
-    object_diagnostics,
-    play_object_diagnostics,
-    rearrangement_code_maps,
-    rearrangement_diagnostics,
-    sample_rearrangement_states,
-)
-from dorp_rl.metrics.world_model import open_loop_accuracy
+from dorp_rl.metrics import *  # noqa: F403  (the measures of codes and models, re-exported)
 
 __all__ = [
     "BACKENDS",
@@ -53,24 +39,9 @@ __all__ = [
     "write_task_records",
     "result_row",
     "write_results",
-    "best_assignment",
     "check_task_set",
-    "GROUND_TRUTH_DIAGNOSTICS",
-    "code_dynamics",
-    "code_information",
-    "object_diagnostics",
-    "play_object_diagnostics",
-    "play_code_dynamics",
-    "connected_fraction",
-    "encode_pixels",
-    "ground_truth_diagnostics",
     "evaluate_policy",
-    "key_room_code_maps",
-    "key_room_diagnostics",
     "make_task_set",
     "rollout_chunk",
-    "open_loop_accuracy",
-    "rearrangement_code_maps",
-    "rearrangement_diagnostics",
-    "sample_rearrangement_states",
+    *_metrics.__all__,
 ]

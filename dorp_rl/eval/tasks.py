@@ -31,7 +31,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from dorp_rl.envs.profile import EnvProfile, profile_of
+from dorp_rl.envs.profile import EnvProfile, profile_of, reset_tasks
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import MissingKeyError, check_int, check_seed, derive_seed
 
@@ -193,9 +193,12 @@ def make_task_set(
     env = check_env(env)
     num_tasks = check_int("num_tasks", num_tasks, low=1)
     seed = check_seed(seed)
-    if profile is None:
-        profile = profile_of(env) or EnvProfile(name=type(env).__name__, make_env=type(env))
-    tasks = profile.tasks(env, num_tasks, seed)
+    profile = profile or profile_of(env)
+    tasks = (
+        reset_tasks(env, num_tasks, seed)
+        if profile is None
+        else profile.tasks(env, num_tasks, seed)
+    )
     try:
         return check_task_set(tasks, env)
     except ValueError as err:

@@ -160,17 +160,25 @@ def code_dynamics(
 
 
 def play_code_dynamics(
-    buffer: Any, encoder: nn.Module, *, window: int = 3, chunk_size: int = 1024
+    buffer: Any,
+    encoder: nn.Module,
+    *,
+    window: int = 3,
+    chunk_size: int = 1024,
+    transitions: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> dict[str, list]:
     """:func:`code_dynamics` of an encoder's codes on a play buffer of any env.
 
-    Encodes both frames of every transition (:func:`~dorp_rl.planners.encode_transitions`)
-    and orders them by the buffer's ``traj_id`` and ``step_count``.
+    Encodes both frames of every transition (:func:`~dorp_rl.planners.encode_transitions`,
+    or takes its result as ``transitions``) and orders them by the buffer's ``traj_id``
+    and ``step_count``.
     """
     from dorp_rl.data.samplers import stored_column
     from dorp_rl.planners.code_graph import encode_transitions
 
-    codes, next_codes = encode_transitions(buffer, encoder, chunk_size=chunk_size)
+    if transitions is None:
+        transitions = encode_transitions(buffer, encoder, chunk_size=chunk_size)
+    codes, next_codes = transitions
     storage = getattr(buffer, "storage", None)
     if storage is None:  # a TensorDict of transitions
         columns = [buffer.get(key, None) for key in ("traj_id", "step_count")]

@@ -879,15 +879,28 @@ def play_object_diagnostics(
     objects: Callable[[torch.Tensor], torch.Tensor],
     *,
     chunk_size: int = 1024,
+    transitions: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> dict[str, Any]:
     """:func:`object_diagnostics` of an encoder on play transitions (a buffer or a
     TensorDict of them holding ``state`` and ``("next", "state")``), with ``objects``
     mapping a state ``[N, ...]`` to position ids ``[N, K]`` (a profile's
-    :attr:`~dorp_rl.envs.EnvProfile.objects`)."""
+    :attr:`~dorp_rl.envs.EnvProfile.objects`). ``transitions``: the codes of
+    :func:`~dorp_rl.planners.encode_transitions` on the same data, if already computed."""
+    from tensordict import TensorDictBase
+
     from dorp_rl.planners.code_graph import encode_transitions
 
-    codes, next_codes = encode_transitions(buffer, encoder, chunk_size=chunk_size)
-    data = buffer if not hasattr(buffer, "storage") else buffer[: len(buffer)]
+    if transitions is None:
+        transitions = encode_transitions(buffer, encoder, chunk_size=chunk_size)
+    codes, next_codes = transitions
+    storage = getattr(buffer, "storage", None)
+    inner = getattr(storage, "_storage", None)
+    if storage is None:  # a TensorDict of transitions
+        data = buffer
+    elif isinstance(inner, TensorDictBase):  # the state columns only, not the frames
+        data = inner[: len(storage)]
+    else:
+        data = storage[: len(storage)]
     for key in ("state", ("next", "state")):
         if key not in data.keys(True):
             raise ValueError(
