@@ -79,6 +79,35 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def checked(default: Any = dataclasses.MISSING, rule: Any = None, *, factory: Any = None) -> Any:
+    """A dataclass field with its rule beside it: ``lr: float = checked(1e-3, Float(low=0.0))``.
+
+    ``rule(name, value) -> value`` checks and normalises the field (raising ``ValueError``)
+    whenever the config is built; a :class:`Nested` rule without a default makes its
+    field's default from ``factory`` (else the rule's ``default`` or ``cls``). Extra
+    ``field`` options are not needed by the configs, so there are none.
+    """
+    if rule is None:
+        raise TypeError("checked() needs a rule, e.g. checked(1, Int(low=1)).")
+    metadata = {"rule": rule}
+    if default is not dataclasses.MISSING:
+        return dataclasses.field(default=default, metadata=metadata)
+    if factory is None and isinstance(rule, Nested):
+        factory = rule.default if rule.default is not None else rule.cls
+    if factory is None:
+        raise TypeError("checked() needs a default or a factory.")
+    return dataclasses.field(default_factory=factory, metadata=metadata)
+
+
+def field_rules(cls: Any) -> dict[str, Any]:
+    """``{field: rule}`` of a config class or instance (the rules given with :func:`checked`)."""
+    rules = dict(getattr(cls, "FIELD_RULES", {}))
+    for f in dataclasses.fields(cls):
+        if "rule" in f.metadata:
+            rules[f.name] = f.metadata["rule"]
+    return rules
+
+
 class ConfigMixin:
     """``to_dict`` / ``from_dict``, ``replace`` and field validation for dataclass configs.
 
@@ -121,7 +150,7 @@ class ConfigMixin:
     def validate(self) -> None:
         """Checks every field against its rule, then :meth:`check_relations`."""
         names = [f.name for f in dataclasses.fields(self)]  # type: ignore[arg-type]
-        check_fields(self, self.FIELD_RULES, names)
+        check_fields(self, field_rules(self), names)
         self.check_relations()
 
     def check_relations(self) -> None:
@@ -135,7 +164,7 @@ class ConfigMixin:
     @classmethod
     def nested_fields(cls) -> dict[str, type]:
         """``{field: config class}`` of the fields holding another config."""
-        return {k: r.cls for k, r in cls.FIELD_RULES.items() if isinstance(r, Nested)}
+        return {k: r.cls for k, r in field_rules(cls).items() if isinstance(r, Nested)}
 
     def to_dict(self) -> dict[str, Any]:
         """Every field as JSON-friendly values (nested configs as dicts, tuples as lists)."""

@@ -120,9 +120,44 @@ def set_door_key_state(env: gym.Env, state) -> None:
     u.step_count = 0  # never truncated: the task's step limit is the evaluation's
 
 
-def make_env(batch_size=(8,), seed: int = 0, device=None) -> GymGoalEnv:
-    """DoorKey as a goal-conditioned TorchRL env (the factory of :data:`PROFILE`)."""
-    return GymGoalEnv(
+#: share of the play data's starts (free resets) with the key still lying on the floor
+PLAY_KEY_START = 0.5
+
+
+class DoorKeyEnv(GymGoalEnv):
+    """:class:`~dorp_rl.envs.GymGoalEnv` of DoorKey whose free resets (the play data's
+    starts) have the key still lying on the floor ``key_start`` of the time.
+
+    Of the layout's 68 reachable states only 4 have the key lying (the agent in its
+    start cell, the key in front of it, in any of 4 directions): uniform starts would
+    take the key about once per 17 trajectories. The other starts, and the goals, are
+    drawn uniformly among the reachable states as in ``GymGoalEnv``; tasks start from
+    given states (``reset(td, set_state=True)``), which this does not touch.
+    """
+
+    def __init__(self, *args, key_start: float = 0.0, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.key_start = float(key_start)
+
+    def _draw(self, shape: torch.Size, avoid: torch.Tensor | None = None) -> torch.Tensor:
+        drawn = super()._draw(shape, avoid)
+        if avoid is not None or self.key_start <= 0:
+            return drawn
+        lying = [s for s in self.reachable_states() if s[3] == 0]
+        rows = drawn.reshape(-1, drawn.shape[-1])
+        for i in range(rows.shape[0]):
+            if self.rng.random() < self.key_start:
+                rows[i] = torch.tensor(lying[self.rng.randrange(len(lying))])
+        return rows.reshape(drawn.shape)
+
+
+def make_env(
+    batch_size=(8,), seed: int = 0, device=None, key_start: float | None = None
+) -> DoorKeyEnv:
+    """DoorKey as a goal-conditioned TorchRL env (the factory of :data:`PROFILE`); free
+    resets start with the key lying ``key_start`` of the time (default
+    :data:`PLAY_KEY_START`)."""
+    return DoorKeyEnv(
         make_door_key_gym,
         door_key_state,
         set_door_key_state,
@@ -130,6 +165,7 @@ def make_env(batch_size=(8,), seed: int = 0, device=None) -> GymGoalEnv:
         batch_locked=len(batch_size) > 0,
         seed=seed,
         device=device,
+        key_start=PLAY_KEY_START if key_start is None else key_start,
     )
 
 
