@@ -7,11 +7,13 @@ config, refusing unknown fields so that a checkpoint of another version fails lo
 instead of half-loading. A config may embed another as a field (a trainer config holds
 its model's config); :meth:`ConfigMixin.replace` changes fields of both at once.
 
-Every field has a rule (``FIELD_RULES``, see :mod:`dorp_rl.validation`; :class:`Nested`
-for an embedded config), checked when the config is built (also by
+Every field has a rule, given beside it with :func:`checked` (``lr: float =
+checked(1e-3, Float(low=0.0))``; rules in :mod:`dorp_rl.validation`, :class:`Nested` for
+an embedded config), checked when the config is built (also by
 :func:`dataclasses.replace` and ``from_dict``): a wrong value raises ``ValueError``
 naming the field and its allowed range, and values are normalised (``3.0`` steps become
-``3``). Rules between fields live in :meth:`ConfigMixin.check_relations`.
+``3``). A subclass inherits its parent's fields with their rules. Rules between fields
+live in :meth:`ConfigMixin.check_relations`.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import typing
-from typing import Any, ClassVar, TypeVar
+from typing import Any, TypeVar
 
 from dorp_rl.validation import check_fields
 
@@ -84,42 +86,41 @@ def checked(default: Any = dataclasses.MISSING, rule: Any = None, *, factory: An
 
     ``rule(name, value) -> value`` checks and normalises the field (raising ``ValueError``)
     whenever the config is built; a :class:`Nested` rule without a default makes its
-    field's default from ``factory`` (else the rule's ``default`` or ``cls``). Extra
-    ``field`` options are not needed by the configs, so there are none.
+    field's default from ``factory`` (else the rule's ``default`` or ``cls``). Without a
+    default and a factory (and not :class:`Nested`), the field is required:
+    ``checked(rule=Ints(low=1))``. Extra ``field`` options are not needed by the configs,
+    so there are none.
     """
     if rule is None:
         raise TypeError("checked() needs a rule, e.g. checked(1, Int(low=1)).")
     metadata = {"rule": rule}
     if default is not dataclasses.MISSING:
+        if factory is not None:
+            raise TypeError("checked() takes a default or a factory, not both.")
         return dataclasses.field(default=default, metadata=metadata)
     if factory is None and isinstance(rule, Nested):
         factory = rule.default if rule.default is not None else rule.cls
     if factory is None:
-        raise TypeError("checked() needs a default or a factory.")
+        return dataclasses.field(metadata=metadata)
     return dataclasses.field(default_factory=factory, metadata=metadata)
 
 
 def field_rules(cls: Any) -> dict[str, Any]:
     """``{field: rule}`` of a config class or instance (the rules given with :func:`checked`)."""
-    rules = dict(getattr(cls, "FIELD_RULES", {}))
-    for f in dataclasses.fields(cls):
-        if "rule" in f.metadata:
-            rules[f.name] = f.metadata["rule"]
-    return rules
+    return {f.name: f.metadata["rule"] for f in dataclasses.fields(cls) if "rule" in f.metadata}
 
 
 class ConfigMixin:
     """``to_dict`` / ``from_dict``, ``replace`` and field validation for dataclass configs.
 
     Examples:
-        >>> from dataclasses import dataclass, field
-        >>> from dorp_rl.config import ConfigMixin, Nested
-        >>> from dorp_rl.validation import Int
+        >>> from dataclasses import dataclass
+        >>> from dorp_rl.config import ConfigMixin, Nested, checked
+        >>> from dorp_rl.validation import Int, Ints
         >>> @dataclass
         ... class Sizes(ConfigMixin):
-        ...     FIELD_RULES = {"widths": lambda name, v: tuple(v), "depth": Int(low=1)}
-        ...     widths: tuple[int, ...] = (32, 32)
-        ...     depth: int = 2
+        ...     widths: tuple[int, ...] = checked((32, 32), Ints(low=1))
+        ...     depth: int = checked(2, Int(low=1))
         >>> Sizes.from_dict(Sizes().to_dict())
         Sizes(widths=(32, 32), depth=2)
         >>> Sizes(depth=0)
@@ -128,9 +129,8 @@ class ConfigMixin:
         ValueError: depth must be >= 1, got 0.
         >>> @dataclass
         ... class Run(ConfigMixin):
-        ...     FIELD_RULES = {"model": Nested(Sizes), "steps": Int(low=1)}
-        ...     model: Sizes = field(default_factory=Sizes)
-        ...     steps: int = 10
+        ...     model: Sizes = checked(rule=Nested(Sizes))  # default: Sizes()
+        ...     steps: int = checked(10, Int(low=1))
         >>> Run().replace(steps=5, model={"depth": 3})
         Run(model=Sizes(widths=(32, 32), depth=3), steps=5)
         >>> Run().to_dict()
@@ -140,9 +140,6 @@ class ConfigMixin:
         ...
         ValueError: model.depth must be >= 1, got 0.
     """
-
-    #: field name -> rule ``rule(name, value) -> normalised value`` (raises ``ValueError``)
-    FIELD_RULES: ClassVar[dict[str, Any]] = {}
 
     def __post_init__(self) -> None:
         self.validate()

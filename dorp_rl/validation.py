@@ -7,9 +7,11 @@ policy call, a trainer's construction). The checks that read tensor values (an a
 range, the range of float pixels) synchronise with the device, so they never run inside
 per-step loops (an env's ``_step`` on its own output, a planner's imagined rollouts).
 
-Config dataclasses declare one rule per field (:class:`Int`, :class:`Float`,
-:class:`Choice`, :class:`Flag`, :class:`Text`, :class:`Seed`) and are checked with
-:func:`check_fields` when they are built (see :class:`~dorp_rl.config.ConfigMixin`).
+Config dataclasses give every field one rule beside it (:class:`Int`, :class:`Float`,
+:class:`Choice`, :class:`Flag`, :class:`Text`, :class:`Seed`; with
+:func:`~dorp_rl.config.checked`, ``depth: int = checked(2, Int(low=1))``) and are
+checked with :func:`check_fields` when they are built (see
+:class:`~dorp_rl.config.ConfigMixin`).
 
 Examples:
     >>> from dorp_rl.validation import check_int, check_seed

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from dorp_rl.config import Nested
+from dorp_rl.config import ConfigMixin, Nested, checked, field_rules
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.modules import EncoderConfig, VideoModelConfig
@@ -76,7 +76,7 @@ def bad_values(rule) -> list:
         ]
     if isinstance(rule, Nested):  # the nested config's own bad values, given as a dict
         nested = [
-            ({k: v}, text) for k, r in rule.cls.FIELD_RULES.items() for v, text in bad_values(r)
+            ({k: v}, text) for k, r in field_rules(rule.cls).items() for v, text in bad_values(r)
         ]
         return [(3, "dict of its fields"), *nested]
     raise AssertionError(f"no bad values for {rule!r}")
@@ -89,13 +89,39 @@ def defaults(cls):
 @pytest.mark.parametrize("cls", CONFIGS, ids=lambda c: c.__name__)
 def test_every_field_has_a_rule(cls):
     fields = {f.name for f in dataclasses.fields(cls)}
-    assert set(cls.FIELD_RULES) == fields
+    assert set(field_rules(cls)) == fields
+
+
+def test_a_field_without_a_rule_is_a_type_error_naming_it():
+    @dataclasses.dataclass
+    class Partly(ConfigMixin):
+        steps: int = checked(1, Int(low=1))
+        width: int = 3
+
+    with pytest.raises(TypeError, match=r"Partly has no validation rule for fields \['width'\]"):
+        Partly()
+
+
+def test_a_subclass_inherits_the_rules_of_its_parents_fields():
+    assert field_rules(RepresentationConfig)["seed"] == field_rules(TrainerConfig)["seed"]
+    # a field declared again takes its new rule: key rooms have no default trajectory length
+    assert field_rules(TrainerConfig)["trajectory_length"] == Int(low=1, optional=True)
+    assert field_rules(WorldModelConfig)["trajectory_length"] == Int(low=1)
+
+
+def test_checked_needs_a_rule_and_makes_nested_defaults():
+    with pytest.raises(TypeError, match="needs a rule"):
+        checked(1)
+    nested = checked(rule=Nested(EncoderConfig, default=EncoderConfig.small))
+    assert nested.default_factory() == EncoderConfig.small()
+    assert checked(rule=Nested(EncoderConfig)).default_factory() == EncoderConfig()
+    assert checked(rule=Int()).default is dataclasses.MISSING  # a required field
 
 
 CASES = [
     (cls, name, value, text)
     for cls in CONFIGS
-    for name, rule in cls.FIELD_RULES.items()
+    for name, rule in field_rules(cls).items()
     for value, text in bad_values(rule)
 ]
 
@@ -150,7 +176,7 @@ def test_common_mistakes_name_the_field(cls, changes, message):
 
 
 # ---------------------------------------------------------------- bounds pinned by hand
-# The sweep above reads each bound from FIELD_RULES, so a wrong bound there passes it.
+# The sweep above reads each bound from the fields' rules, so a wrong bound there passes it.
 # These are written out from what each field means: (config, field, the literal value
 # just outside its range, the text the refusal holds, the literal boundary or inside
 # values that must be taken).

@@ -18,7 +18,7 @@ from torchrl.envs import EnvBase
 from torchrl.trainers import TrainerHookBase
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
-from dorp_rl.config import ConfigMixin, config_differences, format_differences
+from dorp_rl.config import ConfigMixin, checked, config_differences, format_differences
 from dorp_rl.envs import (
     EnvProfile,
     env_identity,
@@ -68,54 +68,38 @@ class TrainerConfig(ConfigMixin):
     ``num_objects=1``.
     """
 
-    FIELD_RULES = {
-        "env": EnvName(),
-        "num_objects": Int(low=1, high=MAX_OBJECTS, optional=True),
-        "num_frames": Int(low=1),
-        "num_envs": Int(low=1),
-        "trajectory_length": Int(low=1, optional=True),
-        "data_dir": Text(optional=True),
-        "seed": Seed(),
-        "device": Device(),
-        "out_dir": Text(),
-        "log_every": Int(low=1),
-        "checkpoint_every": Int(low=1),
-        "progress": Flag(),
-        "threads": Int(low=1, optional=True),
-    }
-
     #: objects of a rearrangement config that does not say
     default_num_objects: ClassVar[int] = 2
 
     # environment and play data
-    env: str = "rearrangement"
+    env: str = checked("rearrangement", EnvName())
     """environment: a registered profile (rearrangement, key-wall, key-corridor) or an
     import path 'package.module:attribute' (an EnvProfile or a function building the env)"""
-    num_objects: int | None = None
+    num_objects: int | None = checked(None, Int(low=1, high=MAX_OBJECTS, optional=True))
     """objects of an env that counts them, such as rearrangement (None: the config's
     default; 1 for the others)"""
-    num_frames: int = 100_000
+    num_frames: int = checked(100_000, Int(low=1))
     """play transitions to collect"""
-    num_envs: int = 64
+    num_envs: int = checked(64, Int(low=1))
     """envs collecting play data side by side"""
-    trajectory_length: int | None = None
+    trajectory_length: int | None = checked(None, Int(low=1, optional=True))
     """steps per play trajectory (None: the env profile's, 1 for rearrangement)"""
-    data_dir: str | None = None
+    data_dir: str | None = checked(None, Text(optional=True))
     """folder of the play data (None: kept in memory)"""
     # bookkeeping
-    seed: int = 0
+    seed: int = checked(0, Seed())
     """seed of play data, initialisation and sampling"""
-    device: str = "cpu"
+    device: str = checked("cpu", Device())
     """torch device"""
-    out_dir: str = "outputs/run"
+    out_dir: str = checked("outputs/run", Text())
     """folder of checkpoints and logs"""
-    log_every: int = 50
+    log_every: int = checked(50, Int(low=1))
     """steps between logged metrics"""
-    checkpoint_every: int = 500
+    checkpoint_every: int = checked(500, Int(low=1))
     """steps between checkpoints"""
-    progress: bool = True
+    progress: bool = checked(True, Flag())
     """show a progress bar"""
-    threads: int | None = None
+    threads: int | None = checked(None, Int(low=1, optional=True))
     """torch threads while training (torch.set_num_threads for the run of train, then
     restored; None: leave torch's setting). On a shared CPU use 1 per job: with torch's
     default threads and other work on a 2-core machine a training step was about 100x

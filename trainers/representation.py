@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +14,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
-from dorp_rl.config import Nested
+from dorp_rl.config import Nested, checked
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
 from dorp_rl.envs import env_identity
 from dorp_rl.metrics.code_information import code_information, play_code_dynamics
@@ -24,7 +24,7 @@ from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.code_graph import encode_transitions
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
-from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed, frame_shape_of
+from dorp_rl.validation import Choice, Float, Int, Text, check_device, derive_seed, frame_shape_of
 
 #: Flat fields of older representation configs that now live in ``encoder``.
 _FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extractor_kernel_size")
@@ -47,108 +47,76 @@ class RepresentationConfig(TrainerConfig):
     ``map_competition`` and ``extractor_kernel_size`` fields, are read into ``encoder``.
     """
 
-    FIELD_RULES = {
-        **TrainerConfig.FIELD_RULES,
-        "min_offset": Int(low=1),
-        "max_offset": Int(low=1),
-        "encoder": Nested(EncoderConfig, default=_default_encoder),
-        "similarity": Choice(tuple(SIMILARITIES)),
-        "dddp_sign": Choice(("paper", "authors")),
-        "alpha": Float(low=1.0),
-        "gumbel_side": Choice(("positive", "anchor")),
-        "gumbel_temperature": Float(low=0.0, low_open=True),
-        "gumbel_temperature_start": Float(low=0.0, low_open=True, optional=True),
-        "gumbel_anneal_steps": Int(low=0),
-        "ce_temperature": Float(low=0.0, low_open=True),
-        "usage_weight": Float(low=0.0),
-        "exclusivity_weight": Float(low=0.0),
-        "sparsity_weight": Float(low=0.0),
-        "motion_weight": Float(low=0.0),
-        "batch_size": Int(low=2),
-        "lr": Float(low=0.0, low_open=True, hint="(0 would never change a weight)"),
-        "similarity_lr_scale": Float(low=0.0),
-        "num_steps": Int(low=1),
-        "diagnostics_every": Int(low=1),
-        "diagnostics_samples": Int(low=1),
-        "collapse_check_after": Int(low=0),
-        "collapse_min_codes": Int(low=0),
-        "collapse_loss_margin": Float(),
-        "entanglement_check_after": Int(low=0),
-        "entanglement_threshold": Float(low=0.0),
-        "max_restarts": Int(low=0),
-        "num_candidates": Int(low=1),
-        "candidate_steps": Int(low=1),
-        "screening_frames": Int(low=1),
-    }
-
-    out_dir: str = "outputs/representation"
+    out_dir: str = checked("outputs/representation", Text())
     """folder of checkpoints and logs"""
     # training pairs
-    min_offset: int = 1
+    min_offset: int = checked(1, Int(low=1))
     """smallest offset k of the (o_t, o_t+k) training pairs"""
-    max_offset: int = 1
+    max_offset: int = checked(1, Int(low=1))
     """largest offset k of the training pairs"""
     # encoder
-    encoder: EncoderConfig = field(default_factory=_default_encoder)
+    encoder: EncoderConfig = checked(rule=Nested(EncoderConfig, default=_default_encoder))
     """the encoder; its code_sizes may be one number, the size of every object one-hot"""
     # loss
-    similarity: str = "dddp"
+    similarity: str = checked("dddp", Choice(tuple(SIMILARITIES)))
     """code similarity of the CPC loss: dddp, full or identity"""
-    dddp_sign: str = "paper"
+    dddp_sign: str = checked("paper", Choice(("paper", "authors")))
     """sign convention of DDDP: paper or authors"""
-    alpha: float = 1.0
+    alpha: float = checked(1.0, Float(low=1.0))
     """DDDP's alpha (dddp only)"""
-    gumbel_side: str = "positive"
+    gumbel_side: str = checked("positive", Choice(("positive", "anchor")))
     """which side of a pair gets hard Gumbel codes: positive or anchor"""
-    gumbel_temperature: float = 0.1
+    gumbel_temperature: float = checked(0.1, Float(low=0.0, low_open=True))
     """Gumbel-softmax temperature"""
-    gumbel_temperature_start: float | None = None
+    gumbel_temperature_start: float | None = checked(
+        None, Float(low=0.0, low_open=True, optional=True)
+    )
     """start of a Gumbel temperature annealing (None: no annealing)"""
-    gumbel_anneal_steps: int = 0
+    gumbel_anneal_steps: int = checked(0, Int(low=0))
     """steps of the Gumbel temperature annealing"""
-    ce_temperature: float = 0.1
+    ce_temperature: float = checked(0.1, Float(low=0.0, low_open=True))
     """temperature of the contrastive cross-entropy"""
-    usage_weight: float = 0.0
+    usage_weight: float = checked(0.0, Float(low=0.0))
     """weight of the code-usage term"""
-    exclusivity_weight: float = 0.0
+    exclusivity_weight: float = checked(0.0, Float(low=0.0))
     """weight of the map-exclusivity term (objects on separate maps)"""
-    sparsity_weight: float = 0.0
+    sparsity_weight: float = checked(0.0, Float(low=0.0))
     """weight of the map-sparsity term"""
-    motion_weight: float = 0.0
+    motion_weight: float = checked(0.0, Float(low=0.0))
     """weight of the motion-coverage term (key rooms: the agent map on the agent)"""
     # optimisation
-    batch_size: int = 128
+    batch_size: int = checked(128, Int(low=2))
     """pairs per step"""
-    lr: float = 1e-3
+    lr: float = checked(1e-3, Float(low=0.0, low_open=True, hint="(0 would never change a weight)"))
     """Adam learning rate"""
-    similarity_lr_scale: float = 1.0
+    similarity_lr_scale: float = checked(1.0, Float(low=0.0))
     """learning rate of the similarity, as a multiple of lr"""
-    num_steps: int = 2000
+    num_steps: int = checked(2000, Int(low=1))
     """training steps (of the last attempt)"""
     # diagnostics
-    diagnostics_every: int = 500
+    diagnostics_every: int = checked(500, Int(low=1))
     """steps between ground-truth diagnostics"""
-    diagnostics_samples: int = 2048
+    diagnostics_samples: int = checked(2048, Int(low=1))
     """states drawn for the diagnostics"""
     # collapse and entanglement restarts
-    collapse_check_after: int = 300
+    collapse_check_after: int = checked(300, Int(low=0))
     """steps of an attempt before the collapse check"""
-    collapse_min_codes: int = 2
+    collapse_min_codes: int = checked(2, Int(low=0))
     """a one-hot using at most this many codes counts as collapsed"""
-    collapse_loss_margin: float = 0.05
+    collapse_loss_margin: float = checked(0.05, Float())
     """a loss within this margin of log(batch) counts as collapsed"""
-    entanglement_check_after: int = 600
+    entanglement_check_after: int = checked(600, Int(low=0))
     """steps of an attempt before the entanglement check"""
-    entanglement_threshold: float = 0.07
+    entanglement_threshold: float = checked(0.07, Float(low=0.0))
     """map entanglement above this restarts the attempt"""
-    max_restarts: int = 3
+    max_restarts: int = checked(3, Int(low=0))
     """restarts after a collapse or entanglement"""
     # initialisation screening
-    num_candidates: int = 1
+    num_candidates: int = checked(1, Int(low=1))
     """initialisations screened before training (1: no screening)"""
-    candidate_steps: int = 1000
+    candidate_steps: int = checked(1000, Int(low=1))
     """steps per screened initialisation"""
-    screening_frames: int = 8192
+    screening_frames: int = checked(8192, Int(low=1))
     """play frames scoring each screened initialisation"""
 
     @classmethod

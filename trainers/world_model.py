@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +13,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
-from dorp_rl.config import Nested
+from dorp_rl.config import Nested, checked
 from dorp_rl.data import (
     EventWindowSampler,
     SequenceSampler,
@@ -27,7 +27,7 @@ from dorp_rl.metrics.world_model import open_loop_accuracy
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
-from dorp_rl.validation import Choice, Float, Int, check_device, derive_seed
+from dorp_rl.validation import Choice, Float, Int, Text, check_device, derive_seed
 
 #: seed offset of the held-out play data used for evaluation
 HELD_OUT_SEED_OFFSET = 100_003
@@ -59,79 +59,66 @@ class WorldModelConfig(TrainerConfig):
     flat ``model_preset``, ``latent_dim`` and ``prior`` fields, are read into ``model``.
     """
 
-    FIELD_RULES = {
-        **TrainerConfig.FIELD_RULES,
-        "trajectory_length": Int(low=1),
-        "horizon": Int(low=1),
-        "event_share": Float(
+    default_num_objects = 3
+
+    trajectory_length: int = checked(16, Int(low=1))
+    """steps per play trajectory"""
+    out_dir: str = checked("outputs/world_model", Text())
+    """folder of checkpoints and logs"""
+    # windows and evaluation
+    horizon: int = checked(14, Int(low=1))
+    """steps per training window"""
+    event_share: float = checked(
+        0.0,
+        Float(
             low=0.0,
             high=1.0,
             high_open=True,
             hint="(a share of the training windows: 0 keeps them uniform, 1 would train on "
             "event windows only)",
         ),
-        "eval_frames": Int(low=1),
-        "eval_sequences": Int(low=1),
-        "model": Nested(VideoModelConfig, default=VideoModelConfig.default),
-        "feedback": Choice(FEEDBACK_MODES),
-        "kl_weight": Float(low=0.0),
-        "free_bits": Float(low=0.0),
-        "deterministic_fraction": Float(low=0.0, high=1.0),
-        "open_loop_ramp": Float(low=0.0, high=1.0),
-        "batch_size": Int(low=1),
-        "lr": Float(low=0.0, low_open=True, hint="(0 would never change a weight)"),
-        "lr_final": Float(low=0.0),
-        "grad_clip": Float(
+    )
+    """least share of training windows holding a rare event, e.g. the key taken (0: uniform)"""
+    eval_frames: int = checked(8_000, Int(low=1))
+    """held-out play transitions for evaluation"""
+    eval_sequences: int = checked(512, Int(low=1))
+    """held-out windows the open-loop accuracy is measured on"""
+    eval_every: int = checked(1000, Int(low=1))
+    """steps between evaluations"""
+    # model
+    model: VideoModelConfig = checked(
+        rule=Nested(VideoModelConfig, default=VideoModelConfig.default)
+    )
+    """the video model (VideoModelConfig.small() is about 4x smaller)"""
+    # loss
+    feedback: str = checked("straight_through", Choice(FEEDBACK_MODES))
+    """how predictions are fed back: straight_through, soft or hard"""
+    kl_weight: float = checked(1.0, Float(low=0.0))
+    """weight of the KL term"""
+    free_bits: float = checked(0.0, Float(low=0.0))
+    """KL free bits"""
+    deterministic_fraction: float = checked(0.5, Float(low=0.0, high=1.0))
+    """share of steps trained with z at its mean"""
+    open_loop_ramp: float = checked(0.5, Float(low=0.0, high=1.0))
+    """share of the steps over which the open-loop length grows to horizon"""
+    # optimisation
+    batch_size: int = checked(32, Int(low=1))
+    """windows per step"""
+    lr: float = checked(2e-3, Float(low=0.0, low_open=True, hint="(0 would never change a weight)"))
+    """Adam learning rate at the start"""
+    lr_final: float = checked(1e-4, Float(low=0.0))
+    """learning rate at the end of the cosine decay"""
+    grad_clip: float = checked(
+        1.0,
+        Float(
             low=0.0,
             low_open=True,
             allow_inf=True,
             hint="(0 would freeze every weight; math.inf turns clipping off)",
         ),
-        "num_steps": Int(low=1),
-        "eval_every": Int(low=1),
-    }
-
-    default_num_objects = 3
-
-    trajectory_length: int = 16
-    """steps per play trajectory"""
-    out_dir: str = "outputs/world_model"
-    """folder of checkpoints and logs"""
-    # windows and evaluation
-    horizon: int = 14
-    """steps per training window"""
-    event_share: float = 0.0
-    """least share of training windows holding a rare event, e.g. the key taken (0: uniform)"""
-    eval_frames: int = 8_000
-    """held-out play transitions for evaluation"""
-    eval_sequences: int = 512
-    """held-out windows the open-loop accuracy is measured on"""
-    eval_every: int = 1000
-    """steps between evaluations"""
-    # model
-    model: VideoModelConfig = field(default_factory=VideoModelConfig.default)
-    """the video model (VideoModelConfig.small() is about 4x smaller)"""
-    # loss
-    feedback: str = "straight_through"
-    """how predictions are fed back: straight_through, soft or hard"""
-    kl_weight: float = 1.0
-    """weight of the KL term"""
-    free_bits: float = 0.0
-    """KL free bits"""
-    deterministic_fraction: float = 0.5
-    """share of steps trained with z at its mean"""
-    open_loop_ramp: float = 0.5
-    """share of the steps over which the open-loop length grows to horizon"""
-    # optimisation
-    batch_size: int = 32
-    """windows per step"""
-    lr: float = 2e-3
-    """Adam learning rate at the start"""
-    lr_final: float = 1e-4
-    """learning rate at the end of the cosine decay"""
-    grad_clip: float = 1.0
+    )
     """gradient-norm clip (inf: off)"""
-    num_steps: int = 6000
+    num_steps: int = checked(6000, Int(low=1))
     """training steps"""
 
     @classmethod

@@ -10,7 +10,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dorp_rl.config import ConfigMixin
+from dorp_rl.config import ConfigMixin, checked
 from dorp_rl.validation import (
     Choice,
     Float,
@@ -44,32 +44,23 @@ class EncoderConfig(ConfigMixin):
         ValueError: map_competition must be one of ('sigmoid', 'softmax'), got 'max'.
     """
 
-    FIELD_RULES = {
-        "code_sizes": Ints(low=2),
-        "channels": Int(low=1),
-        "conv_layers": Int(low=0),
-        "kernel_size": Int(low=1),
-        "mlp_sizes": Ints(low=1, min_length=0),
-        "input_scale": Float(low=0.0, low_open=True),
-        "map_competition": Choice(("sigmoid", "softmax")),
-        "frame_shape": Ints(low=1, min_length=3, max_length=3),
-    }
-
-    code_sizes: tuple[int, ...] = (32,)
+    code_sizes: tuple[int, ...] = checked((32,), Ints(low=2))
     """codes of each one-hot, e.g. (32, 32) for two objects, (16, 2) for agent and key bit"""
-    channels: int = 32
+    channels: int = checked(32, Int(low=1))
     """width of the object extractor's convolutions"""
-    conv_layers: int = 3
+    conv_layers: int = checked(3, Int(low=0))
     """hidden conv + BatchNorm + ReLU layers of the object extractor"""
-    kernel_size: int = 3
+    kernel_size: int = checked(3, Int(low=1))
     """the extractor's conv kernel size (odd; 1: each map sees only its own pixels)"""
-    mlp_sizes: tuple[int, ...] = (512, 512)
+    mlp_sizes: tuple[int, ...] = checked((512, 512), Ints(low=1, min_length=0))
     """hidden widths of the per-map encoder shared by all maps (the last gets a LayerNorm)"""
-    input_scale: float = 10.0
+    input_scale: float = checked(10.0, Float(low=0.0, low_open=True))
     """pixels in [0, 1] are multiplied by this"""
-    map_competition: str = "sigmoid"
+    map_competition: str = checked("sigmoid", Choice(("sigmoid", "softmax")))
     """how object maps share a pixel: sigmoid (independent) or softmax (they compete)"""
-    frame_shape: tuple[int, int, int] = (3, 16, 16)
+    frame_shape: tuple[int, int, int] = checked(
+        (3, 16, 16), Ints(low=1, min_length=3, max_length=3)
+    )
     """(C, H, W) of the frames: channels of the first conv, H x W inputs of the map encoder"""
 
     @classmethod

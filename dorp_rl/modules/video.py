@@ -42,7 +42,7 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dorp_rl.config import ConfigMixin
+from dorp_rl.config import ConfigMixin, checked
 from dorp_rl.validation import (
     Choice,
     Flag,
@@ -127,35 +127,23 @@ class VideoModelConfig(ConfigMixin):
         (16, (1, 2, 4), 0)
     """
 
-    FIELD_RULES = {
-        "channels": Int(low=1),
-        "dilations": Ints(low=1),
-        "global_context": Flag(),
-        "latent_dim": Int(low=0),
-        "prior": Choice(("fixed", "learned")),
-        "latent_channels": Int(low=1),
-        "copy_init": Float(),
-        "advection": Flag(),
-        "collision_features": Flag(),
-    }
-
-    channels: int = 32
+    channels: int = checked(32, Int(low=1))
     """width of the residual trunk (on the 8x8 grid)"""
-    dilations: tuple[int, ...] = (1, 2, 4, 1)
+    dilations: tuple[int, ...] = checked((1, 2, 4, 1), Ints(low=1))
     """one residual block per entry: its 3x3 conv's dilation ((1, 2, 4, 1) sees 9 cells)"""
-    global_context: bool = True
+    global_context: bool = checked(True, Flag())
     """add a global max-pool of each block's features to its FiLM"""
-    latent_dim: int = 4
+    latent_dim: int = checked(4, Int(low=0))
     """size of the latent z (0: a deterministic model)"""
-    prior: str = "fixed"
+    prior: str = checked("fixed", Choice(("fixed", "learned")))
     """prior of z: fixed (N(0, I)) or learned (p(z | o_t, a_t))"""
-    latent_channels: int = 16
+    latent_channels: int = checked(16, Int(low=1))
     """width of the posterior / prior conv nets"""
-    copy_init: float = 4.0
+    copy_init: float = checked(4.0, Float())
     """initial gain of the advection path (score added to the advected input colours)"""
-    advection: bool = True
+    advection: bool = checked(True, Flag())
     """move each colour's map by a predicted 3x3 kernel before the copy path (off: copy)"""
-    collision_features: bool = True
+    collision_features: bool = checked(True, Flag())
     """tell the kernel head how much each colour would overlap others or leave, per shift"""
 
     @classmethod

@@ -43,7 +43,7 @@ import torch
 from torch import nn
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
-from dorp_rl.config import ConfigMixin, config_differences, format_differences
+from dorp_rl.config import ConfigMixin, checked, config_differences, format_differences
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.progress import progress_bar
@@ -77,20 +77,13 @@ class CodeGraphConfig(ConfigMixin):
     world-model checkpoints refuse theirs.
     """
 
-    FIELD_RULES = {
-        "code_sizes": Ints(low=1),
-        "groups": _index_groups,
-        "fingerprint": _fingerprint,
-        "dense_limit": Int(low=0),
-    }
-
-    code_sizes: tuple[int, ...]
+    code_sizes: tuple[int, ...] = checked(rule=Ints(low=1))
     """codes per one-hot"""
-    groups: tuple[tuple[int, ...], ...]
+    groups: tuple[tuple[int, ...], ...] = checked(rule=_index_groups)
     """one-hot indices of every group"""
-    fingerprint: str = ""
+    fingerprint: str = checked("", _fingerprint)
     """:func:`encoder_fingerprint` of the encoder that made the codes (``""``: unknown)"""
-    dense_limit: int = DEFAULT_DENSE_LIMIT
+    dense_limit: int = checked(DEFAULT_DENSE_LIMIT, Int(low=0))
     """groups with at most this many nodes get a distance table"""
 
 
