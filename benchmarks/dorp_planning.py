@@ -55,9 +55,11 @@ def video_name(setting: Setting) -> str:
     return codes_name(setting) if setting.env == "rearrangement" else setting.env
 
 
-def _switch(value: str) -> bool | str | None:
-    """``auto`` / ``on`` / ``off`` (/ ``goal``) as ``make_dorp_policy`` takes it."""
-    return {"auto": None, "on": True, "off": False, "goal": "goal"}[value]
+def _switch(name: str, value: str) -> dict[str, bool | str]:
+    """``auto`` (the env profile's setting: nothing passed) / ``on`` / ``off`` (/ ``goal``)
+    as the ``make_dorp_policy`` keyword ``name``."""
+    chosen = {"auto": None, "on": True, "off": False, "goal": "goal"}[value]
+    return {} if chosen is None else {name: chosen}
 
 
 def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[Any, CodeGraph, dict]:
@@ -123,8 +125,8 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         waypoint_budget=args.waypoint_budget,
         max_removed_edges=args.max_removed_edges,
         forget_blocked_edges=not args.keep_removed_edges,
-        reenter=_switch(args.reenter),
-        replan_on_miss=_switch(args.replan_on_miss),
+        **_switch("reenter", args.reenter),
+        **_switch("replan_on_miss", args.replan_on_miss),
         order=args.order,
         goal_planner=args.goal_planner,
         seed=args.seed,
@@ -179,12 +181,12 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "seconds_per_task": result["seconds"] / len(tasks),
         "max_steps": result["max_steps"],
         "paper": setting.paper,
-        "reenter": policy.reenter,
-        "replan_on_miss": policy.replan_on_miss,
+        "reenter": policy.config.reenter,
+        "replan_on_miss": policy.config.replan_on_miss,
         "planner": args.planner,
         "waypoint_goal_weight": args.waypoint_goal_weight,
         "waypoint_step_penalty": args.waypoint_step_penalty,
-        "max_misses": policy.max_misses,
+        "max_misses": policy.config.max_misses,
         "action_persistence": getattr(policy.waypoint_planner, "action_persistence", None),
         "task_ids": args.task_ids,
         "solved": [bool(x) for x in result["success"]],

@@ -104,8 +104,9 @@ class EnvProfile:
         world_model: overrides of :class:`~dorp_rl.trainers.WorldModelConfig`, likewise.
         groups: the code graph's groups (``"onehot"``, ``"full"`` or tuples of one-hot
             indices), a value or a function of ``num_objects``.
-        dorp: settings of :func:`~dorp_rl.policies.make_dorp_policy` that suit the env
-            (``reenter``, ``replan_on_miss``, ``waypoint_goal_weight``).
+        dorp: fields of :class:`~dorp_rl.policies.DORPConfig` that suit the env (e.g.
+            ``reenter``, ``replan_on_miss``, ``waypoint_goal_weight``), over its defaults
+            (:meth:`~dorp_rl.policies.DORPConfig.for_env`).
         draw_tasks: ``(env, num_tasks, seed) -> TensorDict`` of ``state`` and
             ``goal_state`` (default :func:`reset_tasks`).
         lower_bound: ``(env, state, goal_state) -> [num_tasks]`` steps no policy can beat

@@ -154,7 +154,12 @@ class EvalSpec:
 
     def make_policy(self, env: EnvBase) -> Policy:
         """The policy of :attr:`method` for ``env`` (``env.rand_action`` for random)."""
-        from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy, make_planning_env
+        from dorp_rl.policies import (
+            DORPConfig,
+            VisualForesightPolicy,
+            make_dorp_policy,
+            make_planning_env,
+        )
 
         if self.method == "random":
             return env.rand_action
@@ -164,12 +169,12 @@ class EvalSpec:
                 from dorp_rl.modules import OracleCodeEncoder
 
                 encoder = OracleCodeEncoder(env, cell_size=self.oracle_cell_size)
-            suited = dict(setting_of(self.setting).profile.dorp)  # the env's DORP settings
             return make_dorp_policy(
                 env,
                 encoder,
                 self.graph,
-                **{**suited, **self.planner_kwargs},
+                DORPConfig.for_env(setting_of(self.setting).profile),  # the env's settings
+                **self.planner_kwargs,
                 low_level=self.low_level,
                 planner=self.dorp_planner,
                 planning_horizon=self.planning_horizon,

@@ -1,27 +1,50 @@
-"""Policies: DORP's hierarchical abstract-goal policy and the visual-foresight baselines."""
+"""Policies: DORP's hierarchical abstract-goal policy and the visual-foresight baselines.
 
-from dorp_rl.policies.abstract_goal import (
-    DORP_RECIPE,
-    ENDINGS,
-    MODES,
-    ORDERS,
-    AbstractGoalPolicy,
-    make_dorp_policy,
-    make_waypoint_cost,
-)
+- :mod:`~dorp_rl.policies.abstract_goal`: the paper's loop (:class:`AbstractGoalPolicy`);
+- :mod:`~dorp_rl.policies.recovery`: its recovery rules, one part each;
+- :mod:`~dorp_rl.policies.state`: the one declaration of a policy's state keys;
+- :mod:`~dorp_rl.policies.config`: its settings (:class:`DORPConfig`);
+- :mod:`~dorp_rl.policies.factory`: :func:`make_dorp_policy`, planners and costs from a config;
+- :mod:`~dorp_rl.policies.visual_foresight`, :mod:`~dorp_rl.policies.low_level`.
+"""
+
+from dorp_rl.policies.abstract_goal import ENDINGS, LOOP_FIELDS, MODES, AbstractGoalPolicy
+from dorp_rl.policies.config import ORDERS, DORPConfig
+from dorp_rl.policies.factory import DORP_RECIPE, make_dorp_policy, make_waypoint_cost
 from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
+from dorp_rl.policies.recovery import (
+    ForgetBlocked,
+    GoalRelaxation,
+    MissedPlans,
+    RecoveryRule,
+    Reentry,
+    RestoreWhenStuck,
+    recovery_rules,
+)
+from dorp_rl.policies.state import PolicyState, StateKey
 from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightPolicy
 
 __all__ = [
     "AbstractGoalPolicy",
+    "DORPConfig",
     "DORP_RECIPE",
     "ENDINGS",
+    "ForgetBlocked",
+    "GoalRelaxation",
+    "LOOP_FIELDS",
     "MODES",
+    "MissedPlans",
     "ORDERS",
+    "PolicyState",
+    "RecoveryRule",
+    "Reentry",
+    "RestoreWhenStuck",
+    "StateKey",
     "TRUE_DYNAMICS",
     "VARIANT_DEFAULTS",
     "VisualForesightPolicy",
     "make_dorp_policy",
     "make_planning_env",
     "make_waypoint_cost",
+    "recovery_rules",
 ]

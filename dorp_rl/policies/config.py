@@ -1,0 +1,152 @@
+"""The DORP policy's settings as one config: the loop, its recovery rules and its planners.
+
+:class:`DORPConfig` is what :func:`~dorp_rl.policies.make_dorp_policy` builds a policy
+from. Its defaults are the generic recipe; an env profile's ``dorp`` (a dict of these
+fields, :attr:`~dorp_rl.envs.EnvProfile.dorp`) overrides them for the envs it suits
+(:meth:`DORPConfig.for_env`), and explicit arguments override both. Measured effects of
+each setting are in docs/NOTES.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.planners.costs import check_step_penalty
+from dorp_rl.validation import Choice, Flag, Float, Int, check_float
+
+__all__ = ["DORPConfig", "ORDERS"]
+
+#: Orders in which groups are moved (besides an explicit sequence of group indices).
+ORDERS = ("index", "nearest")
+
+
+def _order(name: str, value: Any) -> str | tuple[int, ...]:
+    if isinstance(value, str):
+        if value not in ORDERS:
+            raise ValueError(f"{name} must be one of {ORDERS} or group indices, got {value!r}.")
+        return value
+    if not isinstance(value, Sequence):
+        raise ValueError(f"{name} must be one of {ORDERS} or group indices, got {value!r}.")
+    return tuple(Int(low=0)(f"{name}[{i}]", g) for i, g in enumerate(value))
+
+
+def _reenter(name: str, value: Any) -> bool | str:
+    if isinstance(value, bool) or type(value).__name__ == "bool_":
+        return bool(value)
+    if value != "goal":
+        raise ValueError(f"{name} must be True, False or 'goal', got {value!r}.")
+    return value
+
+
+def _sigmas(name: str, value: Any) -> tuple[float, ...]:
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        raise ValueError(f"{name} must be a sequence of blur widths, got {value!r}.")
+    return tuple(
+        check_float(f"{name}[{i}]", s, low=0.0, low_open=True) for i, s in enumerate(value)
+    )
+
+
+def _step_penalty(name: str, value: Any) -> float:
+    return check_step_penalty(value, name)
+
+
+@dataclass
+class DORPConfig(ConfigMixin):
+    """Settings of the DORP policy (:class:`~dorp_rl.policies.AbstractGoalPolicy` and the
+    planners :func:`~dorp_rl.policies.make_dorp_policy` gives it).
+
+    Examples:
+        >>> from dorp_rl.policies import DORPConfig
+        >>> DORPConfig.for_env("key-wall").reenter
+        True
+        >>> DORPConfig(waypoint_budget=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: waypoint_budget must be >= 1, got 0.
+    """
+
+    # the paper's loop
+    order: str | tuple[int, ...] = checked("index", _order)
+    """which group moves first: 'index' (index order, as the authors), 'nearest' (the
+    shortest path first) or every group index once"""
+    waypoint_budget: int = checked(28, Int(low=1))
+    """env steps to reach one waypoint before its edge is removed for the task"""
+    max_removed_edges: int = checked(128, Int(low=0))
+    """edges a task may remove (re-entries included); one more failure ends the task"""
+    goal_budget: int | None = checked(None, Int(low=1, optional=True))
+    """steps the goal-image phase may take before the task is given up (twice that once
+    relaxed); None: only the env's step limit"""
+    # recovery rules (dorp_rl.policies.recovery)
+    max_misses: int | None = checked(1, Int(low=1, optional=True))
+    """waypoint plans in a row that reach the waypoint nowhere after which its edge is
+    removed at once (None: only the budget counts)"""
+    miss_threshold: float = checked(0.5, Float())
+    """the plan cost from which a waypoint plan is a miss (CodeMatchCost: no candidate
+    reaches the waypoint)"""
+    replan_on_miss: bool = checked(False, Flag())
+    """follow a missing plan for one step, then plan again (False: to its end)"""
+    forget_blocked_edges: bool = checked(True, Flag())
+    """a group reaching a waypoint frees the edges removed for the other groups (False:
+    every removal holds for the task, as the authors)"""
+    restore_when_stuck: bool = checked(True, Flag())
+    """with no path left but edges removed, restore them and search again, once until a
+    waypoint is reached (False: give up at once, as the authors)"""
+    reenter: bool | str = checked(False, _reenter)
+    """re-enter a code another way before removing a failed hop that no other path
+    replaces, and when the goal phase stalls in it; 'goal': only the latter"""
+    max_reentries: int = checked(8, Int(low=0))
+    """re-entries a task may start"""
+    goal_code_weight: float = checked(100.0, Float(low=0.0))
+    """goal phase: cost of a frame whose codes are not the goal's, added to its pixel
+    distance (0: pixel distance alone, as the paper)"""
+    goal_patience: int | None = checked(14, Int(low=1, optional=True))
+    """goal-phase steps without a lower plan cost after which the goal-code term is
+    dropped (None: never)"""
+    # planners
+    planner: str = checked("rs", Choice(("rs", "cem")))
+    """waypoint planner: 'rs' (random shooting) or 'cem' (categorical CEM)"""
+    goal_planner: str | None = checked(None, Choice(("rs", "cem"), optional=True))
+    """goal-image planner (None: as planner)"""
+    planning_horizon: int = checked(14, Int(low=1))
+    """steps per candidate action sequence"""
+    num_candidates: int = checked(1000, Int(low=1))
+    """candidate action sequences per plan"""
+    action_repeat: int = checked(1, Int(low=1))
+    """env steps each planned action is held"""
+    action_persistence: float | None = checked(
+        None, Float(low=0.0, high=1.0, high_open=True, optional=True)
+    )
+    """random shooting: probability that a sampled action repeats the one before it
+    (None: 0.5; 0: uniform draws, as the paper)"""
+    goal_blur_sigmas: tuple[float, ...] = checked((1.0, 2.0, 4.0, 8.0), _sigmas)
+    """blurred terms of the goal image's pixel distance (): the paper's plain L2)"""
+    waypoint_goal_weight: float = checked(0.0, Float(low=0.0))
+    """weight of the goal image's pixel distance in the waypoint cost: ranks plans that
+    reach the waypoint by how close their frame is to the goal (0: the code match alone)"""
+    waypoint_step_penalty: float = checked(0.0, _step_penalty)
+    """waypoint cost per step of a frame at the waypoint: earlier arrival wins"""
+    action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
+    """share of the waypoint planner's actions drawn from those that changed the hop's
+    one-hots in the play data (None: 0.8 when the graph has action counts, else 0)"""
+
+    @classmethod
+    def for_env(cls, env: Any, **overrides: Any) -> DORPConfig:
+        """The config that suits ``env`` (an env, a profile or its name): the profile's
+        ``dorp`` over the defaults, then ``overrides``."""
+        from dorp_rl.envs.profile import EnvProfile, env_profile, profile_of
+
+        named = isinstance(env, (str, EnvProfile))
+        profile = env_profile(env) if named else profile_of(env)
+        suited = dict(profile.dorp) if profile is not None else {}
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(suited) - known)
+        if unknown:
+            raise ValueError(
+                f"the dorp settings of env profile {profile.name!r} name {unknown}, which are "
+                f"no DORPConfig fields ({', '.join(sorted(known))})."
+            )
+        return cls(**{**suited, **overrides})

@@ -1,0 +1,248 @@
+"""Assembles the DORP policy from an env, codes, a graph and a :class:`DORPConfig`."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from tensordict.nn import TensorDictSequential
+from torch import nn
+from torchrl.envs import EnvBase
+
+from dorp_rl.envs.spec import DiscreteActions, env_identity
+from dorp_rl.planners.cem import CategoricalCEMPlanner
+from dorp_rl.planners.code_graph import CodeGraph
+from dorp_rl.planners.costs import (
+    CodeMatchCost,
+    PixelDistanceCost,
+    WeightedCostSum,
+    check_step_penalty,
+)
+from dorp_rl.planners.random_shooting import RandomShootingPlanner
+from dorp_rl.policies.abstract_goal import PRIOR_KEY, AbstractGoalPolicy
+from dorp_rl.policies.config import DORPConfig
+from dorp_rl.policies.low_level import make_planning_env
+from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
+
+__all__ = ["DEFAULT_ACTION_PRIOR_MIX", "DORP_RECIPE", "make_dorp_policy", "make_waypoint_cost"]
+
+#: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
+#: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
+#: older recipe runs again instead of being reused.
+DORP_RECIPE = 3
+#: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
+DEFAULT_ACTION_PRIOR_MIX = 0.8
+#: the random-shooting planners' ``action_persistence`` when the config leaves it ``None``
+DEFAULT_ACTION_PERSISTENCE = 0.5
+_CEM_ONLY = frozenset(
+    ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
+)
+_CONFIG_FIELDS = frozenset(f.name for f in dataclasses.fields(DORPConfig))
+
+
+def make_waypoint_cost(
+    encoder: nn.Module,
+    *,
+    waypoint_goal_weight: float = 0.0,
+    step_penalty: float = 0.0,
+    goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
+    cache_size: int = 2**18,
+) -> nn.Module:
+    """The cost DORP's waypoint planner ranks its plans by (written under ``cost``).
+
+    A :class:`~dorp_rl.planners.CodeMatchCost` on ``subgoal_code`` over the one-hots of
+    ``subgoal_mask``; with ``waypoint_goal_weight > 0``, plus that weight times the goal
+    image's blurred :class:`~dorp_rl.planners.PixelDistanceCost` (each folded over the
+    plan's steps with ``min``), so that among plans reaching the waypoint those leaving
+    the frame nearest the goal image win. ``step_penalty`` is the code term's cost per
+    step of a matching frame (earlier arrival wins; see
+    :class:`~dorp_rl.planners.CodeMatchCost`).
+
+    Examples:
+        >>> from dorp_rl.envs import ObjectRearrangementEnv
+        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> env = ObjectRearrangementEnv(num_objects=2)
+        >>> cost = make_waypoint_cost(OracleCodeEncoder(env), waypoint_goal_weight=0.003)
+        >>> type(cost).__name__
+        'TensorDictSequential'
+    """
+    waypoint_goal_weight = check_float("waypoint_goal_weight", waypoint_goal_weight, low=0.0)
+    alone = waypoint_goal_weight == 0
+    code_cost = CodeMatchCost(
+        encoder,
+        "subgoal_code",
+        onehots="subgoal_mask",
+        out_key="cost" if alone else "waypoint_code_cost",
+        step_penalty=step_penalty,
+        cache_size=cache_size,
+    )
+    if alone:
+        return code_cost
+    return TensorDictSequential(
+        code_cost,
+        PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
+        WeightedCostSum(
+            {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)},
+            step_aggregation="min",
+        ),
+    )
+
+
+def make_goal_cost(
+    encoder: nn.Module, *, goal_code_weight: float, goal_blur_sigmas: Sequence[float]
+) -> nn.Module:
+    """The goal-image phase's cost: the goal's blurred pixel distance, plus (with
+    ``goal_code_weight > 0``) a code term weighted per row by ``goal_code_weight``.
+
+    The goal-image phase starts with every code at the goal's: frames that leave them
+    cost more than any pixel distance, so the pixel cost cannot undo the plan.
+    """
+    pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
+    if goal_code_weight == 0:
+        return pixel_cost
+    return TensorDictSequential(
+        pixel_cost,
+        CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost"),
+        WeightedCostSum(
+            {"pixel_cost": 1.0, "goal_code_cost": "goal_code_weight"},
+            step_aggregation="min",
+        ),
+    )
+
+
+def make_dorp_policy(
+    env: EnvBase,
+    encoder: nn.Module | str | Path,
+    graph: CodeGraph | str | Path,
+    config: DORPConfig | None = None,
+    *,
+    low_level: str | EnvBase | nn.Module = "gt",
+    seed: int | None = None,
+    **overrides: Any,
+) -> AbstractGoalPolicy:
+    """Assembles a DORP policy for ``env`` from checkpoints or objects.
+
+    Args:
+        env: the acting env (its dynamics serve as the oracle low level).
+        encoder: an encoder, or the path of a representation checkpoint.
+        graph: a :class:`~dorp_rl.planners.CodeGraph`, or the path of a saved one.
+        config: the policy's settings; default :meth:`DORPConfig.for_env` of ``env``
+            (the generic recipe with the ``dorp`` settings of the env's profile).
+        low_level: ``"gt"`` (the env's true dynamics), a planning env
+            (:class:`~dorp_rl.envs.WorldModelEnv`, ...), a video prediction model, or the
+            path of a world-model checkpoint (:func:`~dorp_rl.policies.make_planning_env`).
+        seed: seeds the planners (the goal planner with a derived seed).
+        **overrides: :class:`DORPConfig` fields changed from ``config``, and more
+            arguments of the planners (``optim_steps``, ``top_k``, ... of
+            :class:`~dorp_rl.planners.CategoricalCEMPlanner`).
+
+    Raises:
+        ValueError: a graph built for another environment, encoder or code sizes, an
+            unknown planner or low level, or a setting out of its range.
+
+    Examples:
+        >>> from dorp_rl.data import collect_play_data
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> from dorp_rl.planners import CodeGraph
+        >>> env = KeyWallEnv(batch_size=(1,), seed=0)
+        >>> oracle = OracleCodeEncoder(env, cell_size=4)
+        >>> graph = CodeGraph.from_play_data(collect_play_data(env, 500, seed=0), oracle)
+        >>> policy = make_dorp_policy(env, oracle, graph, num_candidates=64, seed=0)
+        >>> policy.config.reenter, policy.config.num_candidates  # the key rooms' profile
+        (True, 64)
+    """
+    from dorp_rl.trainers import load_encoder
+
+    seed = check_seed(seed, optional=True)
+    if not isinstance(env, EnvBase):
+        raise ValueError(f"env must be a TorchRL EnvBase, got {type(env).__name__}.")
+    fields = {k: v for k, v in overrides.items() if k in _CONFIG_FIELDS}
+    planner_kwargs = {k: v for k, v in overrides.items() if k not in _CONFIG_FIELDS}
+    # The planners' own keywords, less those set from the config.
+    passed_on = (
+        set(keyword_names(RandomShootingPlanner)) | set(keyword_names(CategoricalCEMPlanner))
+    ) - {"env", "cost", "execution", "key_prefix", "seed", *_CONFIG_FIELDS}
+    check_keywords(planner_kwargs, passed_on, "make_dorp_policy (for its planners)")
+    if config is None:
+        config = DORPConfig.for_env(env, **fields)
+    elif not isinstance(config, DORPConfig):
+        raise ValueError(f"config must be a DORPConfig, got {type(config).__name__}.")
+    else:
+        config = config.replace(**fields)
+    identity = env_identity(env)
+    if isinstance(encoder, (str, Path)):
+        encoder = load_encoder(encoder, env)
+    if isinstance(graph, (str, Path)):
+        graph = CodeGraph.load(graph, encoder=encoder, env_config=identity)
+    elif graph.env_config is not None and graph.env_config != identity:
+        stored, wanted = graph.env_config, identity
+        diff = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+        details = "; ".join(f"{k}: graph {stored.get(k)!r}, env {wanted.get(k)!r}" for k in diff)
+        raise ValueError(
+            f"the code graph was built from another environment's play data ({details})."
+        )
+    planning_env = make_planning_env(env, low_level)
+    kinds = {"rs": RandomShootingPlanner, "cem": CategoricalCEMPlanner}
+    goal_kind = config.goal_planner or config.planner
+    if config.action_persistence is not None and "rs" not in (config.planner, goal_kind):
+        raise ValueError(
+            "action_persistence is a RandomShootingPlanner argument, but neither planner is "
+            "random shooting: pass planner='rs' (or goal_planner='rs') or drop it."
+        )
+    persistence = config.action_persistence
+    rs_only = {
+        "action_persistence": DEFAULT_ACTION_PERSISTENCE if persistence is None else persistence
+    }
+    shape = {
+        "planning_horizon": config.planning_horizon,
+        "num_candidates": config.num_candidates,
+        "action_repeat": config.action_repeat,
+        "execution": "open_loop",
+    }
+    # Arguments only CEM has go to the CEM planners; anything else both planners take.
+    cem_only = {k: v for k, v in planner_kwargs.items() if k in _CEM_ONLY}
+    shared = {k: v for k, v in planner_kwargs.items() if k not in _CEM_ONLY}
+    if cem_only and "cem" not in (config.planner, goal_kind):
+        raise ValueError(
+            f"{sorted(cem_only)} are CategoricalCEMPlanner arguments, but neither planner is "
+            "CEM: pass planner='cem' (or goal_planner='cem') or drop them."
+        )
+    if config.action_prior_mix is None:
+        mix = DEFAULT_ACTION_PRIOR_MIX if graph.action_counts is not None else 0.0
+        config = config.replace(action_prior_mix=mix)
+    waypoint_cost = make_waypoint_cost(
+        encoder,
+        waypoint_goal_weight=config.waypoint_goal_weight,
+        step_penalty=check_step_penalty(config.waypoint_step_penalty, "waypoint_step_penalty"),
+        goal_blur_sigmas=config.goal_blur_sigmas,
+    )
+    waypoint = kinds[config.planner](
+        planning_env,
+        waypoint_cost,
+        **shape,
+        seed=seed,
+        key_prefix="waypoint_planner_",
+        action_prior_key=PRIOR_KEY if config.action_prior_mix > 0 else None,
+        **shared,
+        **(cem_only if config.planner == "cem" else rs_only),
+    )
+    goal_cost = make_goal_cost(
+        encoder,
+        goal_code_weight=config.goal_code_weight,
+        goal_blur_sigmas=config.goal_blur_sigmas,
+    )
+    goal = kinds[goal_kind](
+        planning_env,
+        goal_cost,
+        **shape,
+        seed=None if seed is None else derive_seed(seed, 1),
+        key_prefix="goal_planner_",
+        **shared,
+        **(cem_only if goal_kind == "cem" else rs_only),
+    )
+    return AbstractGoalPolicy(
+        encoder, graph, waypoint, goal, config, actions=DiscreteActions.of(env)
+    )

@@ -1,0 +1,427 @@
+"""Recovery rules of the DORP policy: what it does when the paper's loop would fail.
+
+The paper's loop (:class:`~dorp_rl.policies.AbstractGoalPolicy`) removes the edge of a
+waypoint not reached within its budget, and gives the task up when no group has a path
+left. Each rule here handles one way that loop fails, as its own part: it declares the
+state keys it keeps (:class:`~dorp_rl.policies.state.StateKey`) and implements the hooks
+of :class:`RecoveryRule` it needs; the policy calls the hooks of its rules in order at
+fixed points of its loop and knows nothing else of them.
+
+=====================  ===============================================================
+rule                   what it does
+=====================  ===============================================================
+:class:`MissedPlans`   a fresh waypoint plan none of whose candidates reaches the
+                       waypoint is a miss: after ``max_misses`` the edge goes at once;
+                       ``replan_on_miss`` plans again after one step of such a plan
+:class:`ForgetBlocked` a group reaching a waypoint frees the edges removed for the
+                       other groups (an object that stood in the way has moved)
+:class:`RestoreWhenStuck`  no path left but edges removed: restore them and try again
+                       (once until a waypoint is reached)
+:class:`Reentry`       a code covering two places: leave it over the edge it was entered
+                       by and enter it another way, before removing the hop that fails
+                       (or when the goal phase stalls in it)
+:class:`GoalRelaxation`  the goal phase keeps the goal's codes (a weighted code term);
+                       when its plans stop getting cheaper, the term is dropped
+=====================  ===============================================================
+
+Settings come from :class:`~dorp_rl.policies.DORPConfig` (:func:`recovery_rules`).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+
+from dorp_rl.policies.state import StateKey
+
+if TYPE_CHECKING:  # pragma: no cover
+    from dorp_rl.policies.abstract_goal import AbstractGoalPolicy
+    from dorp_rl.policies.config import DORPConfig
+
+__all__ = [
+    "ForgetBlocked",
+    "GoalRelaxation",
+    "MissedPlans",
+    "RecoveryRule",
+    "Reentry",
+    "RestoreWhenStuck",
+    "recovery_rules",
+]
+
+State = dict[str, torch.Tensor]
+
+
+class RecoveryRule:
+    """A part of the DORP policy; every hook does nothing unless a rule overrides it.
+
+    ``state`` is the policy's state (``{key: [rows, width]}``, CPU), ``rows`` a bool mask
+    ``[rows]`` and ``row`` one row index. Hooks returning ``bool`` answer whether the rule
+    took the matter over (the first rule that does wins).
+    """
+
+    policy: AbstractGoalPolicy
+
+    def bind(self, policy: AbstractGoalPolicy) -> None:
+        """Called once by the policy that owns the rule (its graph, its limits)."""
+        self.policy = policy
+
+    def state_keys(self) -> tuple[StateKey, ...]:
+        """The keys the rule keeps in the policy's state."""
+        return ()
+
+    def track(self, state: State, active: torch.Tensor) -> None:
+        """Each step, on the active rows, after the frames were encoded."""
+
+    def holds_goal(self, state: State, fresh: torch.Tensor) -> torch.Tensor | None:
+        """Rows that count as in the goal phase although their codes are not the goal's."""
+        return None
+
+    def delays_goal(self, state: State) -> torch.Tensor | None:
+        """Rows that must not start the goal phase yet although their codes are the goal's."""
+        return None
+
+    def on_reached(self, state: State, rows: torch.Tensor) -> None:
+        """``rows`` just reached their waypoint (its edge is still ``dorp_edge``)."""
+
+    def instead_of_removal(self, state: State, row: int, edge: int) -> bool:
+        """The hop over ``edge`` failed: handle it instead of removing the edge?"""
+        return False
+
+    def next_waypoint(self, state: State, row: int) -> bool:
+        """Set ``row``'s next waypoint instead of the shortest path?"""
+        return False
+
+    def when_stuck(self, state: State, row: int) -> bool:
+        """No group has a path left: change the state so that the search is tried again?"""
+        return False
+
+    def on_waypoint(self, state: State, row: int) -> None:
+        """A new waypoint was set for ``row``."""
+
+    def goal_budget_scale(self, state: State) -> torch.Tensor | None:
+        """``[rows]`` factors of the goal phase's step budget."""
+        return None
+
+    def after_waypoint_plan(self, state: State, plans: State, planned: torch.Tensor) -> None:
+        """``planned`` rows made a fresh waypoint plan; ``plans`` is the waypoint planner's
+        state (its cost ``plan_cost_key``, cursor and length, which the rule may cut)."""
+
+    def after_goal_plan(self, state: State, plans: State, rows: torch.Tensor) -> None:
+        """``rows`` took a goal-phase step; ``plans`` is the goal planner's state."""
+
+    def on_goal_stall(self, state: State, row: int) -> bool:
+        """The goal phase of ``row`` stopped progressing: handle it before relaxing?"""
+        return False
+
+    def __repr__(self) -> str:
+        fields = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if k != "policy")
+        return f"{type(self).__name__}({fields})"
+
+
+class MissedPlans(RecoveryRule):
+    """Waypoint plans that reach the waypoint nowhere (best cost >= ``threshold``).
+
+    After ``max_misses`` of them in a row the edge is removed at once instead of when the
+    budget runs out (``None``: only the budget counts); with ``replan_on_miss`` such a
+    plan is followed for one step only, then the policy plans again.
+    """
+
+    def __init__(self, threshold: float, max_misses: int | None, replan_on_miss: bool) -> None:
+        self.threshold = float(threshold)
+        self.max_misses = max_misses
+        self.replan_on_miss = bool(replan_on_miss)
+
+    def state_keys(self) -> tuple[StateKey, ...]:
+        return (StateKey("dorp_misses", doc="plans for this waypoint that reached it nowhere"),)
+
+    def on_waypoint(self, state: State, row: int) -> None:
+        state["dorp_misses"][row] = 0
+
+    def after_waypoint_plan(self, state: State, plans: State, planned: torch.Tensor) -> None:
+        planner = self.policy.waypoint_planner
+        missed = planned & (plans[planner.plan_cost_key].squeeze(-1) >= self.threshold)
+        state["dorp_misses"][missed] += 1
+        if self.replan_on_miss:
+            plans[planner.length_key][missed] = plans[planner.cursor_key][missed]
+        if self.max_misses is not None:
+            gone = missed & (state["dorp_misses"].squeeze(-1) >= self.max_misses)
+            state["dorp_budget"][gone] = 1  # 0 after this step's decrement: removed next step
+
+
+class ForgetBlocked(RecoveryRule):
+    """A group that reaches a waypoint frees the edges removed for the other groups.
+
+    Their hops may have failed only because an object stood in the way, which has now
+    moved. ``dorp_replans`` keeps counting, so ``max_removed_edges`` still ends a task
+    that keeps failing.
+    """
+
+    def on_reached(self, state: State, rows: torch.Tensor) -> None:
+        if not rows.any():
+            return
+        removed = state["dorp_removed"][rows]
+        moved = state["dorp_group"][rows]
+        other = (self.policy.graph.group_of_edge(removed) != moved) & (removed >= 0)
+        state["dorp_removed"][rows] = removed.masked_fill(other, -1)
+
+
+class RestoreWhenStuck(RecoveryRule):
+    """No group has a path left but edges were removed: restore them all and search again.
+
+    Once until a waypoint is reached again, so a goal behind an edge that never works is
+    still given up; the removals count towards ``max_removed_edges``.
+    """
+
+    def state_keys(self) -> tuple[StateKey, ...]:
+        return (
+            StateKey(
+                "dorp_restored",
+                torch.bool,
+                doc="removed edges were restored since the last waypoint reached",
+            ),
+        )
+
+    def on_reached(self, state: State, rows: torch.Tensor) -> None:
+        state["dorp_restored"][rows] = False
+
+    def when_stuck(self, state: State, row: int) -> bool:
+        removed = state["dorp_removed"][row]
+        if bool(state["dorp_restored"][row]) or not bool((removed >= 0).any()):
+            return False
+        removed.fill_(-1)
+        state["dorp_restored"][row] = True
+        return True
+
+
+class Reentry(RecoveryRule):
+    """Re-enter a code another way: a learned code may cover two places (two rooms).
+
+    When removing a failed hop would leave its group no path to the goal code, and the
+    group entered the hop's code by a hop: go back out over that entry edge, re-enter the
+    code another way and try the hop once more (``hops``). When the goal phase stalls in
+    a goal code entered by a hop and another way in exists: the same, before the goal
+    phase relaxes. Once per edge, at most ``max_reentries`` per task; each counts as a
+    removal towards ``max_removed_edges``.
+    """
+
+    def __init__(self, max_reentries: int, hops: bool = True) -> None:
+        self.max_reentries = int(max_reentries)
+        self.hops = bool(hops)
+
+    def state_keys(self) -> tuple[StateKey, ...]:
+        return (
+            StateKey("dorp_entry_edge", fill=-1, doc="edge of the last hop reached (-1: none)"),
+            StateKey("dorp_via", fill=-1, doc="node being re-entered another way (-1: none)"),
+            StateKey("dorp_via_ban", fill=-1, doc="the entry edge the re-entry must not use"),
+            StateKey("dorp_via_left", torch.bool, doc="the group has left dorp_via on the way"),
+            StateKey(
+                "dorp_reentered",
+                width=max(1, self.max_reentries),
+                fill=-1,
+                doc="edges re-entered for this task (-1: free slot)",
+            ),
+            StateKey("dorp_reentries", doc="re-entries started"),
+        )
+
+    # -- bookkeeping
+    def _may_reenter(self, state: State, row: int, edge: int) -> bool:
+        slots = state["dorp_reentered"][row]
+        return (
+            self.max_reentries > 0 and not bool((slots == edge).any()) and bool((slots < 0).any())
+        )
+
+    def _note(self, state: State, row: int, edge: int) -> None:
+        slots = state["dorp_reentered"][row]
+        slots[int((slots < 0).nonzero()[0])] = edge
+        state["dorp_reentries"][row] += 1
+
+    def _end(self, state: State, row: int) -> None:
+        state["dorp_via"][row] = -1
+        state["dorp_via_ban"][row] = -1
+        state["dorp_via_left"][row] = False
+
+    # -- hooks
+    def on_reached(self, state: State, rows: torch.Tensor) -> None:
+        state["dorp_entry_edge"][rows] = state["dorp_edge"][rows]
+
+    def track(self, state: State, active: torch.Tensor) -> None:
+        """Rows re-entering ``dorp_via``: note when they leave it; back in it after
+        leaving, the re-entry is over."""
+        graph = self.policy.graph
+        via = state["dorp_via"].squeeze(-1)
+        for row in (active & (via >= 0)).nonzero().squeeze(-1).tolist():
+            group = int(graph.group_of_edge(int(state["dorp_via_ban"][row])))
+            node = int(graph.node_of(state["code"][row], group))
+            if node != int(via[row]):
+                state["dorp_via_left"][row] = True
+            elif bool(state["dorp_via_left"][row]):
+                self._end(state, row)
+
+    def delays_goal(self, state: State) -> torch.Tensor:
+        return state["dorp_via"].squeeze(-1) >= 0
+
+    def instead_of_removal(self, state: State, row: int, edge: int) -> bool:
+        """Only when removing ``edge`` leaves the group no path to its goal code, the group
+        entered the hop's source code by a hop and still sits in it (or drifted back to
+        the code it came from), and this edge has not had its re-entry yet."""
+        if not self.hops:
+            return False
+        graph = self.policy.graph
+        entry = int(state["dorp_entry_edge"][row])
+        if edge < 0 or entry < 0 or not self._may_reenter(state, row, edge):
+            return False
+        source = int(graph.edge_source[edge])
+        if int(graph.indices[entry]) != source:
+            return False  # entered some other node: the entry edge says nothing here
+        group = int(graph.group_of_edge(edge))
+        node = int(graph.node_of(state["code"][row], group))
+        if node not in (source, int(graph.edge_source[entry])):
+            return False  # drifted elsewhere than the hop's code or the one it came from
+        target = int(graph.node_of(state["goal_code"][row], group))
+        # Edges that failed once and wait for their re-entry are no way round either.
+        doubtful = state["dorp_reentered"][row]
+        without = torch.cat([state["dorp_removed"][row], doubtful, torch.tensor([edge])])
+        if graph.next_waypoint(source, target, without)[0] >= 0:
+            return False  # another path is left: removing the edge loses nothing
+        state["dorp_via"][row] = source
+        state["dorp_via_ban"][row] = entry
+        state["dorp_via_left"][row] = node != source  # already back where it came from
+        self._note(state, row, edge)
+        return True
+
+    def next_waypoint(self, state: State, row: int) -> bool:
+        """At ``dorp_via`` before leaving: back over the entry edge. Elsewhere: a shortest
+        path back to ``dorp_via`` not over the entry edge. Back at ``dorp_via`` after
+        leaving, or with no such path: the re-entry ends and the usual path follows."""
+        via, ban = int(state["dorp_via"][row]), int(state["dorp_via_ban"][row])
+        if via < 0:
+            return False
+        graph = self.policy.graph
+        group = int(graph.group_of_edge(ban))
+        node = int(graph.node_of(state["code"][row], group))
+        removed = state["dorp_removed"][row]
+        step = None
+        if node == via and not bool(state["dorp_via_left"][row]):
+            back = int(graph.edge_reverse[ban])
+            if not bool(((removed == ban) | (removed == back)).any()):
+                step = (int(graph.edge_source[ban]), back, 1)
+        elif node != via and node >= 0:
+            avoid = torch.cat([removed, torch.tensor([ban])])
+            nxt, edge, distance = graph.next_waypoint(node, via, avoid)
+            if nxt >= 0:
+                step = (nxt, edge, distance)
+        if step is None:
+            self._end(state, row)
+            return False
+        self.policy.set_waypoint(state, row, group, *step)
+        return True
+
+    def on_goal_stall(self, state: State, row: int) -> bool:
+        """Only when the group of the last hop entered its goal node by that hop, another
+        way into it exists and this entry has not been re-entered already."""
+        graph, policy = self.policy.graph, self.policy
+        entry = int(state["dorp_entry_edge"][row])
+        if entry < 0 or int(state["dorp_via"][row]) >= 0:
+            return False
+        if not self._may_reenter(state, row, entry):
+            return False
+        if int(state["dorp_replans"][row]) >= policy.max_removed_edges:
+            return False
+        node, source = int(graph.indices[entry]), int(graph.edge_source[entry])
+        group = int(graph.group_of_edge(entry))
+        if int(graph.node_of(state["code"][row], group)) != node:
+            return False
+        if int(graph.node_of(state["goal_code"][row], group)) != node:
+            return False
+        without = torch.cat([state["dorp_removed"][row], torch.tensor([entry])])
+        if graph.next_waypoint(source, node, without)[0] < 0:
+            return False  # no other way in
+        state["dorp_via"][row] = node
+        state["dorp_via_ban"][row] = entry
+        state["dorp_via_left"][row] = False
+        self._note(state, row, entry)
+        state["dorp_replans"][row] += 1
+        return True
+
+
+class GoalRelaxation(RecoveryRule):
+    """The goal phase's goal-code term, and dropping it when the goal plans stall.
+
+    The goal planner's cost reads the term's weight per row from ``goal_code_weight``
+    (``weight`` until relaxed, then 0). After ``patience`` goal-phase steps without a
+    lower goal-plan cost the term is dropped (``None``: never), unless another rule takes
+    the stall over; a relaxed task gets twice the goal phase's step budget.
+    """
+
+    def __init__(self, weight: float, patience: int | None) -> None:
+        self.weight = float(weight)
+        self.patience = patience
+
+    def state_keys(self) -> tuple[StateKey, ...]:
+        return (
+            StateKey(
+                "dorp_goal_best",
+                torch.float32,
+                fill=float("inf"),
+                doc="lowest goal-plan cost so far (inf: none)",
+            ),
+            StateKey("dorp_goal_stall", doc="goal-phase steps since that cost last fell"),
+            StateKey("dorp_relaxed", torch.bool, doc="the goal phase dropped its code term"),
+            StateKey(
+                "goal_code_weight",
+                torch.float32,
+                fill=self.weight,
+                doc="weight of the goal-code term (read by the goal planner's cost)",
+            ),
+        )
+
+    def holds_goal(self, state: State, fresh: torch.Tensor) -> torch.Tensor:
+        return state["dorp_relaxed"].squeeze(-1) & ~fresh
+
+    def goal_budget_scale(self, state: State) -> torch.Tensor:
+        return 1 + state["dorp_relaxed"].squeeze(-1).long()
+
+    def after_goal_plan(self, state: State, plans: State, rows: torch.Tensor) -> None:
+        if self.patience is None:
+            return
+        planner = self.policy.goal_planner
+        planned = rows & (plans[planner.cursor_key].squeeze(-1) == 1)
+        cost = plans[planner.plan_cost_key].squeeze(-1).float()
+        best = state["dorp_goal_best"].squeeze(-1)
+        better = planned & (cost < best - 1e-4 * best.abs().clamp(max=1e6))
+        state["dorp_goal_best"][better] = cost[better].unsqueeze(-1)
+        state["dorp_goal_stall"][better] = 0
+        state["dorp_goal_stall"][rows & ~better] += 1
+        relaxed = state["dorp_relaxed"].squeeze(-1)
+        give_up = rows & ~relaxed & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
+        for row in give_up.nonzero().squeeze(-1).tolist():
+            if self.policy.ask("on_goal_stall", state, row):
+                give_up[row] = False
+                state["dorp_goal_stall"][row] = 0
+                state["dorp_goal_best"][row] = float("inf")
+        if give_up.any():
+            state["dorp_relaxed"][give_up] = True
+            state["goal_code_weight"][give_up] = 0.0
+            state["dorp_goal_stall"][give_up] = 0
+            state["dorp_goal_best"][give_up] = float("inf")
+            plans[planner.length_key][give_up] = 0  # replan without the term next step
+
+
+def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[RecoveryRule]:
+    """The rules ``config`` turns on, in the order the policy consults them.
+
+    ``goal_code_term``: the goal planner's cost reads ``goal_code_weight``
+    (:class:`GoalRelaxation` writes it).
+    """
+    rules: list[RecoveryRule] = []
+    rules.append(MissedPlans(config.miss_threshold, config.max_misses, config.replan_on_miss))
+    if config.forget_blocked_edges:
+        rules.append(ForgetBlocked())
+    if config.restore_when_stuck:
+        rules.append(RestoreWhenStuck())
+    if config.reenter:
+        rules.append(Reentry(config.max_reentries, hops=config.reenter is True))
+    if goal_code_term:
+        rules.append(GoalRelaxation(config.goal_code_weight, config.goal_patience))
+    return rules

@@ -1,0 +1,112 @@
+"""One declaration of a policy's per-env state: its keys, shapes, dtypes and reset values.
+
+A policy that keeps state in the tensordict (plan progress, counters, flags) declares each
+key once as a :class:`StateKey`; :class:`PolicyState` turns the declarations into the
+``TensorDictPrimer`` torchrl's collectors and ``env.append_transform`` use, the values a
+row restarts with, and the reading of a tensordict into flat ``[rows, width]`` tensors
+(with the reset value for a key the tensordict lacks, and an error naming a key whose
+shape does not fit). Nothing else lists the keys, so a part of the policy that adds a key
+adds it in one place.
+
+Examples:
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> from dorp_rl.policies.state import PolicyState, StateKey
+    >>> state = PolicyState([StateKey("steps"), StateKey("edge", fill=-1),
+    ...                      StateKey("seen", torch.bool, width=3)])
+    >>> values = state.read(TensorDict({"steps": torch.tensor([[4], [5]])}, [2]))
+    >>> values["steps"].tolist(), values["edge"].tolist(), values["seen"].shape
+    ([[4], [5]], [[-1], [-1]], torch.Size([2, 3]))
+    >>> sorted(state.primer().primers.keys())
+    ['edge', 'seen', 'steps']
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Binary, Composite, Unbounded
+from torchrl.envs import TensorDictPrimer
+
+__all__ = ["PolicyState", "StateKey"]
+
+
+@dataclass(frozen=True)
+class StateKey:
+    """One key of a policy's state: ``[*B, width]`` of ``dtype``, ``fill`` at reset."""
+
+    name: str
+    dtype: torch.dtype = torch.int64
+    width: int = 1
+    fill: float = 0
+    doc: str = ""
+
+    def __post_init__(self) -> None:
+        if self.width < 1:
+            raise ValueError(f"state key {self.name!r} needs width >= 1, got {self.width}.")
+
+    def spec(self) -> Binary | Unbounded:
+        """The key's spec without its batch dimensions."""
+        if self.dtype is torch.bool:
+            return Binary(n=self.width, shape=(self.width,), dtype=torch.bool)
+        return Unbounded(shape=(self.width,), dtype=self.dtype)
+
+
+class PolicyState:
+    """The keys of a policy's state, in order; see the module docstring.
+
+    Args:
+        keys: the declarations; a name given twice is an error (two parts of a policy
+            would write the same key).
+    """
+
+    def __init__(self, keys: Iterable[StateKey]) -> None:
+        self.keys: dict[str, StateKey] = {}
+        for key in keys:
+            if key.name in self.keys:
+                raise ValueError(f"state key {key.name!r} is declared twice.")
+            self.keys[key.name] = key
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.keys
+
+    def names(self) -> list[str]:
+        """The keys' names, in declaration order."""
+        return list(self.keys)
+
+    def primer(self) -> TensorDictPrimer:
+        """A primer writing every key's reset value at ``reset`` (batch dims expanded)."""
+        specs = Composite({name: key.spec() for name, key in self.keys.items()})
+        defaults = {name: key.fill for name, key in self.keys.items()}
+        return TensorDictPrimer(specs, default_value=defaults, expand_specs=True)
+
+    def restart(self, values: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
+        """Sets ``rows`` (a bool mask) of every key in ``values`` to its reset value."""
+        for name, value in values.items():
+            value[rows] = self.keys[name].fill
+
+    def read(self, td: TensorDictBase) -> dict[str, torch.Tensor]:
+        """Every key of ``td`` (batch ``[rows]``) as a CPU copy ``[rows, width]``; a missing
+        key is its reset value.
+
+        Raises:
+            ValueError: a key whose shape is not ``[rows, width]`` (written by a policy
+                with other sizes).
+        """
+        rows = td.batch_size[0]
+        out = {}
+        for name, key in self.keys.items():
+            value = td.get(name, None)
+            if value is None:
+                out[name] = torch.full((rows, key.width), key.fill, dtype=key.dtype)
+                continue
+            if tuple(value.shape) != (rows, key.width):
+                raise ValueError(
+                    f"{name!r} must have shape [{rows}, {key.width}] for this policy, got "
+                    f"{list(value.shape)}; was it written by a policy with other codes?"
+                )
+            out[name] = value.cpu().to(key.dtype).clone()
+        return out
