@@ -12,6 +12,7 @@ import torch
 from push_blocks import MOVES, PushBlocksEnv  # noqa: F401  (MOVES for readers)
 from tensordict import TensorDict
 from torchrl.data import Bounded, Composite
+from torchrl.envs import Compose
 
 from dorp_rl.data import (
     FuturePairSampler,
@@ -346,3 +347,70 @@ def test_a_profile_is_found_by_name_import_path_or_env(tmp_path):
         del profiles._REGISTRY["test-mine"]
     with pytest.raises(ValueError, match="must return a TorchRL EnvBase"):
         EnvProfile(name="bad", make_env=lambda **_: 3).build()
+
+
+class _Dots:
+    """A gymnasium env written here whose image is an observation (``{"image": H x W x 3}``),
+    not its renderer: a dot on a 10 x 12 canvas, moved by 4 actions."""
+
+    def __new__(cls):
+        import gymnasium as gym
+        import numpy as np
+
+        class Dots(gym.Env):
+            observation_space = gym.spaces.Dict(
+                {"image": gym.spaces.Box(0, 255, (10, 12, 3), np.uint8)}
+            )
+            action_space = gym.spaces.Discrete(4)
+
+            def _obs(self):
+                image = np.zeros((10, 12, 3), np.uint8)
+                image[self.pos[0], self.pos[1]] = (250, 120, 30)
+                return {"image": image}
+
+            def reset(self, *, seed=None, options=None):
+                super().reset(seed=seed)
+                self.pos = [int(v) for v in self.np_random.integers(0, (10, 12))]
+                return self._obs(), {}
+
+            def step(self, action):
+                dr, dc = ((-1, 0), (1, 0), (0, -1), (0, 1))[int(action)]
+                self.pos = [min(max(self.pos[0] + dr, 0), 9), min(max(self.pos[1] + dc, 0), 11)]
+                return self._obs(), 0.0, False, False, {}
+
+        return Dots()
+
+
+def test_a_gymnasium_env_with_an_image_observation_through_gym_wrapper_and_a_rename():
+    """An image named otherwise than ``pixels`` is mapped by torchrl's RenameTransform
+    (and laid out [C, H, W] by PermuteTransform); then play data, an encoder sized from
+    its frames and a code graph."""
+    from torchrl.envs import (
+        GymWrapper,
+        PermuteTransform,
+        RenameTransform,
+        SerialEnv,
+        TransformedEnv,
+    )
+
+    def one():
+        env = GymWrapper(_Dots())
+        return TransformedEnv(
+            env,
+            Compose(
+                RenameTransform(["image"], ["pixels"]),
+                PermuteTransform((-1, -3, -2), in_keys=["pixels"]),
+            ),
+        )
+
+    env = SerialEnv(3, one)
+    env.set_seed(0)
+    assert frame_shape_of(env) == (3, 10, 12)
+    buffer = collect_play_data(env, 300, trajectory_length=20, seed=0)
+    pixels = buffer[:300]["pixels"]
+    assert pixels.shape == (300, 3, 10, 12) and pixels.dtype == torch.uint8
+    # One lit cell per frame: the renamed image is the env's observation.
+    assert bool(((pixels.sum(1) > 0).flatten(1).sum(-1) == 1).all())
+    encoder = DiscreteCodeEncoder(EncoderConfig.small((8,), frame_shape=(3, 10, 12)))
+    graph = CodeGraph.from_play_data(buffer, encoder)
+    assert graph.num_nodes(0) >= 1
