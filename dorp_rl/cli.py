@@ -52,19 +52,22 @@ from dorp_rl.pipeline import (
     NAME_RULE,
     RUN_HOLDER,
     RUN_LOCK,
-    Evaluate,
+    CodeOptions,
+    EvaluationOptions,
+    PaperOptions,
     Run,
+    RunOptions,
     UsageError,
+    WorldModelOptions,
     codes_stage,
     default_command,
     evaluate_stage,
     graph_stage,
     play_stage,
     quiet_torchrl,
-    run_folder,
     world_model_stage,
 )
-from dorp_rl.reproduce import paper_methods, pictures_stage, reproduce_paper, say_pictures
+from dorp_rl.reproduce import pictures_stage, reproduce_paper, say_pictures
 from dorp_rl.trainers import OfflineTrainer, load_video_model
 
 __all__ = [
@@ -88,103 +91,48 @@ __all__ = [
 def _check(command: str, cmd: Any) -> None:
     """Rules between arguments that tyro cannot see; raises :class:`UsageError`.
 
-    Reads only: the run name and root (:func:`run_folder`) and a ``--low-level``
-    checkpoint (it must be a world model of ``--setting``) are checked before anything
-    is written.
+    Each option group of the command checks its own options (``check``); the rules that
+    join two groups follow here. Reads only: the run name and root
+    (:func:`~dorp_rl.pipeline.run_folder`) and a ``--low-level`` checkpoint (it must be a
+    world model of ``--setting``) are checked before anything is written.
     """
-    if cmd.env is not None:
-        try:
-            setting_of(cmd.env)
-        except ValueError as err:
-            raise UsageError(f"--env {cmd.env}: {err}") from None
-        if getattr(cmd, "paper", False):
-            raise UsageError("--env does not apply with --paper: it runs the paper's settings.")
-    setting = setting_of(cmd.setting)
-    run_folder(cmd.root, cmd.name)
-    if cmd.threads < 1:
-        raise UsageError(f"--threads must be >= 1, got {cmd.threads}.")
-    for key in ("codes", "world_model"):
-        cfg = getattr(cmd, key, None)
-        if cfg is not None and (cfg.env, cfg.num_objects) != (setting.env, setting.num_objects):
+    for group in (RunOptions, CodeOptions, WorldModelOptions, EvaluationOptions, PaperOptions):
+        if isinstance(cmd, group):
+            group.check(cmd, command)
+    paper = isinstance(cmd, PaperOptions) and cmd.paper
+    if paper and cmd.env is not None:
+        raise UsageError("--env does not apply with --paper: it runs the paper's settings.")
+    setting, defaults = setting_of(cmd.setting), default_command(command, cmd.setting)
+    configs = {k: getattr(cmd, k) for k in ("codes", "world_model") if hasattr(cmd, k)}
+    for key, cfg in configs.items():
+        if (cfg.env, cfg.num_objects) != (setting.env, setting.num_objects):
             raise UsageError(
                 f"--{key}.env {cfg.env} with --{key}.num-objects {cfg.num_objects} does not "
                 f"match --setting {cmd.setting} ({setting.env}, {setting.num_objects} "
                 "object(s)): choose the setting instead, it picks the presets."
             )
-    defaults = default_command(command, cmd.setting)
-    for key in ("codes", "world_model"):
+    for key, cfg in configs.items():
+        preset = getattr(defaults, key)
         for name in OfflineTrainer.bookkeeping_fields:
-            if key in vars(cmd) and name != "checkpoint_every":
-                given, default = (
-                    getattr(getattr(cmd, key), name),
-                    getattr(getattr(defaults, key), name),
-                )
-                if given != default:
-                    option = f"--{key.replace('_', '-')}.{name.replace('_', '-')}"
-                    raise UsageError(
-                        f"{option} is set by the run: files go to <root>/<name>/ (use --root "
-                        "and --name), bars follow --progress / --no-progress and torch threads --threads."
-                    )
-    if isinstance(cmd, Evaluate):
-        for name in (
-            "tasks",
-            "tasks_per_rollout",
-            "candidates",
-            "planning_horizon",
-            "waypoint_budget",
-        ):
-            if getattr(cmd, name) < 1:
+            if name != "checkpoint_every" and getattr(cfg, name) != getattr(preset, name):
+                option = f"--{key.replace('_', '-')}.{name.replace('_', '-')}"
                 raise UsageError(
-                    f"--{name.replace('_', '-')} must be >= 1, got {getattr(cmd, name)}."
+                    f"{option} is set by the run: files go to <root>/<name>/ (use --root "
+                    "and --name), bars follow --progress / --no-progress and torch threads --threads."
                 )
-        if cmd.max_steps is not None and cmd.max_steps < 1:
+    if paper and cmd.methods != defaults.methods:
+        raise UsageError(
+            "--methods does not apply with --paper: it runs the methods of the "
+            "paper's Table 1 in each setting (choose among them with "
+            "--paper-methods, and settings with --settings)."
+        )
+    if isinstance(cmd, EvaluationOptions) and cmd.low_level not in ("gt", "world-model"):
+        if paper:
             raise UsageError(
-                f"--max-steps must be >= 1 (or None: the env's limit), got {cmd.max_steps}."
+                "--paper runs several settings: --low-level must be 'gt' or "
+                f"'world-model' (one model per setting), not the checkpoint {cmd.low_level!r}."
             )
-        for name in ("seed", "task_seed"):
-            if getattr(cmd, name) < 0:
-                raise UsageError(
-                    f"--{name.replace('_', '-')} must be >= 0, got {getattr(cmd, name)}."
-                )
-        if not cmd.methods:
-            raise UsageError("--methods needs at least one method.")
-        if cmd.workers < 1:
-            raise UsageError(f"--workers must be >= 1, got {cmd.workers}.")
-        if cmd.address is not None and cmd.backend != "ray":
-            raise UsageError("--address is for --backend ray (the Ray cluster to join).")
-        if cmd.gifs < 0:
-            raise UsageError(f"--gifs must be >= 0, got {cmd.gifs}.")
-        if getattr(cmd, "paper_methods", ()) and not getattr(cmd, "paper", False):
-            raise UsageError(
-                "--paper-methods is an option of reproduce --paper (which of Table 1's "
-                "methods to run); for one setting, use --methods."
-            )
-        if getattr(cmd, "seeds", ()) and not getattr(cmd, "paper", False):
-            raise UsageError(
-                "--seeds is an option of reproduce --paper (one sub-run per setting and "
-                "seed); for one run, set --seed and --codes.seed."
-            )
-        if getattr(cmd, "paper", False):
-            if command != "reproduce":
-                raise UsageError(f"--paper is an option of reproduce, not of {command}.")
-            if cmd.methods != defaults.methods:
-                raise UsageError(
-                    "--methods does not apply with --paper: it runs the methods of the "
-                    "paper's Table 1 in each setting (choose among them with "
-                    "--paper-methods, and settings with --settings)."
-                )
-            if not cmd.settings:
-                raise UsageError("--settings needs at least one setting.")
-            _check_paper_methods(cmd.paper_methods, cmd.settings)
-            if any(seed < 0 for seed in cmd.seeds) or len(set(cmd.seeds)) != len(cmd.seeds):
-                raise UsageError(f"--seeds must be distinct and >= 0, got {list(cmd.seeds)}.")
-            if cmd.low_level not in ("gt", "world-model"):
-                raise UsageError(
-                    "--paper runs several settings: --low-level must be 'gt' or "
-                    f"'world-model' (one model per setting), not the checkpoint {cmd.low_level!r}."
-                )
-        if cmd.low_level not in ("gt", "world-model"):
-            _check_world_model_file(cmd.low_level, cmd.setting)
+        _check_world_model_file(cmd.low_level, cmd.setting)
 
 
 def _check_world_model_file(path: str, setting: str) -> None:
@@ -199,19 +147,6 @@ def _check_world_model_file(path: str, setting: str) -> None:
         load_video_model(path, setting_of(setting).make_env())
     except (ValueError, OSError) as err:  # another kind, env, a damaged or a text file
         raise UsageError(f"{what}: {err}") from None
-
-
-def _check_paper_methods(chosen: Sequence[str], settings: Sequence[str]) -> None:
-    """``--paper-methods`` must name methods of Table 1 that some of ``settings`` has."""
-    if not chosen:
-        return
-    in_table = {m for setting in settings for m in paper_methods(setting)}
-    missing = [m for m in chosen if m not in in_table]
-    if missing:
-        raise UsageError(
-            f"--paper-methods {' '.join(missing)}: not in Table 1 for the settings "
-            f"{' '.join(settings)}, whose methods are {', '.join(sorted(in_table))}."
-        )
 
 
 def _option(argv: Sequence[str], name: str) -> str | None:
@@ -318,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the ``dorp`` console script (and ``python -m dorp_rl``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     name, cmd = parse(argv)
-    if isinstance(cmd, Evaluate):
+    if isinstance(cmd, EvaluationOptions):
         cmd.low_level = LOW_LEVEL_NAMES.get(cmd.low_level, cmd.low_level)
     try:
         if _option(argv, "env") is not None and _option(argv, "setting") is not None:

@@ -3,7 +3,9 @@
 :class:`Run` holds a run folder ``<root>/<name>/`` (its lock, ``stages.json``, the log)
 and runs each stage once per config (:meth:`Run.stage`); ``play_stage``, ``codes_stage``,
 ``graph_stage``, ``world_model_stage`` and ``evaluate_stage`` are the pipeline's stages,
-and the command dataclasses (:class:`Collect` ... :class:`Demo`) their options. The
+and the command dataclasses (:class:`Collect` ... :class:`Demo`) their options, each a
+composition of the option groups it needs (:class:`RunOptions`, :class:`CodeOptions`,
+:class:`WorldModelOptions`, :class:`EvaluationOptions`, :class:`PaperOptions`). The
 ``dorp`` command (:mod:`dorp_rl.cli`) parses arguments into these and runs them;
 ``dorp reproduce --paper`` (:mod:`dorp_rl.reproduce`) runs them once per setting.
 """
@@ -97,6 +99,8 @@ NAME_RULE = "a run name is a folder below --root, such as 'demo' or 'paper/2obj'
 
 
 # --------------------------------------------------------------------------- configs
+# The option groups, each checking its own options (``check``), then the subcommands
+# composed of them; the rules joining two groups are in dorp_rl.cli (``_check``).
 @dataclass
 class RunOptions:
     """Where a run lives and how it runs."""
@@ -122,6 +126,19 @@ class RunOptions:
     """when another dorp command is running in the run folder: wait until it has finished,
     then go on (default: stop at once with exit code 2)"""
 
+    def check(self, command: str) -> None:
+        """``--env`` is an env profile, ``--name`` a folder below a usable ``--root``
+        (:func:`run_folder`, which writes nothing), ``--threads >= 1``."""
+        if self.env is not None:
+            try:
+                setting_of(self.env)
+            except ValueError as err:
+                raise UsageError(f"--env {self.env}: {err}") from None
+        setting_of(self.setting)
+        run_folder(self.root, self.name)
+        if self.threads < 1:
+            raise UsageError(f"--threads must be >= 1, got {self.threads}.")
+
 
 def _codes_default() -> RepresentationConfig:
     return RepresentationConfig.for_env("rearrangement", 2)
@@ -132,38 +149,34 @@ def _world_model_default() -> WorldModelConfig:
 
 
 @dataclass
-class Collect(RunOptions):
-    """Collect the setting's random play data (the data the codes train on) into play/."""
+class CodeOptions:
+    """The representation config: the play data and the codes trained on them."""
 
     codes: RepresentationConfig = field(default_factory=_codes_default)
     """representation config; its env, num_objects, num_frames, num_envs,
     trajectory_length, seed and device decide the play data"""
 
-
-@dataclass
-class TrainEncoder(Collect):
-    """Train the discrete codes (play data first) into codes/."""
-
-
-@dataclass
-class BuildGraph(TrainEncoder):
-    """Build the code graph over the play data (codes first) into graph.pt."""
+    def check(self, command: str) -> None:
+        """Nothing of its own: the config checks its fields when it is built (a parse
+        error); its env and bookkeeping fields are checked against the run's."""
 
 
 @dataclass
-class TrainWorldModel(RunOptions):
-    """Train the video prediction model (with its own play data) into world_model/."""
+class WorldModelOptions:
+    """The world-model config (the video prediction model and its play data)."""
 
     world_model: WorldModelConfig = field(default_factory=_world_model_default)
     """world-model config (default: the setting's preset)"""
 
+    def check(self, command: str) -> None:
+        """Nothing of its own: the config checks its fields when it is built (a parse
+        error); its env and bookkeeping fields are checked against the run's."""
+
 
 @dataclass
-class Evaluate(BuildGraph):
-    """Evaluate methods on a seeded task set; results go to results.csv and results.md."""
+class EvaluationOptions:
+    """Which methods run on which seeded tasks, how they plan and where they run."""
 
-    world_model: WorldModelConfig = field(default_factory=_world_model_default)
-    """world-model config, used when --low-level world-model"""
     methods: tuple[Method, ...] = ("dorp",)
     """methods: dorp (code graph + MPC), its ablations dorp-arbitrary / dorp-identity
     (codes with another similarity) and dorp-full (one graph over whole codes), vf-rs /
@@ -205,17 +218,44 @@ class Evaluate(BuildGraph):
     """DORP rollouts (the first tasks of the set) drawn as GIFs into pictures/, beside the
     code maps and factorisation histogram of the codes (0: no GIFs)"""
 
+    def check(self, command: str) -> None:
+        """Counts ``>= 1`` (``--gifs >= 0``), seeds ``>= 0``, at least one method,
+        ``--address`` only with ``--backend ray``. (A ``--low-level`` file is checked
+        against the run's setting.)"""
+        for name in (
+            "tasks",
+            "tasks_per_rollout",
+            "candidates",
+            "planning_horizon",
+            "waypoint_budget",
+        ):
+            if getattr(self, name) < 1:
+                raise UsageError(
+                    f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}."
+                )
+        if self.max_steps is not None and self.max_steps < 1:
+            raise UsageError(
+                f"--max-steps must be >= 1 (or None: the env's limit), got {self.max_steps}."
+            )
+        for name in ("seed", "task_seed"):
+            if getattr(self, name) < 0:
+                raise UsageError(
+                    f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}."
+                )
+        if not self.methods:
+            raise UsageError("--methods needs at least one method.")
+        if self.workers < 1:
+            raise UsageError(f"--workers must be >= 1, got {self.workers}.")
+        if self.address is not None and self.backend != "ray":
+            raise UsageError("--address is for --backend ray (the Ray cluster to join).")
+        if self.gifs < 0:
+            raise UsageError(f"--gifs must be >= 0, got {self.gifs}.")
+
 
 @dataclass
-class Reproduce(Evaluate):
-    """The whole pipeline for one setting: play data, codes, graph, then DORP and VF-CEM."""
+class PaperOptions:
+    """``reproduce --paper``: the paper's Table 1 over several settings (and seeds)."""
 
-    methods: tuple[Method, ...] = ("dorp", "vf-cem")
-    """methods: dorp (code graph + MPC), its ablations dorp-arbitrary / dorp-identity
-    (codes with another similarity) and dorp-full (one graph over whole codes), vf-rs /
-    vf-cem (visual foresight), random"""
-    tasks: int = 50
-    """tasks of the seeded task set (dorp_rl.eval.make_task_set); the paper used 50"""
     paper: bool = False
     """the paper's Table 1 instead of one setting: every method of the table in each of
     --settings, one sub-run per setting (<name>/<setting>/), one table and timings.csv
@@ -232,6 +272,81 @@ class Reproduce(Evaluate):
     planners' seed; the tasks stay those of --task-seed), in sub-runs <setting>-seed<k>/,
     and pool the results over seeds (success rate ± std over seeds); empty: one run with
     --seed and the presets' seeds"""
+
+    def check(self, command: str) -> None:
+        """``--paper-methods`` and ``--seeds`` only with ``--paper``, an option of
+        reproduce alone; with it, at least one setting, ``--paper-methods`` of Table 1 in
+        some of them, distinct seeds ``>= 0``."""
+        if self.paper_methods and not self.paper:
+            raise UsageError(
+                "--paper-methods is an option of reproduce --paper (which of Table 1's "
+                "methods to run); for one setting, use --methods."
+            )
+        if self.seeds and not self.paper:
+            raise UsageError(
+                "--seeds is an option of reproduce --paper (one sub-run per setting and "
+                "seed); for one run, set --seed and --codes.seed."
+            )
+        if not self.paper:
+            return
+        if command != "reproduce":
+            raise UsageError(f"--paper is an option of reproduce, not of {command}.")
+        if not self.settings:
+            raise UsageError("--settings needs at least one setting.")
+        if self.paper_methods:
+            from dorp_rl.reproduce import paper_methods  # it imports this module
+
+            in_table = {m for setting in self.settings for m in paper_methods(setting)}
+            missing = [m for m in self.paper_methods if m not in in_table]
+            if missing:
+                raise UsageError(
+                    f"--paper-methods {' '.join(missing)}: not in Table 1 for the settings "
+                    f"{' '.join(self.settings)}, whose methods are {', '.join(sorted(in_table))}."
+                )
+        if any(seed < 0 for seed in self.seeds) or len(set(self.seeds)) != len(self.seeds):
+            raise UsageError(f"--seeds must be distinct and >= 0, got {list(self.seeds)}.")
+
+
+@dataclass
+class Collect(CodeOptions, RunOptions):
+    """Collect the setting's random play data (the data the codes train on) into play/."""
+
+
+@dataclass
+class TrainEncoder(CodeOptions, RunOptions):
+    """Train the discrete codes (play data first) into codes/."""
+
+
+@dataclass
+class BuildGraph(CodeOptions, RunOptions):
+    """Build the code graph over the play data (codes first) into graph.pt."""
+
+
+@dataclass
+class TrainWorldModel(WorldModelOptions, RunOptions):
+    """Train the video prediction model (with its own play data) into world_model/."""
+
+
+@dataclass
+class Evaluate(EvaluationOptions, WorldModelOptions, CodeOptions, RunOptions):
+    """Evaluate methods on a seeded task set; results go to results.csv and results.md."""
+
+    world_model: WorldModelConfig = field(default_factory=_world_model_default)
+    """world-model config, used when --low-level world-model"""
+
+
+@dataclass
+class Reproduce(PaperOptions, EvaluationOptions, WorldModelOptions, CodeOptions, RunOptions):
+    """The whole pipeline for one setting: play data, codes, graph, then DORP and VF-CEM."""
+
+    world_model: WorldModelConfig = field(default_factory=_world_model_default)
+    """world-model config, used when --low-level world-model"""
+    methods: tuple[Method, ...] = ("dorp", "vf-cem")
+    """methods: dorp (code graph + MPC), its ablations dorp-arbitrary / dorp-identity
+    (codes with another similarity) and dorp-full (one graph over whole codes), vf-rs /
+    vf-cem (visual foresight), random"""
+    tasks: int = 50
+    """tasks of the seeded task set (dorp_rl.eval.make_task_set); the paper used 50"""
 
 
 @dataclass
@@ -799,7 +914,7 @@ def graph_stage(
     return encoder, run.stage(_tagged("graph", variant), config, [path], build, load)
 
 
-def dorp_stages(run: Run, cmd: Evaluate, method: str) -> tuple[Any, Any, str]:
+def dorp_stages(run: Run, cmd: Evaluate | Reproduce, method: str) -> tuple[Any, Any, str]:
     """Encoder, graph and graph stage name of DORP or one of its ablations
     (:data:`DORP_VARIANTS`), each trained or built once per run."""
     similarity, groups = DORP_VARIANTS[method]
@@ -833,7 +948,7 @@ def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
     return checkpoint
 
 
-def _policy(cmd: Evaluate, method: str, env: EnvBase, low_level: Any, dorp: Any):
+def _policy(cmd: Evaluate | Reproduce, method: str, env: EnvBase, low_level: Any, dorp: Any):
     """The policy of ``method`` for ``env``, built by the same recipe as the workers'."""
     if method == "random":
         torch.manual_seed(cmd.seed)
@@ -853,7 +968,7 @@ def _policy(cmd: Evaluate, method: str, env: EnvBase, low_level: Any, dorp: Any)
     return spec.make_policy(env)
 
 
-def task_set(cmd: Evaluate, env: EnvBase) -> tuple[Any, int]:
+def task_set(cmd: Evaluate | Reproduce, env: EnvBase) -> tuple[Any, int]:
     """The seeded task set of ``cmd`` on ``env`` (drawn by the setting's env profile) and
     the step limit (``--max-steps``, else the profile's): what the evaluation runs, and
     the rollout GIFs run again."""
@@ -862,7 +977,7 @@ def task_set(cmd: Evaluate, env: EnvBase) -> tuple[Any, int]:
     return tasks, cmd.max_steps or setting.profile.task_limit(setting.num_objects, env)
 
 
-def evaluate_stage(run: Run, cmd: Evaluate) -> list[dict[str, Any]]:
+def evaluate_stage(run: Run, cmd: Evaluate | Reproduce) -> list[dict[str, Any]]:
     """Every method of ``cmd`` on the seeded task set; returns the run's result rows."""
     setting = setting_of(cmd.setting)
     low_level: Path | None = None  # None: the true dynamics

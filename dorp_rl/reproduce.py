@@ -54,6 +54,8 @@ from dorp_rl.metrics.diagnostics import key_room_diagnostics
 from dorp_rl.pipeline import (
     DORP_VARIANTS,
     Evaluate,
+    EvaluationOptions,
+    PaperOptions,
     Reproduce,
     Run,
     _policy,
@@ -86,21 +88,21 @@ def paper_methods(setting: str) -> tuple[str, ...]:
     return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
 
 
-def _chosen_methods(cmd: Reproduce, setting: str) -> tuple[str, ...]:
+def _chosen_methods(cmd: PaperOptions, setting: str) -> tuple[str, ...]:
     """Table 1's methods in ``setting``, only those of ``cmd.paper_methods`` if it names any."""
     chosen = cmd.paper_methods
     return tuple(m for m in paper_methods(setting) if not chosen or m in chosen)
 
 
-def _level_name(cmd: Evaluate) -> str:
+def _level_name(cmd: EvaluationOptions) -> str:
     return cmd.low_level if cmd.low_level in ("gt", "world-model") else "checkpoint"
 
 
-def _evaluation_key(cmd: Evaluate, method: str) -> str:
+def _evaluation_key(cmd: EvaluationOptions, method: str) -> str:
     return f"evaluate:{method}" + ("" if method == "random" else f":{_level_name(cmd)}")
 
 
-def _low_level_path(run: Run, cmd: Evaluate) -> Path | None:
+def _low_level_path(run: Run, cmd: EvaluationOptions) -> Path | None:
     """The planning model the evaluation used (``None``: the true dynamics)."""
     if cmd.low_level == "gt":
         return None
@@ -128,7 +130,7 @@ def _diagnostic_pictures(env: Any, encoder: Any, directory: Path, num_samples: i
     return code_maps_for_waypoints(maps, result["num_onehots"]), list(written.values())
 
 
-def pictures_stage(run: Run, cmd: Evaluate) -> list[Path]:
+def pictures_stage(run: Run, cmd: Evaluate | Reproduce) -> list[Path]:
     """Pictures of the DORP methods of ``cmd`` (after :func:`~dorp_rl.pipeline.evaluate_stage`).
 
     Writes into ``<run>/pictures/``: ``code_map.png`` and ``factorization_histogram.png``
@@ -180,7 +182,12 @@ def _codes_variant(method: str) -> str:
 
 
 def _rollout_gifs(
-    run: Run, cmd: Evaluate, method: str, dorp: Any, maps: dict[str, Any], directory: Path
+    run: Run,
+    cmd: Evaluate | Reproduce,
+    method: str,
+    dorp: Any,
+    maps: dict[str, Any],
+    directory: Path,
 ) -> tuple[list[Path], list[bool], list[int]]:
     """``cmd.gifs`` tasks run with ``method`` (``dorp``: its encoder, graph and graph
     stage), as GIFs: the tasks the evaluation failed first, then solved ones
