@@ -40,6 +40,7 @@ from dorp_rl.eval import (
     failure_section,
     format_failures,
     make_task_set,
+    paper_methods,
     result_row,
     setting_of,
     write_results,
@@ -294,8 +295,6 @@ class PaperOptions:
         if not self.settings:
             raise UsageError("--settings needs at least one setting.")
         if self.paper_methods:
-            from dorp_rl.reproduce import paper_methods  # it imports this module
-
             in_table = {m for setting in self.settings for m in paper_methods(setting)}
             missing = [m for m in self.paper_methods if m not in in_table]
             if missing:

@@ -29,6 +29,7 @@ from dorp_rl.eval import (
     RESULT_COLUMNS,
     SETTINGS,
     failure_section,
+    paper_methods,
     rearrangement_code_maps,
     rearrangement_diagnostics,
     rollout_chunk,
@@ -72,20 +73,6 @@ __all__ = ["paper_methods", "pictures_stage", "reproduce_paper", "run_setting", 
 
 #: fields that a setting decides (never carried from one setting's preset to another)
 _SETTING_FIELDS = ("env", "num_objects")
-
-
-def paper_methods(setting: str) -> tuple[str, ...]:
-    """The methods of the paper's Table 1 in ``setting``: every method at 1-3 objects; no
-    similarity ablations at 5 objects (the paper reports none); DORP only in key rooms.
-    Six objects (not in the paper): DORP, the full graph and VF-CEM (the stronger
-    baseline)."""
-    if SETTINGS[setting].env in ("key-wall", "key-corridor"):
-        return ("dorp",)
-    if SETTINGS[setting].num_objects >= 6:
-        return ("dorp", "dorp-full", "vf-cem")
-    if SETTINGS[setting].num_objects >= 5:
-        return ("dorp", "dorp-full", "vf-rs", "vf-cem")
-    return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
 
 
 def _chosen_methods(cmd: PaperOptions, setting: str) -> tuple[str, ...]:

@@ -17,9 +17,8 @@ from tensordict import TensorDict
 from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.cli import main
 from dorp_rl.envs import ObjectRearrangementEnv
-from dorp_rl.eval import RESULT_COLUMNS, evaluate_policy, make_task_set
+from dorp_rl.eval import RESULT_COLUMNS, evaluate_policy, make_task_set, paper_methods
 from dorp_rl.eval.results import PAPER_COLUMNS, SEED_COLUMNS, format_paper_table
-from dorp_rl.reproduce import paper_methods
 from dorp_rl.viz.rollouts import rollout_gif_frames, waypoint_panel
 
 ONE_GIF = ("--gifs", "1")

@@ -11,7 +11,7 @@ from dorp_rl.eval.failures import (
 )
 from dorp_rl.eval.parallel import BACKENDS, EvalSpec, evaluate_parallel
 from dorp_rl.eval.results import RESULT_COLUMNS, format_table, result_row, write_results
-from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting, setting_of
+from dorp_rl.eval.settings import PAPER_SUCCESS, SETTINGS, Setting, paper_methods, setting_of
 from dorp_rl.eval.tasks import (
     check_task_set,
     evaluate_policy,
@@ -27,6 +27,7 @@ __all__ = [
     "evaluate_parallel",
     "seed_policy",
     "PAPER_SUCCESS",
+    "paper_methods",
     "RESULT_COLUMNS",
     "SETTINGS",
     "setting_of",

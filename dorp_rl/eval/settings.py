@@ -105,3 +105,17 @@ PAPER_SUCCESS: dict[str, dict[str, float]] = {
     "keywall": {"dorp": 37 / 40},
     "keycorridor": {"dorp": 33 / 40},
 }
+
+
+def paper_methods(setting: str) -> tuple[str, ...]:
+    """The methods of the paper's Table 1 in ``setting``: every method at 1-3 objects; no
+    similarity ablations at 5 objects (the paper reports none); DORP only in key rooms.
+    Six objects (not in the paper): DORP, the full graph and VF-CEM (the stronger
+    baseline)."""
+    if SETTINGS[setting].env in ("key-wall", "key-corridor"):
+        return ("dorp",)
+    if SETTINGS[setting].num_objects >= 6:
+        return ("dorp", "dorp-full", "vf-cem")
+    if SETTINGS[setting].num_objects >= 5:
+        return ("dorp", "dorp-full", "vf-rs", "vf-cem")
+    return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
