@@ -1,4 +1,5 @@
-"""Trainers: RepresentationTrainer (codes), WorldModelTrainer (video model), their OfflineTrainer base.
+"""Trainers: RepresentationTrainer (codes), WorldModelTrainer (video model),
+LatentWorldModelTrainer (latent world model), their OfflineTrainer base.
 
 Configs share :class:`TrainerConfig` (environment, play data, bookkeeping) and embed
 their model's config (``RepresentationConfig.encoder``, ``WorldModelConfig.model``).
@@ -13,6 +14,12 @@ from dorp_rl.trainers.base import (
     TrainerConfig,
     TrainerHook,
     TrainingDivergedError,
+)
+from dorp_rl.trainers.latent_world_model import (
+    LatentWorldModelConfig,
+    LatentWorldModelTrainer,
+    load_latent_world_model,
+    load_world_model,
 )
 from dorp_rl.trainers.representation import (
     CandidateScreening,
@@ -31,6 +38,8 @@ __all__ = [
     "CandidateScreening",
     "CollapseRestart",
     "EntanglementRestart",
+    "LatentWorldModelConfig",
+    "LatentWorldModelTrainer",
     "NoCheckpointWarning",
     "OfflineTrainer",
     "RepresentationConfig",
@@ -43,5 +52,7 @@ __all__ = [
     "WorldModelTrainer",
     "diagnose",
     "load_encoder",
+    "load_latent_world_model",
+    "load_world_model",
     "load_video_model",
 ]

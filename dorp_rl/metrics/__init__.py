@@ -25,7 +25,7 @@ from dorp_rl.metrics.diagnostics import (
     rearrangement_diagnostics,
     sample_rearrangement_states,
 )
-from dorp_rl.metrics.world_model import open_loop_accuracy
+from dorp_rl.metrics.world_model import latent_open_loop_accuracy, open_loop_accuracy
 
 __all__ = [
     "GROUND_TRUTH_DIAGNOSTICS",
@@ -38,6 +38,7 @@ __all__ = [
     "key_room_code_maps",
     "key_room_diagnostics",
     "object_diagnostics",
+    "latent_open_loop_accuracy",
     "open_loop_accuracy",
     "play_code_dynamics",
     "play_object_diagnostics",

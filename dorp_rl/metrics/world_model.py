@@ -1,4 +1,5 @@
-"""Open-loop accuracy of a video prediction model over 1..H steps."""
+"""Open-loop accuracy of world models over 1..H steps: a video prediction model's frames,
+a latent world model's codes (and decoded frames)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import torch
 from tensordict import TensorDictBase
 
 from dorp_rl.modules.video import VideoPredictionModel
-from dorp_rl.validation import check_frames
+from dorp_rl.validation import check_frames, frames_to_unit_float
 
 
 @torch.no_grad()
@@ -86,6 +87,70 @@ def open_loop_accuracy(
         "exact_accuracy": exact.tolist(),
         "pixel_mse": squared.tolist(),
         "exact_accuracy_last": float(exact[-1]),
+        "num_sequences": n,
+        "horizon": horizon,
+    }
+
+
+@torch.no_grad()
+def latent_open_loop_accuracy(
+    model: Any,
+    code_encoder: Any,
+    sequences: TensorDictBase,
+    *,
+    chunk_size: int = 256,
+    pixel_tolerance: float = 0.1,
+) -> dict[str, Any]:
+    """Rolls a latent world model open loop from o_t over each window and scores its codes.
+
+    At each step 1..H the code head's codes are compared with the codes ``code_encoder``
+    gives the true frame (every one-hot equal), and, for a model with a decoder, the
+    decoded frame with the true frame (the share of values within ``pixel_tolerance`` on
+    the [0, 1] scale).
+
+    Args:
+        model: a :class:`~dorp_rl.modules.LatentWorldModel`.
+        code_encoder: the DORP encoder whose codes the model predicts.
+        sequences: ``[N, H]`` windows (``pixels``, ``action``, ``("next", "pixels")``).
+        chunk_size: windows per forward pass.
+        pixel_tolerance: largest error of a decoded value counted as right.
+
+    Returns:
+        ``code_accuracy`` and ``pixel_accuracy`` (``None`` without a decoder): lists of H
+        floats (step 1..H); ``code_accuracy_last``, ``num_sequences`` and ``horizon``.
+    """
+    from dorp_rl.objectives.latent import LatentWorldModelLoss
+
+    if sequences.batch_dims != 2:
+        raise ValueError(
+            f"sequences must be [N, H] windows (a SequenceSampler sample), got batch shape "
+            f"{list(sequences.shape)}."
+        )
+    n, horizon = sequences.shape
+    loss = LatentWorldModelLoss(model, code_encoder)
+    was_training = model.training
+    model.eval()
+    right = torch.zeros(horizon)
+    pixels_right = torch.zeros(horizon)
+    decoder = getattr(model, "frame_decoder", None) is not None
+    device = next(iter(model.parameters())).device
+    try:
+        for start in range(0, n, chunk_size):
+            chunk = sequences[start : start + chunk_size].to(device)
+            frames, action = loss._read(chunk)
+            latents = loss.rollout(frames, action)[:, 1:]
+            truth = loss.target_codes(frames[:, 1:])
+            right += (model.codes(latents) == truth).all(-1).float().sum(0).cpu()
+            if decoder:
+                error = (model.decode(latents) - frames_to_unit_float(frames[:, 1:])).abs()
+                pixels_right += (error <= pixel_tolerance).float().flatten(2).mean(-1).sum(0).cpu()
+    finally:
+        model.train(was_training)
+    code_accuracy = (right / n).tolist()
+    return {
+        "code_accuracy": code_accuracy,
+        "code_accuracy_last": code_accuracy[-1],
+        "pixel_accuracy": (pixels_right / n).tolist() if decoder else None,
         "num_sequences": n,
         "horizon": horizon,
     }

@@ -1,6 +1,8 @@
-"""Models as TensorDict-friendly modules: code encoder, similarity matrices, video prediction model."""
+"""Models as TensorDict-friendly modules: code encoder, similarity matrices, video prediction
+model, latent world model."""
 
 from dorp_rl.modules.encoder import DiscreteCodeEncoder, EncoderConfig, check_pixels
+from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel
 from dorp_rl.modules.oracle import OracleCodeEncoder
 from dorp_rl.modules.similarity import (
     SIMILARITIES,
@@ -21,6 +23,8 @@ __all__ = [
     "EncoderConfig",
     "FullSimilarity",
     "IdentitySimilarity",
+    "LatentModelConfig",
+    "LatentWorldModel",
     "OracleCodeEncoder",
     "SIMILARITIES",
     "VideoModelConfig",

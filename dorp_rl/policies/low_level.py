@@ -11,7 +11,9 @@ from pathlib import Path
 from torch import nn
 from torchrl.envs import EnvBase
 
+from dorp_rl.envs.latent_planning import LatentModelEnv
 from dorp_rl.envs.planning import StatelessEnvModel, WorldModelEnv
+from dorp_rl.envs.spec import DiscreteActions
 
 __all__ = ["TRUE_DYNAMICS", "make_planning_env"]
 
@@ -29,9 +31,10 @@ def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module)
             (:class:`~dorp_rl.envs.GroundTruthModelEnv`); else the env itself when it
             steps any leading shape (``batch_size=()``, not batch-locked); else
             :class:`~dorp_rl.envs.planning.StatelessEnvModel` over it), a planning env (used as it is),
-            a model with ``predict(pixels, action)`` (wrapped in
-            :class:`~dorp_rl.envs.WorldModelEnv`) or the path of a world-model checkpoint
-            (loaded against ``env``).
+            a latent world model (:class:`~dorp_rl.modules.LatentWorldModel`, driven by
+            :class:`~dorp_rl.envs.LatentModelEnv`), a model with ``predict(pixels,
+            action)`` (wrapped in :class:`~dorp_rl.envs.WorldModelEnv`) or the path of a
+            checkpoint of either (loaded against ``env``).
 
     Raises:
         ValueError: any other value, naming what is accepted.
@@ -56,13 +59,17 @@ def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module)
             f"low_level {low_level!r}: the true dynamics are spelled {TRUE_DYNAMICS!r}."
         )
     if isinstance(low_level, (str, Path)):  # a checkpoint; a missing one is named there
-        from dorp_rl.trainers import load_video_model
+        from dorp_rl.trainers import load_world_model
 
-        return WorldModelEnv(load_video_model(low_level, env), env.num_actions)
+        low_level = load_world_model(low_level, env)
+    if callable(getattr(low_level, "as_world_model", None)):
+        # A latent world model: frames decoded at every step, for costs that read pixels.
+        return LatentModelEnv(low_level, decode=True)
     if callable(getattr(low_level, "predict", None)):
-        return WorldModelEnv(low_level, env.num_actions)
+        return WorldModelEnv(low_level, DiscreteActions.of(env).num_actions)
     raise ValueError(
-        f"low_level must be {TRUE_DYNAMICS!r} (the true dynamics), a planning env, a model with "
-        "predict(pixels, action) or the path of a world-model checkpoint, got "
+        f"low_level must be {TRUE_DYNAMICS!r} (the true dynamics), a planning env, a latent "
+        "world model, a model with predict(pixels, action) or the path of a world-model "
+        "checkpoint, got "
         f"{type(low_level).__name__}."
     )

@@ -1,0 +1,252 @@
+"""A latent world model for any frames: encode once, step a latent, read DORP's codes off it.
+
+:class:`LatentWorldModel` encodes a frame ``[C, H, W]`` (uint8, or float in ``[0, 1]``)
+into a latent vector, advances the latent with each action (a residual MLP on the latent
+and the action's one-hot), reads the codes of a DORP encoder off any latent with a code
+head (logits per one-hot), and decodes a latent into a frame where pixels are needed. No
+palette is assumed: the decoder predicts each channel's intensity.
+
+Planning with it needs no pixels: a waypoint plan's :class:`~dorp_rl.planners.CodeMatchCost`
+reads the imagined codes directly. :meth:`LatentWorldModel.as_world_model` gives the same
+parts as torchrl's :class:`~torchrl.modules.WorldModel` (TensorDict modules over
+``pixels``, ``latent``, ``action``, ``code``), which
+:class:`~dorp_rl.envs.LatentModelEnv` drives as a planning env.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import WorldModel
+
+from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.validation import Flag, Int, Ints, frames_to_unit_float
+
+__all__ = ["LatentModelConfig", "LatentWorldModel"]
+
+
+@dataclass
+class LatentModelConfig(ConfigMixin):
+    """Sizes of a :class:`LatentWorldModel`.
+
+    Examples:
+        >>> from dorp_rl.modules import LatentModelConfig
+        >>> LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(16, 2)).latent_dim
+        128
+    """
+
+    frame_shape: tuple[int, int, int] = checked(
+        (3, 16, 16), Ints(low=1, min_length=3, max_length=3)
+    )
+    """(C, H, W) of the frames"""
+    code_sizes: tuple[int, ...] = checked((32,), Ints(low=2))
+    """codes of each one-hot of the DORP encoder whose codes the code head predicts"""
+    latent_dim: int = checked(128, Int(low=1))
+    """width of the latent state"""
+    channels: int = checked(32, Int(low=1))
+    """width of the frame encoder's and decoder's convolutions"""
+    hidden: int = checked(256, Int(low=1))
+    """hidden width of the dynamics and code-head MLPs"""
+    dynamics_layers: int = checked(2, Int(low=1))
+    """hidden layers of the dynamics MLP"""
+    decoder: bool = checked(True, Flag())
+    """whether the model decodes latents into frames (VF, the goal-image phase, pictures)"""
+
+
+def _downsampled(size: int) -> int:
+    """Side of a feature map after two stride-2 convolutions (kernel 3, padding 1)."""
+    for _ in range(2):
+        size = (size + 1) // 2
+    return size
+
+
+class LatentWorldModel(nn.Module):
+    """Frame encoder, latent dynamics, code head and (optional) decoder.
+
+    Args:
+        num_actions: discrete actions (indices ``0 .. num_actions - 1``).
+        config: the sizes (:class:`LatentModelConfig`).
+
+    Shapes: ``encode`` ``[*B, C, H, W] -> [*B, D]``; ``step`` ``([*B, D], [*B]) -> [*B, D]``;
+    ``code_logits`` ``[*B, D] -> [*B, sum(code_sizes)]``; ``codes`` ``-> [*B, K]`` int64;
+    ``decode`` ``[*B, D] -> [*B, C, H, W]`` float in ``[0, 1]``.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.modules import LatentModelConfig, LatentWorldModel
+        >>> model = LatentWorldModel(4, LatentModelConfig(frame_shape=(1, 8, 8), code_sizes=(5,)))
+        >>> z = model.encode(torch.zeros(2, 1, 8, 8, dtype=torch.uint8))
+        >>> model.codes(model.step(z, torch.tensor([0, 3]))).shape, model.decode(z).shape
+        (torch.Size([2, 1]), torch.Size([2, 1, 8, 8]))
+    """
+
+    def __init__(self, num_actions: int, config: LatentModelConfig | None = None) -> None:
+        super().__init__()
+        config = LatentModelConfig() if config is None else config
+        if not isinstance(config, LatentModelConfig):
+            raise ValueError(f"config must be a LatentModelConfig, got {type(config).__name__}.")
+        if int(num_actions) < 1:
+            raise ValueError(f"num_actions must be >= 1, got {num_actions}.")
+        self.config = config
+        self.num_actions = int(num_actions)
+        self.code_sizes = tuple(config.code_sizes)
+        c, h, w = config.frame_shape
+        ch, d = config.channels, config.latent_dim
+        self._feature_shape = (ch, _downsampled(h), _downsampled(w))
+        flat = ch * self._feature_shape[1] * self._feature_shape[2]
+        self.frame_encoder = nn.Sequential(
+            nn.Conv2d(c, ch, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(ch, ch, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(ch, ch, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Flatten(),
+            nn.Linear(flat, d),
+            nn.LayerNorm(d),
+        )
+        layers: list[nn.Module] = []
+        width = d + self.num_actions
+        for _ in range(config.dynamics_layers):
+            layers += [nn.Linear(width, config.hidden), nn.ReLU()]
+            width = config.hidden
+        layers.append(nn.Linear(width, d))
+        self.dynamics = nn.Sequential(*layers)
+        self.dynamics_norm = nn.LayerNorm(d)
+        self.code_head = nn.Sequential(
+            nn.Linear(d, config.hidden), nn.ReLU(), nn.Linear(config.hidden, sum(self.code_sizes))
+        )
+        self.frame_decoder: nn.Module | None = None
+        if config.decoder:
+            self.decoder_input = nn.Linear(d, flat)
+            self.frame_decoder = nn.Sequential(
+                nn.ReLU(),
+                nn.ConvTranspose2d(ch, ch, 4, stride=2, padding=1),
+                nn.ReLU(),
+                nn.ConvTranspose2d(ch, ch, 4, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Conv2d(ch, c, 3, padding=1),
+            )
+
+    # ------------------------------------------------------------------ parts
+    @property
+    def frame_shape(self) -> tuple[int, int, int]:
+        return tuple(self.config.frame_shape)
+
+    def encode(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Latents ``[*B, D]`` of frames ``[*B, C, H, W]`` (uint8, or float in [0, 1])."""
+        lead = pixels.shape[:-3]
+        x = frames_to_unit_float(pixels).reshape(-1, *pixels.shape[-3:])
+        return self.frame_encoder(x).reshape(*lead, -1)
+
+    def step(self, latent: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The latent after ``action`` (int indices ``[*B]`` or ``[*B, 1]``)."""
+        if action.dim() == latent.dim():
+            action = action.squeeze(-1)
+        one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(latent.dtype)
+        delta = self.dynamics(torch.cat([latent, one_hot], -1))
+        return self.dynamics_norm(latent + delta)
+
+    def code_logits(self, latent: torch.Tensor) -> torch.Tensor:
+        """Logits ``[*B, sum(code_sizes)]`` of each one-hot's code."""
+        return self.code_head(latent)
+
+    def codes(self, latent: torch.Tensor) -> torch.Tensor:
+        """The most likely code of each one-hot, int64 ``[*B, K]``."""
+        logits = self.code_logits(latent).split(self.code_sizes, dim=-1)
+        return torch.stack([part.argmax(-1) for part in logits], -1)
+
+    def decode(self, latent: torch.Tensor) -> torch.Tensor:
+        """Frames ``[*B, C, H, W]`` (float in [0, 1]) of latents ``[*B, D]``."""
+        if self.frame_decoder is None:
+            raise ValueError(
+                "this LatentWorldModel has no decoder (LatentModelConfig(decoder=False)): "
+                "it predicts codes, not frames."
+            )
+        lead = latent.shape[:-1]
+        x = self.decoder_input(latent.reshape(-1, latent.shape[-1]))
+        x = self.frame_decoder(x.reshape(-1, *self._feature_shape))
+        c, h, w = self.frame_shape
+        if tuple(x.shape[-2:]) != (h, w):
+            x = nn.functional.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
+        return torch.sigmoid(x).reshape(*lead, c, h, w)
+
+    def decode_uint8(self, latent: torch.Tensor) -> torch.Tensor:
+        """:meth:`decode` as uint8 frames (rounded to 0..255)."""
+        return (self.decode(latent) * 255.0).round().to(torch.uint8)
+
+    def imagine(self, latent: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Latents ``[*B, T, D]`` after each of ``actions`` ``[*B, T]`` from ``latent`` ``[*B, D]``."""
+        out = []
+        for t in range(actions.shape[-1]):
+            latent = self.step(latent, actions[..., t])
+            out.append(latent)
+        return torch.stack(out, -2)
+
+    def forward(self, pixels: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Code logits ``[*B, T, sum(code_sizes)]`` of an open-loop rollout from frames."""
+        return self.code_logits(self.imagine(self.encode(pixels), actions))
+
+    # ------------------------------------------------------------------ torchrl
+    def as_world_model(
+        self, *, decode: bool = False, pixels_key: str = "pixels", latent_key: str = "latent"
+    ) -> WorldModel:
+        """The model as torchrl's :class:`~torchrl.modules.WorldModel`.
+
+        ``encoder``: ``pixels -> latent``; ``dynamics``: ``(latent, action) ->
+        ("next", latent)`` and the codes read off it, ``("next", "code")``; a reward head
+        writing 0 (DORP's tasks have none); with ``decode``, a decoder ``("next", latent)
+        -> ("next", pixels)`` run at every step.
+        """
+        model = self
+
+        class _Step(nn.Module):
+            def forward(self, latent: torch.Tensor, action: torch.Tensor) -> tuple:
+                nxt = model.step(latent, action)
+                return nxt, model.codes(nxt)
+
+        class _Zero(nn.Module):
+            def forward(self, latent: torch.Tensor) -> torch.Tensor:
+                return latent.new_zeros(*latent.shape[:-1], 1)
+
+        class _Decode(nn.Module):
+            def forward(self, latent: torch.Tensor) -> torch.Tensor:
+                return model.decode_uint8(latent)
+
+        encoder = TensorDictModule(self.encode, in_keys=[pixels_key], out_keys=[latent_key])
+        dynamics = TensorDictModule(
+            _Step(),
+            in_keys=[latent_key, "action"],
+            out_keys=[("next", latent_key), ("next", "code")],
+        )
+        reward = TensorDictModule(
+            _Zero(), in_keys=[("next", latent_key)], out_keys=[("next", "reward")]
+        )
+        decoder = None
+        if decode:
+            decoder = TensorDictModule(
+                _Decode(), in_keys=[("next", latent_key)], out_keys=[("next", pixels_key)]
+            )
+        return WorldModel(encoder, dynamics, reward, decoder=decoder)
+
+    def extra_repr(self) -> str:
+        return f"num_actions={self.num_actions}, {self.config}"
+
+
+def check_latent_model(model: Any, code_sizes: Sequence[int], frame_shape: Sequence[int]) -> None:
+    """Refuses a latent model whose code head or frames do not fit (names both)."""
+    if tuple(model.code_sizes) != tuple(code_sizes):
+        raise ValueError(
+            f"the latent world model predicts codes of sizes {tuple(model.code_sizes)}, the "
+            f"encoder has {tuple(code_sizes)}: train it on this encoder's codes."
+        )
+    if tuple(model.frame_shape) != tuple(frame_shape):
+        raise ValueError(
+            f"the latent world model takes frames {list(model.frame_shape)}, the env gives "
+            f"{list(frame_shape)}."
+        )

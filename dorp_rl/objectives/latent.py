@@ -1,0 +1,175 @@
+"""LatentWorldModelLoss: a latent world model learns a DORP encoder's codes open loop."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.objectives import LossModule
+
+from dorp_rl.modules.encoder import module_device
+from dorp_rl.modules.latent import LatentWorldModel, check_latent_model
+from dorp_rl.validation import MissingKeyError, check_float, check_int, frames_to_unit_float
+
+__all__ = ["LatentWorldModelLoss"]
+
+
+class LatentWorldModelLoss(LossModule):
+    """Trains a :class:`~dorp_rl.modules.LatentWorldModel` on ``[B, H]`` play windows.
+
+    The model encodes the window's first frame o_t and steps its latent with the
+    window's actions, restarting from the encoded true frame every ``open_loop_length``
+    steps (``None``: one open-loop rollout over the whole window). At every step, the
+    code head's logits are scored against the codes the DORP ``code_encoder`` (frozen)
+    gives the true frame, so that the imagined codes agree with the encoder on real
+    frames (``loss_code``: cross-entropy summed over one-hots); with a decoder, the
+    decoded frame against the true frame (``loss_pixels``: mean squared error on
+    ``[0, 1]`` values, times ``pixel_weight``); and the imagined latent against the
+    encoded true frame, without gradient into the target (``loss_latent``, times
+    ``latent_weight``), which keeps imagined latents where real frames put them.
+
+    Reads ``pixels`` ``[B, H, C, H', W']`` (o_t is ``pixels[:, 0]``), ``action``
+    ``[B, H, 1]`` (int indices) and ``("next", "pixels")``, e.g. a
+    :class:`~dorp_rl.data.SequenceSampler` sample. Detached metrics: ``code_accuracy``
+    (share of imagined steps whose every code is the encoder's), ``code_accuracy_last``
+    (the window's last step) and ``pixel_error`` (mean absolute error on [0, 1]).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.modules import EncoderConfig, DiscreteCodeEncoder
+        >>> from dorp_rl.modules import LatentModelConfig, LatentWorldModel
+        >>> from dorp_rl.objectives import LatentWorldModelLoss
+        >>> codes = DiscreteCodeEncoder(EncoderConfig.small((4,), frame_shape=(1, 8, 8)))
+        >>> model = LatentWorldModel(3, LatentModelConfig(frame_shape=(1, 8, 8), code_sizes=(4,)))
+        >>> frames = torch.zeros(2, 5, 1, 8, 8, dtype=torch.uint8)
+        >>> td = TensorDict(pixels=frames, action=torch.zeros(2, 5, 1, dtype=torch.int64),
+        ...                 next=TensorDict(pixels=frames, batch_size=[2, 5]), batch_size=[2, 5])
+        >>> sorted(k for k in LatentWorldModelLoss(model, codes)(td).keys() if k.startswith("loss_"))
+        ['loss_code', 'loss_latent', 'loss_pixels']
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys the loss reads.
+
+        Attributes:
+            pixels: frames o_t .. o_{t+H-1}, ``[B, H, C, H', W']``. Defaults to ``"pixels"``.
+            action: actions a_t .. a_{t+H-1}, int64 ``[B, H, 1]``. Defaults to ``"action"``.
+            next_pixels: frames o_{t+1} .. o_{t+H}. Defaults to ``("next", "pixels")``.
+        """
+
+        pixels: NestedKey = "pixels"
+        action: NestedKey = "action"
+        next_pixels: NestedKey = ("next", "pixels")
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+
+    def __init__(
+        self,
+        model: LatentWorldModel,
+        code_encoder: nn.Module,
+        *,
+        open_loop_length: int | None = None,
+        pixel_weight: float = 1.0,
+        latent_weight: float = 0.1,
+    ) -> None:
+        super().__init__()
+        if not isinstance(model, LatentWorldModel):
+            raise ValueError(f"model must be a LatentWorldModel, got {type(model).__name__}.")
+        frame_shape = getattr(code_encoder, "frame_shape", model.frame_shape)
+        check_latent_model(model, getattr(code_encoder, "code_sizes", ()), frame_shape)
+        self.model = model
+        self.code_encoder = code_encoder
+        self.code_encoder.requires_grad_(False)
+        self.open_loop_length = check_int(
+            "open_loop_length", open_loop_length, low=1, optional=True
+        )
+        self.pixel_weight = check_float("pixel_weight", pixel_weight, low=0.0)
+        self.latent_weight = check_float("latent_weight", latent_weight, low=0.0)
+
+    def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames ``[B, H + 1, C, H', W']`` (o_t .. o_{t+H}) and actions ``[B, H]``."""
+        keys = self.tensor_keys
+        values = {}
+        for name in ("pixels", "action", "next_pixels"):
+            key = getattr(keys, name)
+            value = td.get(key, None)
+            if value is None:
+                raise MissingKeyError(
+                    f"LatentWorldModelLoss needs {key!r} ([B, H, ...] windows, e.g. a "
+                    "SequenceSampler sample)."
+                )
+            values[name] = value
+        pixels, nxt = values["pixels"], values["next_pixels"]
+        frames = torch.cat([pixels[:, :1], nxt], 1)
+        action = values["action"].reshape(*pixels.shape[:2], -1)[..., 0].long()
+        n = self.model.num_actions
+        if bool(((action < 0) | (action >= n)).any()):
+            raise ValueError(
+                f"the windows hold actions outside [0, {n}); the model takes actions in "
+                f"[0, {n}) (int indices [B, H, 1]; one-hot actions are turned into indices "
+                "by the trainer)."
+            )
+        return frames, action
+
+    @torch.no_grad()
+    def target_codes(self, frames: torch.Tensor) -> torch.Tensor:
+        """The code encoder's codes int64 ``[*B, K]`` of frames ``[*B, C, H, W]``."""
+        encoder = self.code_encoder
+        was_training = encoder.training
+        encoder.eval()
+        try:
+            lead = frames.shape[:-3]
+            flat = frames.reshape(-1, *frames.shape[-3:]).to(module_device(encoder))
+            code = encoder(flat)[0]
+        finally:
+            encoder.train(was_training)
+        return code.to(torch.int64).reshape(*lead, -1).to(frames.device)
+
+    def rollout(self, frames: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Latents ``[B, H + 1, D]``: the encoded o_t, then one per action, restarted from
+        the encoded true frame every ``open_loop_length`` steps."""
+        model = self.model
+        every = self.open_loop_length or action.shape[1]
+        latent = model.encode(frames[:, 0])
+        out = [latent]
+        for t in range(action.shape[1]):
+            if t > 0 and t % every == 0:
+                latent = model.encode(frames[:, t])
+            latent = model.step(latent, action[:, t])
+            out.append(latent)
+        return torch.stack(out, 1)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        frames, action = self._read(tensordict)
+        model = self.model
+        latents = self.rollout(frames, action)
+        targets = self.target_codes(frames)  # [B, H + 1, K]
+        logits = model.code_logits(latents).split(model.code_sizes, dim=-1)
+        loss_code = sum(
+            F.cross_entropy(part.reshape(-1, part.shape[-1]), targets[..., k].reshape(-1))
+            for k, part in enumerate(logits)
+        )
+        predicted = torch.stack([part.argmax(-1) for part in logits], -1)
+        right = (predicted == targets).all(-1)[:, 1:].float()
+        with torch.no_grad():
+            encoded = model.encode(frames[:, 1:])
+        loss_latent = self.latent_weight * F.mse_loss(latents[:, 1:], encoded)
+        out = {
+            "loss_code": loss_code,
+            "loss_latent": loss_latent,
+            "code_accuracy": right.mean().detach(),
+            "code_accuracy_last": right[:, -1].mean().detach(),
+        }
+        if model.frame_decoder is not None:
+            decoded = model.decode(latents)
+            truth = frames_to_unit_float(frames)
+            out["loss_pixels"] = self.pixel_weight * F.mse_loss(decoded, truth)
+            out["pixel_error"] = (decoded - truth).abs().mean().detach()
+        return TensorDict(out, batch_size=[])

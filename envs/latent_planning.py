@@ -1,0 +1,191 @@
+"""A latent world model as a planning env, through torchrl's ``WorldModelEnv``.
+
+:class:`LatentModelEnv` drives a latent world model (:class:`~dorp_rl.modules.LatentWorldModel`,
+or any object with its methods) with torchrl's
+:class:`~torchrl.envs.model_based.WorldModelEnv`: the frame is encoded once, each step
+advances the latent and writes the codes read off it (``code``), and frames are decoded
+only when asked for (``decode=True``). So ``env.rollout``, torchrl's own planners and
+this library's planners all step it the same way.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs.model_based import ModelBasedEnvBase
+from torchrl.envs.model_based import WorldModelEnv as TorchRLWorldModelEnv
+
+from dorp_rl.validation import check_device, frames_to_uint8
+
+__all__ = ["LatentModelEnv"]
+
+
+class LatentModelEnv(TorchRLWorldModelEnv):
+    """Plans in a latent world model's latent space: ``pixels`` in, ``code`` per step out.
+
+    It steps the model's torchrl ``WorldModel`` (its ``step_module``: dynamics, code
+    head, reward and, with ``decode``, the decoder), and is a subclass of torchrl's
+    ``WorldModelEnv`` that differs in three ways, each for the planners: a step (or reset)
+    from a tensordict without ``latent`` first encodes its ``pixels`` (a planner hands a
+    planning env the acting env's tensordict, which holds frames), every later step
+    advancing the latent alone; its specs come from the model (any ``[C, H, W]`` frames,
+    ``num_actions`` indices, ``code`` of its code sizes), not from a reference env; and
+    it is stateless with any leading shape (``batch_size=()``, not batch-locked, outputs
+    shaped as the tensordict), where torchrl's shapes them by the env's batch size.
+
+    Writes at each step ``latent`` float ``[D]``, ``code`` int64 ``[K]`` (the code head's
+    most likely codes), a zero ``reward``, ``done`` flags all ``False``, and with
+    ``decode`` the decoded ``pixels`` uint8 ``[C, H, W]``; ``goal_pixels`` are carried.
+
+    Args:
+        model: the latent world model (``encode``, ``step``, ``codes``, ``decode_uint8``,
+            ``as_world_model``, ``num_actions``, ``code_sizes``, ``frame_shape``).
+        decode: decode a frame at every step (for costs that read ``("next", "pixels")``).
+        device: where tensors live (default: the model's parameters' device).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.envs import LatentModelEnv
+        >>> from dorp_rl.modules import LatentModelConfig, LatentWorldModel
+        >>> model = LatentWorldModel(4, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(8, 8)))
+        >>> env = LatentModelEnv(model)
+        >>> td = TensorDict(pixels=torch.zeros(2, 5, 3, 24, 32, dtype=torch.uint8),
+        ...                 action=torch.zeros(2, 5, 1, dtype=torch.int64), batch_size=(2, 5))
+        >>> out = env.step(td)
+        >>> out["next", "code"].shape, out["next", "latent"].shape
+        (torch.Size([2, 5, 2]), torch.Size([2, 5, 128]))
+    """
+
+    _supports_set_state = True
+
+    def __init__(self, model: Any, *, decode: bool = False, device: Any = None) -> None:
+        for name in ("encode", "step", "codes", "as_world_model", "num_actions", "code_sizes"):
+            if not hasattr(model, name):
+                raise ValueError(
+                    f"model must be a latent world model (LatentWorldModel); "
+                    f"{type(model).__name__} has no {name!r}."
+                )
+        if device is None and isinstance(model, torch.nn.Module):
+            param = next(iter(model.parameters()), None)
+            device = param.device if param is not None else None
+        device = torch.device("cpu") if device is None else check_device(device)
+        frame = tuple(model.frame_shape)
+        image = Bounded(low=0, high=255, shape=frame, dtype=torch.uint8, device=device)
+        latent_dim = int(model.config.latent_dim)
+        observation = Composite(
+            pixels=image,
+            goal_pixels=image.clone(),
+            latent=Unbounded(shape=(latent_dim,), dtype=torch.float32, device=device),
+            code=Unbounded(shape=(len(model.code_sizes),), dtype=torch.int64, device=device),
+        )
+        world_model = model.as_world_model(decode=decode)
+        # torchrl's WorldModelEnv.__init__ copies its specs from a batched reference env
+        # (and cannot expand them to batch_size=()); the model has its own, so the base
+        # is set up directly and the specs are the model's.
+        ModelBasedEnvBase.__init__(
+            self,
+            world_model.step_module,
+            device=device,
+            batch_size=torch.Size([]),
+            allow_done_after_reset=True,
+        )
+        self._world_model = world_model
+        self.latent_key = "latent"
+        flag = Categorical(2, shape=(1,), dtype=torch.bool)
+        self.action_spec = Categorical(int(model.num_actions), shape=(1,), dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(1,), dtype=torch.float32)
+        self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone())
+        self.observation_spec = observation
+        self.model = model
+        self.decode = bool(decode)
+        self.num_actions = int(model.num_actions)
+
+    def _set_seed(self, seed: int | None) -> None:
+        """Nothing to seed: the model is deterministic."""
+
+    def check_frame(self, frames: torch.Tensor, name: str = "pixels") -> None:
+        """Frames must have the model's ``[C, H, W]``."""
+        frames_to_uint8(frames, name, shape=tuple(self.model.frame_shape))
+
+    def _with_latent(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """``tensordict`` with ``latent`` (its ``pixels`` encoded when it has none)."""
+        if self.latent_key in tensordict.keys():
+            return tensordict
+        pixels = tensordict.get("pixels", None)
+        if pixels is None:
+            raise KeyError(
+                "LatentModelEnv needs 'latent' or 'pixels' (the frame to start from) in the "
+                f"tensordict; it holds {sorted(str(k) for k in tensordict.keys())}."
+            )
+        pixels = frames_to_uint8(pixels, "pixels", shape=tuple(self.model.frame_shape))
+        out = tensordict.copy()
+        with torch.no_grad():
+            out.set(self.latent_key, self.model.encode(pixels))
+        return out
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        if tensordict is None:
+            raise KeyError("LatentModelEnv.reset needs a tensordict with 'pixels' or 'latent'.")
+        tensordict = self._with_latent(tensordict)
+        shape = tensordict.batch_size
+        latent = tensordict.get(self.latent_key)
+        false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        with torch.no_grad():
+            code = self.model.codes(latent)
+        out = TensorDict(
+            {
+                self.latent_key: latent,
+                "code": code,
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            },
+            batch_size=shape,
+            device=self.device,
+        )
+        for key in ("pixels", "goal_pixels"):
+            value = tensordict.get(key, None)
+            if value is not None:
+                out.set(key, value)
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = self._with_latent(tensordict)
+        shape = tensordict.batch_size
+        with torch.no_grad():
+            nxt = self.world_model(tensordict.copy()).get("next")
+        # torchrl's WorldModelEnv._step builds its output with the env's batch_size; the
+        # planners step [b, N] candidates through a batch_size=() env, so it is built here
+        # with the tensordict's shape.
+        false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        out = TensorDict(
+            {
+                self.latent_key: nxt.get(self.latent_key),
+                "code": nxt.get("code"),
+                "reward": nxt.get("reward"),
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            },
+            batch_size=shape,
+            device=self.device,
+        )
+        if self.decode:
+            out.set("pixels", nxt.get("pixels"))
+        goal = tensordict.get("goal_pixels", None)
+        if goal is not None:
+            out.set("goal_pixels", goal)
+        return out
+
+    def imagine_latents(self, pixels: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Latents ``[*B, N, T, D]`` of candidate actions ``[*B, N, T]`` from frames
+        ``[*B, C, H, W]``: one encoding per row, then batched latent steps (no tensordict
+        per step)."""
+        with torch.no_grad():
+            latent = self.model.encode(pixels)  # [*B, D]
+            latent = latent.unsqueeze(-2).expand(*actions.shape[:-1], latent.shape[-1])
+            return self.model.imagine(latent, actions)

@@ -1,0 +1,157 @@
+"""The latent world model: frames of any size, torchrl's WorldModel parts and rollouts,
+its trainer (checkpoints refused against another env or code sizes, resume), and the
+DORP policy and visual foresight planning through it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from push_blocks import PushBlocksEnv
+from tensordict import TensorDict
+
+from dorp_rl.data import collect_play_data
+from dorp_rl.envs import LatentModelEnv
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, LatentModelConfig, LatentWorldModel
+from dorp_rl.objectives import LatentWorldModelLoss
+from dorp_rl.planners import CodeGraph
+from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy, make_planning_env
+from dorp_rl.trainers import (
+    LatentWorldModelConfig,
+    LatentWorldModelTrainer,
+    load_latent_world_model,
+)
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.mark.parametrize("frame_shape", [(3, 24, 32), (1, 8, 8), (3, 10, 13)])
+def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape):
+    model = LatentWorldModel(5, LatentModelConfig(frame_shape=frame_shape, code_sizes=(6, 2)))
+    frames = torch.randint(0, 256, (4, *frame_shape), dtype=torch.uint8)
+    latent = model.encode(frames)
+    assert latent.shape == (4, 128)
+    nxt = model.step(latent, torch.tensor([0, 1, 2, 4]))
+    assert model.codes(nxt).shape == (4, 2) and model.codes(nxt).dtype == torch.int64
+    assert model.decode(nxt).shape == (4, *frame_shape)
+    assert model.imagine(latent, torch.zeros(4, 7, dtype=torch.int64)).shape == (4, 7, 128)
+    with pytest.raises(ValueError, match="no decoder"):
+        LatentWorldModel(5, LatentModelConfig(frame_shape=frame_shape, decoder=False)).decode(
+            latent
+        )
+
+
+def test_torchrl_world_model_parts_and_rollout_in_latent_space():
+    model = LatentWorldModel(4, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    world = model.as_world_model(decode=True)
+    td = TensorDict(pixels=torch.zeros(2, 3, 24, 32, dtype=torch.uint8), batch_size=[2])
+    td = world.encode(td)
+    td.set("action", torch.tensor([[1], [3]]))
+    out = world.step(td)
+    assert out["next", "latent"].shape == (2, 128) and out["next", "code"].shape == (2, 2)
+    assert out["next", "pixels"].dtype == torch.uint8
+    env = LatentModelEnv(model, decode=True)
+    start = env.reset(
+        TensorDict(pixels=torch.zeros(3, 3, 24, 32, dtype=torch.uint8), batch_size=[3])
+    )
+    rollout = env.rollout(5, tensordict=start, auto_reset=False)
+    assert rollout.shape == (3, 5) and rollout["next", "pixels"].shape == (3, 5, 3, 24, 32)
+    # The latent is stepped, never re-encoded: the same as the model's own imagination.
+    actions = rollout["action"][..., 0]
+    expected = model.imagine(model.encode(start["pixels"]), actions)
+    assert torch.allclose(rollout["next", "latent"], expected, atol=1e-5)
+    # Stateless: candidates [b, N] step through the batch_size=() env.
+    td = TensorDict(
+        pixels=torch.zeros(2, 6, 3, 24, 32, dtype=torch.uint8),
+        action=torch.zeros(2, 6, 1, dtype=torch.int64),
+        batch_size=[2, 6],
+    )
+    assert env.step(td)["next", "code"].shape == (2, 6, 2)
+    with pytest.raises(ValueError, match=r"\[\*B, 3, 24, 32\]"):
+        env.check_frame(torch.zeros(2, 3, 16, 16, dtype=torch.uint8))
+
+
+def _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32)):
+    torch.manual_seed(0)
+    config = EncoderConfig.small(code_sizes, frame_shape=frame_shape)
+    return DiscreteCodeEncoder(config.replace(channels=8, mlp_sizes=(32,)))
+
+
+def _config(tmp_path, **overrides):
+    values = dict(
+        num_frames=480,
+        num_envs=4,
+        trajectory_length=8,
+        horizon=4,
+        eval_frames=160,
+        eval_sequences=8,
+        batch_size=8,
+        num_steps=6,
+        eval_every=3,
+        checkpoint_every=3,
+        progress=False,
+        out_dir=str(tmp_path / "latent"),
+        model={"latent_dim": 16, "channels": 4, "hidden": 16},
+    )
+    return LatentWorldModelConfig.for_env("push_blocks:PUSH_BLOCKS", **{**values, **overrides})
+
+
+def test_the_loss_learns_the_encoders_codes_on_frames_of_another_size():
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    buffer = collect_play_data(env, 400, trajectory_length=10, seed=0)
+    encoder = _encoder()
+    model = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    loss = LatentWorldModelLoss(model, encoder)
+    window = buffer[:400].reshape(40, 10)[:, :5]
+    window.set("action", window["action"].reshape(40, 5, 1).long())
+    first = loss(window)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for _ in range(30):
+        out = loss(window)
+        optimizer.zero_grad()
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        optimizer.step()
+    assert float(out["loss_code"].detach()) < 0.5 * float(first["loss_code"].detach())
+    window.set("action", window["action"] + 8)
+    with pytest.raises(ValueError, match=r"actions in \[0, 8\)"):
+        loss(window)
+    with pytest.raises(ValueError, match="codes of sizes"):
+        LatentWorldModelLoss(model, _encoder(code_sizes=(4, 4)))
+
+
+def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_path):
+    encoder = _encoder()
+    trainer = LatentWorldModelTrainer(_config(tmp_path), encoder=encoder)
+    result = trainer.train()
+    assert result["step"] == 6 and len(result["evaluation"]["code_accuracy"]) == 4
+    assert trainer.model.frame_shape == (3, 24, 32)
+    path = tmp_path / "latent" / "checkpoints" / "last.pt"
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    model = load_latent_world_model(path, env, encoder=encoder)
+    assert model.code_sizes == (6, 6)
+    with pytest.raises(ValueError, match="another|environment|env"):
+        load_latent_world_model(path, PushBlocksEnv((1, 8, 8), batch_size=(4,), one_hot=True))
+    with pytest.raises(ValueError, match="codes of sizes"):
+        load_latent_world_model(path, env, encoder=_encoder(code_sizes=(4, 4)))
+    # Resume: a longer run goes on from the last checkpoint.
+    longer = LatentWorldModelTrainer(_config(tmp_path, num_steps=9), encoder=encoder)
+    with pytest.warns(UserWarning, match="num_steps=9"):
+        again = longer.train(resume=True)
+    assert longer.resumed_from_step == 6 and again["step"] == 9
+
+
+def test_dorp_and_visual_foresight_plan_through_the_latent_model(tmp_path):
+    env = PushBlocksEnv((3, 24, 32), batch_size=(2,))
+    encoder = _encoder()
+    graph = CodeGraph.from_play_data(
+        collect_play_data(env, 400, trajectory_length=10, seed=0), encoder
+    )
+    model = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    planning = make_planning_env(env, model)
+    assert isinstance(planning, LatentModelEnv) and planning.decode
+    policy = make_dorp_policy(
+        env, encoder, graph, low_level=model, num_candidates=8, planning_horizon=3, seed=0
+    )
+    rollout = env.rollout(4, policy, break_when_any_done=False)
+    assert rollout["action"].shape[:2] == (2, 4)
+    vf = VisualForesightPolicy(planning, "rs", num_candidates=8, planning_horizon=3, seed=0)
+    assert env.rollout(3, vf, break_when_any_done=False).shape == (2, 3)

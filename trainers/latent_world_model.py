@@ -1,0 +1,381 @@
+"""LatentWorldModelTrainer: trains a latent world model on play windows against a DORP
+encoder's codes."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.data import TensorDictReplayBuffer
+
+from dorp_rl.checkpoint import load_checkpoint, load_module_state
+from dorp_rl.config import Nested, checked
+from dorp_rl.data import (
+    EventWindowSampler,
+    SequenceSampler,
+    check_play_buffer,
+    collect_play_data,
+    play_segment_length,
+)
+from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.metrics.world_model import latent_open_loop_accuracy
+from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel, check_latent_model
+from dorp_rl.objectives.latent import LatentWorldModelLoss
+from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
+from dorp_rl.trainers.representation import load_encoder
+from dorp_rl.trainers.world_model import (
+    HELD_OUT_SEED_OFFSET,
+    WorldModelTrainer,
+    event_windows,
+    load_video_model,
+)
+from dorp_rl.validation import Float, Int, Text, check_device, derive_seed, frame_shape_of
+
+__all__ = [
+    "LatentWorldModelConfig",
+    "LatentWorldModelTrainer",
+    "load_latent_world_model",
+    "load_world_model",
+]
+
+
+@dataclass
+class LatentWorldModelConfig(TrainerConfig):
+    """Everything that defines a latent world-model run: play windows, model, loss, codes.
+
+    The model learns the codes of the DORP encoder of ``encoder_checkpoint`` (or of an
+    encoder given to the trainer): the code head's logits at every imagined step against
+    the encoder's codes of the true frame. Its ``frame_shape`` and ``code_sizes`` are
+    taken from the env and the encoder. The open-loop length (steps between restarts
+    from the encoded true frame) grows from 1 to ``horizon`` over the first
+    ``open_loop_ramp`` share of the steps.
+
+    Examples:
+        >>> from dorp_rl.trainers import LatentWorldModelConfig
+        >>> LatentWorldModelConfig.for_env("key-wall").trajectory_length
+        1000
+    """
+
+    default_num_objects = 3
+
+    trajectory_length: int = checked(16, Int(low=1))
+    """steps per play trajectory"""
+    out_dir: str = checked("outputs/latent_world_model", Text())
+    """folder of checkpoints and logs"""
+    encoder_checkpoint: str | None = checked(None, Text(optional=True))
+    """the representation checkpoint whose codes the model learns (None: an encoder is
+    given to the trainer)"""
+    horizon: int = checked(14, Int(low=1))
+    """steps per training window"""
+    event_share: float = checked(0.0, Float(low=0.0, high=1.0, high_open=True))
+    """least share of training windows holding a rare event, e.g. the key taken"""
+    eval_frames: int = checked(8_000, Int(low=1))
+    """held-out play transitions for evaluation"""
+    eval_sequences: int = checked(512, Int(low=1))
+    """held-out windows the open-loop accuracy is measured on"""
+    eval_every: int = checked(1000, Int(low=1))
+    """steps between evaluations"""
+    model: LatentModelConfig = checked(rule=Nested(LatentModelConfig))
+    """the model (frame_shape and code_sizes are set from the env and the encoder)"""
+    open_loop_ramp: float = checked(0.3, Float(low=0.0, high=1.0))
+    """share of the steps over which the open-loop length grows to horizon"""
+    pixel_weight: float = checked(1.0, Float(low=0.0))
+    """weight of the decoded frames' squared error"""
+    latent_weight: float = checked(0.1, Float(low=0.0))
+    """weight of the imagined latents' distance to the encoded true frames"""
+    batch_size: int = checked(32, Int(low=1))
+    """windows per step"""
+    lr: float = checked(1e-3, Float(low=0.0, low_open=True, hint="(0 would never change a weight)"))
+    """Adam learning rate at the start"""
+    lr_final: float = checked(1e-4, Float(low=0.0))
+    """learning rate at the end of the cosine decay"""
+    grad_clip: float = checked(1.0, Float(low=0.0, low_open=True, allow_inf=True))
+    """gradient-norm clip (inf: off)"""
+    num_steps: int = checked(3000, Int(low=1))
+    """training steps"""
+
+    @classmethod
+    def profile_overrides(cls, profile: Any, num_objects: int) -> dict[str, Any]:
+        """The play-window fields of the profile's world-model preset."""
+        preset = profile.world_model_overrides(num_objects)
+        shared = ("trajectory_length", "event_share", "num_frames", "horizon")
+        return {k: v for k, v in preset.items() if k in shared}
+
+    def check_relations(self) -> None:
+        super().check_relations()
+        if self.trajectory_length < self.horizon:
+            raise ValueError(
+                f"trajectory_length ({self.trajectory_length}) must be >= horizon "
+                f"({self.horizon}): windows never cross a trajectory boundary."
+            )
+        for name in ("num_frames", "eval_frames"):
+            frames = getattr(self, name)
+            if play_segment_length(frames, self.num_envs, self.trajectory_length) < self.horizon:
+                least = (self.horizon - 1) * self.num_envs + 1
+                raise ValueError(
+                    f"{name} ({frames}) must be at least {least} for windows of horizon "
+                    f"{self.horizon} collected by num_envs={self.num_envs} envs side by side."
+                )
+
+
+class LatentWorldModelTrainer(OfflineTrainer):
+    """Trains a :class:`~dorp_rl.modules.LatentWorldModel` with
+    :class:`~dorp_rl.objectives.LatentWorldModelLoss`.
+
+    Windows of ``horizon`` steps of play data (collected, or loaded from
+    ``config.data_dir``); held-out play data from another seed give ``eval_sequences``
+    windows on which :func:`~dorp_rl.metrics.latent_open_loop_accuracy` is measured every
+    ``eval_every`` steps and at the end. Adam with a cosine decay from ``lr`` to
+    ``lr_final``, gradient-norm clipping; logging, checkpoints and resume as every
+    :class:`~dorp_rl.trainers.OfflineTrainer`.
+
+    Args:
+        config: the run.
+        encoder: the DORP encoder whose codes are the targets (default: loaded from
+            ``config.encoder_checkpoint``).
+        buffer, eval_buffer: play data to use instead of collecting it.
+        logger: a torchrl logger (default: CSV in ``out_dir``).
+
+    Examples:
+        >>> from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+        >>> from dorp_rl.trainers import LatentWorldModelConfig, LatentWorldModelTrainer
+        >>> codes = DiscreteCodeEncoder(EncoderConfig.small((16,)))
+        >>> cfg = LatentWorldModelConfig.for_env("rearrangement", 1, num_steps=3, num_frames=640,
+        ...     horizon=3, trajectory_length=4, eval_frames=256, eval_sequences=8, progress=False,
+        ...     out_dir="/tmp/dorp_doc_latent_model")
+        >>> result = LatentWorldModelTrainer(cfg, encoder=codes).train()
+        >>> result["step"], len(result["evaluation"]["code_accuracy"])
+        (3, 3)
+    """
+
+    kind = "latent_world_model"
+    progress_metric = "loss_code"
+    state_keys = ("model", "optimizer")
+
+    def __init__(
+        self,
+        config: LatentWorldModelConfig,
+        encoder: nn.Module | None = None,
+        buffer: TensorDictReplayBuffer | None = None,
+        eval_buffer: TensorDictReplayBuffer | None = None,
+        logger: Any | None = None,
+    ) -> None:
+        config.validate()
+        env = config.make_env(batch_size=(config.num_envs,))
+        if encoder is None:
+            if config.encoder_checkpoint is None:
+                raise ValueError(
+                    "LatentWorldModelTrainer needs the DORP encoder whose codes it learns: "
+                    "pass encoder= or set encoder_checkpoint."
+                )
+            encoder = load_encoder(config.encoder_checkpoint, env)
+        frame_shape = frame_shape_of(env)
+        config = config.replace(
+            model={"frame_shape": frame_shape, "code_sizes": tuple(encoder.code_sizes)}
+        )
+        super().__init__(config, env, logger)
+        self.device = torch.device(config.device)
+        self.encoder = encoder.to(self.device).eval()
+        for name, given in (("buffer", buffer), ("eval_buffer", eval_buffer)):
+            if given is not None:
+                check_play_buffer(given, self.env, min_trajectory_length=config.horizon, name=name)
+                given.set_sampler(
+                    self.training_sampler() if name == "buffer" else SequenceSampler(config.horizon)
+                )
+        if buffer is None:
+            buffer = collect_play_data(
+                self.env,
+                config.num_frames,
+                directory=config.data_dir,
+                seed=config.seed,
+                trajectory_length=config.trajectory_length,
+                sampler=self.training_sampler(),
+                batch_size=config.batch_size,
+                progress=config.progress,
+            )
+        if eval_buffer is None:
+            eval_buffer = collect_play_data(
+                self.env,
+                config.eval_frames,
+                seed=derive_seed(config.seed, HELD_OUT_SEED_OFFSET),
+                trajectory_length=config.trajectory_length,
+                sampler=SequenceSampler(config.horizon),
+            )
+        self.buffer = buffer
+        self.buffer.set_rng(self.data_generator)
+        eval_generator = torch.Generator().manual_seed(config.seed)
+        eval_buffer.set_rng(eval_generator)
+        self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
+        self.eval_event_windows: TensorDictBase | None = None
+        if config.event_share > 0:
+            self.eval_event_windows = event_windows(
+                eval_buffer, config.horizon, config.eval_sequences, eval_generator
+            )
+        torch.manual_seed(config.seed)
+        self.data_generator.manual_seed(derive_seed(config.seed, 1))
+        self.model = LatentWorldModel(
+            DiscreteActions.of(self.env).num_actions, config.model.replace()
+        ).to(self.device)
+        self.loss = LatentWorldModelLoss(
+            self.model,
+            self.encoder,
+            open_loop_length=1,
+            pixel_weight=config.pixel_weight,
+            latent_weight=config.latent_weight,
+        )
+        self.actions = DiscreteActions.of(self.env)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+
+    def training_sampler(self) -> SequenceSampler:
+        """Training windows: uniform, or with ``event_share`` of them holding an event."""
+        cfg = self.config
+        if cfg.event_share > 0:
+            return EventWindowSampler(cfg.horizon, cfg.event_share)
+        return SequenceSampler(cfg.horizon)
+
+    def open_loop_length_at(self, step: int) -> int:
+        """1 at step 0, growing linearly to ``horizon`` at ``open_loop_ramp * num_steps``."""
+        cfg = self.config
+        ramp = cfg.open_loop_ramp * cfg.num_steps
+        frac = 1.0 if ramp <= 0 else min(1.0, step / ramp)
+        return max(1, min(cfg.horizon, 1 + int(frac * (cfg.horizon - 1) + 1e-9)))
+
+    def lr_at(self, step: int) -> float:
+        """Cosine decay from ``lr`` to ``lr_final`` over ``num_steps``."""
+        cfg = self.config
+        frac = min(1.0, step / cfg.num_steps)
+        return cfg.lr_final + 0.5 * (cfg.lr - cfg.lr_final) * (1.0 + math.cos(math.pi * frac))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        load_module_state(self.model, state["model"], self.checkpoint_path, "model")
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except (ValueError, KeyError) as err:
+            raise ValueError(
+                f"checkpoint {self.checkpoint_path}: its optimizer state does not fit ({err})."
+            ) from err
+
+    def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
+        stored_model = LatentWorldModelConfig.from_dict(stored).model
+        if stored_model != self.config.model:
+            raise ValueError(
+                f"checkpoint holds a latent world model with {stored_model}, this trainer "
+                f"builds {self.config.model}."
+            )
+
+    def _index_actions(self, batch: TensorDictBase) -> TensorDictBase:
+        """Play actions in the env's layout (one-hot or index) as int64 indices ``[B, H, 1]``."""
+        return batch.set("action", self.actions.index(batch.get("action")))
+
+    def train_step(self) -> dict[str, float]:
+        """One gradient step on a batch of windows; returns the detached metrics."""
+        self.loss.open_loop_length = self.open_loop_length_at(self.step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr_at(self.step)
+        batch = self._index_actions(self.buffer.sample(self.config.batch_size).to(self.device))
+        out = self.loss(batch)
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        parameters = list(self.model.parameters())
+        grad_norm = self.check_gradients(total, parameters)
+        torch.nn.utils.clip_grads_with_norm_(parameters, self.config.grad_clip, grad_norm)
+        self.optimizer.step()
+        self.check_weights(self.model)
+        self.step += 1
+        metrics = {k: float(v.detach()) for k, v in out.items()}
+        metrics["grad_norm"] = float(grad_norm)
+        metrics["lr"] = self.optimizer.param_groups[0]["lr"]
+        metrics["open_loop_length"] = float(self.loss.open_loop_length)
+        return metrics
+
+    @property
+    def evaluate_every(self) -> int:
+        return self.config.eval_every
+
+    @property
+    def evaluate_at_end(self) -> bool:
+        return True
+
+    def evaluate(self) -> dict[str, Any]:
+        """Open-loop code (and decoded pixel) accuracy on the held-out windows."""
+        windows = self._index_actions(self.eval_windows.clone())
+        result = latent_open_loop_accuracy(self.model, self.encoder, windows)
+        steps = sorted({1, (result["horizon"] + 1) // 2, result["horizon"]})
+        for h in steps:
+            result[f"code_accuracy_step{h}"] = result["code_accuracy"][h - 1]
+        if self.eval_event_windows is not None:
+            events = self._index_actions(self.eval_event_windows.clone())
+            events = latent_open_loop_accuracy(self.model, self.encoder, events)
+            result["event_num_sequences"] = events["num_sequences"]
+            for h in steps:
+                result[f"event_code_accuracy_step{h}"] = events["code_accuracy"][h - 1]
+        return result
+
+
+def load_latent_world_model(
+    path: str | Path,
+    env: Any | None = None,
+    encoder: nn.Module | None = None,
+    device: str | torch.device = "cpu",
+) -> LatentWorldModel:
+    """The trained latent world model of a checkpoint, in eval mode.
+
+    Args:
+        path: a checkpoint written by :class:`LatentWorldModelTrainer`.
+        env: if given, the checkpoint must come from this environment.
+        encoder: if given, the model must predict this encoder's code sizes and frames.
+        device: where to put the model.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: a damaged or incomplete file, another kind of checkpoint, another
+            environment, or other code sizes or frames than ``encoder``'s.
+    """
+    device = check_device(device)
+    payload = load_checkpoint(
+        path,
+        kind=LatentWorldModelTrainer.kind,
+        env_config=None if env is None else env_identity(env),
+        state_keys=("model",),
+    )
+    cfg = LatentWorldModelConfig.from_dict(payload["config"])
+    num_actions = DiscreteActions.of(cfg.make_env() if env is None else env).num_actions
+    model = LatentWorldModel(num_actions, cfg.model)
+    load_module_state(model, payload["state"]["model"], path, "model")
+    if encoder is not None:
+        check_latent_model(
+            model, encoder.code_sizes, getattr(encoder, "frame_shape", model.frame_shape)
+        )
+    return model.to(device).eval()
+
+
+def load_world_model(
+    path: str | Path, env: Any | None = None, device: str | torch.device = "cpu"
+) -> nn.Module:
+    """The world model of a checkpoint of either kind: a latent world model
+    (:class:`LatentWorldModelTrainer`) or a palette video model
+    (:class:`~dorp_rl.trainers.WorldModelTrainer`), checked against ``env``.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: a damaged file, a checkpoint of another kind (codes, say) or of
+            another environment.
+    """
+    kinds = {LatentWorldModelTrainer.kind: load_latent_world_model}
+    kinds[WorldModelTrainer.kind] = load_video_model
+    kind = load_checkpoint(path).get("kind")
+    if kind not in kinds:
+        raise ValueError(
+            f"checkpoint {path} holds a {kind!r} model, expected a world model "
+            f"({' or '.join(map(repr, kinds))})."
+        )
+    return kinds[kind](path, env, device=device)
