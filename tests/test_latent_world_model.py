@@ -111,6 +111,11 @@ def test_the_loss_learns_the_encoders_codes_on_frames_of_another_size():
         sum(v for k, v in out.items() if k.startswith("loss_")).backward()
         optimizer.step()
     assert float(out["loss_code"].detach()) < 0.5 * float(first["loss_code"].detach())
+    # Codes computed beforehand (as the trainer does) give the same loss.
+    given = window.clone()
+    given.set("code", loss.target_codes(window["pixels"]))
+    given.set(("next", "code"), loss.target_codes(window["next", "pixels"]))
+    torch.testing.assert_close(loss(given)["loss_code"], loss(window)["loss_code"])
     window.set("action", window["action"] + 8)
     with pytest.raises(ValueError, match=r"actions in \[0, 8\)"):
         loss(window)

@@ -230,6 +230,20 @@ class LatentWorldModelTrainer(OfflineTrainer):
         )
         self.actions = DiscreteActions.of(self.env)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+        # The encoder's codes of every stored frame, once: the targets of each batch are
+        # looked up by the sampled indices instead of encoding 2 x H frames per window.
+        self.code_table, self.next_code_table = self._encode_storage()
+
+    def _encode_storage(self, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
+        """Codes int64 ``[len(buffer), K]`` of the stored ``pixels`` and ``("next", "pixels")``."""
+        tables = []
+        for key in ("pixels", ("next", "pixels")):
+            parts = []
+            for start in range(0, len(self.buffer), chunk):
+                frames = self.buffer[start : start + chunk].get(key).to(self.device)
+                parts.append(self.loss.target_codes(frames))
+            tables.append(torch.cat(parts))
+        return tables[0], tables[1]
 
     def training_sampler(self) -> SequenceSampler:
         """Training windows: uniform, or with ``event_share`` of them holding an event."""
@@ -281,6 +295,9 @@ class LatentWorldModelTrainer(OfflineTrainer):
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr_at(self.step)
         batch = self._index_actions(self.buffer.sample(self.config.batch_size).to(self.device))
+        index = batch.get("index").to(self.code_table.device)
+        batch.set("code", self.code_table[index].to(self.device))
+        batch.set(("next", "code"), self.next_code_table[index].to(self.device))
         out = self.loss(batch)
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         self.optimizer.zero_grad(set_to_none=True)

@@ -61,11 +61,17 @@ class LatentWorldModelLoss(LossModule):
             pixels: frames o_t .. o_{t+H-1}, ``[B, H, C, H', W']``. Defaults to ``"pixels"``.
             action: actions a_t .. a_{t+H-1}, int64 ``[B, H, 1]``. Defaults to ``"action"``.
             next_pixels: frames o_{t+1} .. o_{t+H}. Defaults to ``("next", "pixels")``.
+            code, next_code: the code encoder's codes of those frames, int64 ``[B, H, K]``,
+                if computed beforehand (a trainer encodes its play data once); the
+                frames are encoded when they are missing. Default ``"code"`` and
+                ``("next", "code")``.
         """
 
         pixels: NestedKey = "pixels"
         action: NestedKey = "action"
         next_pixels: NestedKey = ("next", "pixels")
+        code: NestedKey = "code"
+        next_code: NestedKey = ("next", "code")
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -132,6 +138,15 @@ class LatentWorldModelLoss(LossModule):
             encoder.train(was_training)
         return code.to(torch.int64).reshape(*lead, -1).to(frames.device)
 
+    def given_codes(self, td: TensorDictBase) -> torch.Tensor | None:
+        """The windows' codes ``[B, H + 1, K]`` from ``code`` and ``("next", "code")``, or
+        ``None`` when the tensordict lacks them."""
+        code = td.get(self.tensor_keys.code, None)
+        nxt = td.get(self.tensor_keys.next_code, None)
+        if code is None or nxt is None:
+            return None
+        return torch.cat([code[:, :1], nxt], 1).long()
+
     def rollout(self, frames: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Latents ``[B, H + 1, D]``: the encoded o_t, then one per action, restarted from
         the encoded true frame every ``open_loop_length`` steps."""
@@ -150,7 +165,9 @@ class LatentWorldModelLoss(LossModule):
         frames, action = self._read(tensordict)
         model = self.model
         latents = self.rollout(frames, action)
-        targets = self.target_codes(frames)  # [B, H + 1, K]
+        targets = self.given_codes(tensordict)
+        if targets is None:
+            targets = self.target_codes(frames)  # [B, H + 1, K]
         logits = model.code_logits(latents).split(model.code_sizes, dim=-1)
         loss_code = sum(
             F.cross_entropy(part.reshape(-1, part.shape[-1]), targets[..., k].reshape(-1))
