@@ -75,7 +75,7 @@ class LatentModelEnv(TorchRLWorldModelEnv):
         device = torch.device("cpu") if device is None else check_device(device)
         frame = tuple(model.frame_shape)
         image = Bounded(low=0, high=255, shape=frame, dtype=torch.uint8, device=device)
-        latent_dim = int(model.config.latent_dim)
+        latent_dim = int(model.latent_width)
         observation = Composite(
             pixels=image,
             goal_pixels=image.clone(),

@@ -40,6 +40,31 @@ def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape):
         )
 
 
+def test_a_categorical_latent_stays_one_hot_through_imagination_and_trains():
+    config = LatentModelConfig(
+        frame_shape=(3, 10, 13), code_sizes=(4,), latent_groups=6, latent_classes=5
+    )
+    model = LatentWorldModel(3, config)
+    frames = torch.randint(0, 256, (2, 3, 10, 13), dtype=torch.uint8)
+    latents = model.imagine(model.encode(frames), torch.randint(0, 3, (2, 9)))
+    assert latents.shape == (2, 9, 30)
+    groups = latents.reshape(2, 9, 6, 5)
+    assert bool(((groups == 0) | (groups == 1)).all()) and bool((groups.sum(-1) == 1).all())
+    shape = (2, 4, 3, 10, 13)
+    window = TensorDict(
+        pixels=torch.randint(0, 256, shape, dtype=torch.uint8),
+        action=torch.randint(0, 3, (2, 4, 1)),
+        next=TensorDict(pixels=torch.randint(0, 256, shape, dtype=torch.uint8), batch_size=[2, 4]),
+        batch_size=[2, 4],
+    )
+    encoder = _encoder(code_sizes=(4,), frame_shape=(3, 10, 13))
+    out = LatentWorldModelLoss(model, encoder)(window)
+    # The latent term is 0.1 x a cross-entropy over 5 values: near 0.1 x log 5 untrained.
+    assert 0.05 < float(out["loss_latent"].detach()) < 0.3
+    sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    assert model.dynamics[0].weight.grad is not None
+
+
 def test_torchrl_world_model_parts_and_rollout_in_latent_space():
     model = LatentWorldModel(4, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
     world = model.as_world_model(decode=True)

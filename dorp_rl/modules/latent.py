@@ -47,7 +47,13 @@ class LatentModelConfig(ConfigMixin):
     code_sizes: tuple[int, ...] = checked((32,), Ints(low=2))
     """codes of each one-hot of the DORP encoder whose codes the code head predicts"""
     latent_dim: int = checked(128, Int(low=1))
-    """width of the latent state"""
+    """width of a continuous latent state (latent_groups=0)"""
+    latent_groups: int = checked(0, Int(low=0))
+    """0: a continuous latent; > 0: the latent is that many categorical variables of
+    latent_classes values each (hard one-hots, trained straight through), so a step's
+    small error is snapped away instead of carried into the next"""
+    latent_classes: int = checked(16, Int(low=2))
+    """values of each categorical latent variable (latent_groups > 0)"""
     channels: int = checked(32, Int(low=1))
     """width of the frame encoder's and decoder's convolutions"""
     hidden: int = checked(256, Int(low=1))
@@ -96,7 +102,11 @@ class LatentWorldModel(nn.Module):
         self.num_actions = int(num_actions)
         self.code_sizes = tuple(config.code_sizes)
         c, h, w = config.frame_shape
-        ch, d = config.channels, config.latent_dim
+        self.discrete = config.latent_groups > 0
+        ch = config.channels
+        d = config.latent_groups * config.latent_classes if self.discrete else config.latent_dim
+        #: size of the latent vector
+        self.latent_width = d
         self._feature_shape = (ch, _downsampled(h), _downsampled(w))
         flat = ch * self._feature_shape[1] * self._feature_shape[2]
         self.frame_encoder = nn.Sequential(
@@ -108,8 +118,8 @@ class LatentWorldModel(nn.Module):
             nn.ReLU(),
             nn.Flatten(),
             nn.Linear(flat, d),
-            nn.LayerNorm(d),
         )
+        self.encoder_norm = nn.Identity() if self.discrete else nn.LayerNorm(d)
         layers: list[nn.Module] = []
         width = d + self.num_actions
         for _ in range(config.dynamics_layers):
@@ -138,19 +148,41 @@ class LatentWorldModel(nn.Module):
     def frame_shape(self) -> tuple[int, int, int]:
         return tuple(self.config.frame_shape)
 
-    def encode(self, pixels: torch.Tensor) -> torch.Tensor:
-        """Latents ``[*B, D]`` of frames ``[*B, C, H, W]`` (uint8, or float in [0, 1])."""
+    def encode_logits(self, pixels: torch.Tensor) -> torch.Tensor:
+        """The frame encoder's output ``[*B, D]`` before normalisation or quantisation."""
         lead = pixels.shape[:-3]
         x = frames_to_unit_float(pixels).reshape(-1, *pixels.shape[-3:])
         return self.frame_encoder(x).reshape(*lead, -1)
 
-    def step(self, latent: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """The latent after ``action`` (int indices ``[*B]`` or ``[*B, 1]``)."""
+    def encode(self, pixels: torch.Tensor) -> torch.Tensor:
+        """Latents ``[*B, D]`` of frames ``[*B, C, H, W]`` (uint8, or float in [0, 1])."""
+        out = self.encode_logits(pixels)
+        return self.quantize(out) if self.discrete else self.encoder_norm(out)
+
+    def quantize(self, logits: torch.Tensor) -> torch.Tensor:
+        """Hard one-hots of each categorical variable of ``logits`` ``[*B, G * V]``, with
+        the softmax's gradient (straight through)."""
+        groups = logits.reshape(*logits.shape[:-1], self.config.latent_groups, -1)
+        soft = groups.softmax(-1)
+        hard = nn.functional.one_hot(soft.argmax(-1), soft.shape[-1]).to(soft.dtype)
+        if not torch.is_grad_enabled():
+            return hard.reshape(logits.shape)
+        return (hard + (soft - soft.detach())).reshape(logits.shape)
+
+    def step_logits(self, latent: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The dynamics' output ``[*B, D]`` for ``action`` (int indices ``[*B]`` or
+        ``[*B, 1]``): logits of the next categorical latent, or the continuous latent
+        before its normalisation."""
         if action.dim() == latent.dim():
             action = action.squeeze(-1)
         one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(latent.dtype)
-        delta = self.dynamics(torch.cat([latent, one_hot], -1))
-        return self.dynamics_norm(latent + delta)
+        out = self.dynamics(torch.cat([latent, one_hot], -1))
+        return out if self.discrete else latent + out
+
+    def step(self, latent: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The latent after ``action`` (int indices ``[*B]`` or ``[*B, 1]``)."""
+        out = self.step_logits(latent, action)
+        return self.quantize(out) if self.discrete else self.dynamics_norm(out)
 
     def code_logits(self, latent: torch.Tensor) -> torch.Tensor:
         """Logits ``[*B, sum(code_sizes)]`` of each one-hot's code."""
@@ -179,6 +211,11 @@ class LatentWorldModel(nn.Module):
     def decode_uint8(self, latent: torch.Tensor) -> torch.Tensor:
         """:meth:`decode` as uint8 frames (rounded to 0..255)."""
         return (self.decode(latent) * 255.0).round().to(torch.uint8)
+
+    def latent_classes(self, logits: torch.Tensor) -> torch.Tensor:
+        """The value int64 ``[*B, G]`` of each categorical variable of ``logits`` (discrete only)."""
+        groups = logits.reshape(*logits.shape[:-1], self.config.latent_groups, -1)
+        return groups.argmax(-1)
 
     def imagine(self, latent: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Latents ``[*B, T, D]`` after each of ``actions`` ``[*B, T]`` from ``latent`` ``[*B, D]``."""

@@ -30,7 +30,9 @@ class LatentWorldModelLoss(LossModule):
     decoded frame against the true frame (``loss_pixels``: mean squared error on
     ``[0, 1]`` values, times ``pixel_weight``); and the imagined latent against the
     encoded true frame, without gradient into the target (``loss_latent``, times
-    ``latent_weight``), which keeps imagined latents where real frames put them.
+    ``latent_weight``: squared distance, or for a categorical latent the cross-entropy of
+    each imagined variable against the true frame's), which keeps imagined latents where
+    real frames put them.
 
     Reads ``pixels`` ``[B, H, C, H', W']`` (o_t is ``pixels[:, 0]``), ``action``
     ``[B, H, 1]`` (int indices) and ``("next", "pixels")``, e.g. a
@@ -147,24 +149,30 @@ class LatentWorldModelLoss(LossModule):
             return None
         return torch.cat([code[:, :1], nxt], 1).long()
 
-    def rollout(self, frames: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def rollout(
+        self, frames: torch.Tensor, action: torch.Tensor, *, logits: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """Latents ``[B, H + 1, D]``: the encoded o_t, then one per action, restarted from
-        the encoded true frame every ``open_loop_length`` steps."""
+        the encoded true frame every ``open_loop_length`` steps; with ``logits``, also the
+        dynamics' outputs ``[B, H, D]`` (:meth:`~dorp_rl.modules.LatentWorldModel.step_logits`)."""
         model = self.model
         every = self.open_loop_length or action.shape[1]
         latent = model.encode(frames[:, 0])
-        out = [latent]
+        out, raw = [latent], []
         for t in range(action.shape[1]):
             if t > 0 and t % every == 0:
                 latent = model.encode(frames[:, t])
-            latent = model.step(latent, action[:, t])
+            step = model.step_logits(latent, action[:, t])
+            latent = model.quantize(step) if model.discrete else model.dynamics_norm(step)
             out.append(latent)
-        return torch.stack(out, 1)
+            raw.append(step)
+        latents = torch.stack(out, 1)
+        return (latents, torch.stack(raw, 1)) if logits else latents
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         frames, action = self._read(tensordict)
         model = self.model
-        latents = self.rollout(frames, action)
+        latents, raw = self.rollout(frames, action, logits=True)
         targets = self.given_codes(tensordict)
         if targets is None:
             targets = self.target_codes(frames)  # [B, H + 1, K]
@@ -176,8 +184,15 @@ class LatentWorldModelLoss(LossModule):
         predicted = torch.stack([part.argmax(-1) for part in logits], -1)
         right = (predicted == targets).all(-1)[:, 1:].float()
         with torch.no_grad():
-            encoded = model.encode(frames[:, 1:])
-        loss_latent = self.latent_weight * F.mse_loss(latents[:, 1:], encoded)
+            encoded = model.encode_logits(frames[:, 1:])
+        if model.discrete:
+            # Each imagined categorical variable against the one the true frame gets.
+            truth = model.latent_classes(encoded)
+            step = raw.reshape(*truth.shape, -1)
+            loss_latent = F.cross_entropy(step.reshape(-1, step.shape[-1]), truth.reshape(-1))
+        else:
+            loss_latent = F.mse_loss(latents[:, 1:], model.encoder_norm(encoded))
+        loss_latent = self.latent_weight * loss_latent
         out = {
             "loss_code": loss_code,
             "loss_latent": loss_latent,
