@@ -10,12 +10,13 @@ a batch of ``--batch`` acting rows of k-object rearrangement, through
 :class:`~dorp_rl.planners.CategoricalCEMPlanner` (VF-CEM, 3 optimisation steps, top 20):
 
 - ``fast``: what the planners do with a ``GroundTruthModelEnv``: candidates rolled out on
-  raw states (``GroundTruthModelEnv.imagine``), the cost computed from the states
+  raw states (``GroundTruthModelEnv.imagine_candidates``), the cost computed from the states
   (:class:`~dorp_rl.envs.planning.ImaginedFrames`: exact pixel distances from the frames'
   parts, distinct frames drawn only where a cost needs frames);
 - ``reference``: the generic path, kept for every other planning env and measured in the
-  same run: ``env.step`` / ``step_mdp`` per horizon step, every frame drawn and stacked,
-  the cost's ``per_step_cost`` on the stacked frames. This is what planning through the
+  same run (a ``GroundTruthModelEnv`` whose ``imagine_candidates`` returns ``None``):
+  ``env.step`` / ``step_mdp`` per horizon step, every frame drawn and stacked, the
+  cost's ``per_step_cost`` on the stacked frames. This is what planning through the
   true dynamics cost before the fast path.
 
 Both paths are run on the same seeded calls, and the script checks that they return the
@@ -59,11 +60,11 @@ from dorp_rl.planners import (
 from dorp_rl.policies import VisualForesightPolicy
 
 
-class _GenericPath:
-    """Mixin: the planner takes the generic TorchRL path even with a GroundTruthModelEnv."""
+class SteppedModel(GroundTruthModelEnv):
+    """The true dynamics without the fast path: the planners step it (generic TorchRL path)."""
 
-    def _imagines_states(self) -> bool:
-        return False
+    def imagine_candidates(self, td, actions, next_keys):
+        return None
 
 
 def make_cost(name: str, env: ObjectRearrangementEnv):
@@ -78,10 +79,8 @@ def make_cost(name: str, env: ObjectRearrangementEnv):
 def make_planner(variant: str, env, cost: str, args, reference: bool) -> DiscreteMPCPlanner:
     cls = RandomShootingPlanner if variant == "rs" else CategoricalCEMPlanner
     extra = {} if variant == "rs" else {"optim_steps": 3, "top_k": 20}
-    if reference:
-        cls = type(f"Reference{cls.__name__}", (_GenericPath, cls), {})
     return cls(
-        GroundTruthModelEnv(env),
+        SteppedModel(env) if reference else GroundTruthModelEnv(env),
         make_cost(cost, env),
         planning_horizon=args.planning_horizon,
         num_candidates=args.candidates,
@@ -119,18 +118,12 @@ def time_rollouts(k: int, variant: str, args) -> tuple[float, float]:
     for reference in (False, True):
         env = ObjectRearrangementEnv(num_objects=k, batch_size=(args.batch,), seed=0)
         policy = VisualForesightPolicy(
-            GroundTruthModelEnv(env),
+            SteppedModel(env) if reference else GroundTruthModelEnv(env),
             variant,
             planning_horizon=args.planning_horizon,
             num_candidates=args.candidates,
             seed=0,
         )
-        if reference:
-            policy.planner.__class__ = type(
-                f"Reference{type(policy.planner).__name__}",
-                (_GenericPath, type(policy.planner)),
-                {},
-            )
         start = time.perf_counter()
         steps = env.rollout(args.rollout_steps, policy, break_when_any_done=False)
         seconds.append((time.perf_counter() - start) / args.rollout_steps)

@@ -22,6 +22,19 @@ Keys (leading shape ``*B`` arbitrary):
 - ``reward`` (always 0: planners score rollouts with separate cost modules) and
   ``done`` / ``terminated`` / ``truncated`` (always ``False``: imagined rollouts run for
   the whole horizon).
+
+Imagining candidates without stepping
+    A planner steps any planning env one horizon step at a time. An env that can do
+    better declares ``imagine_candidates(td, actions, next_keys)`` on its class: from
+    the acting rows ``td [b]`` and the actions ``[b, N, H]`` of every candidate at every
+    step, it returns ``(rollout, lazy)``: ``rollout [b, N, H]`` holding ``action`` and
+    the requested ``("next", key)`` values it computes, and ``lazy``, a dict from the
+    other requested keys to :class:`LazyValue` objects computed only on demand (a cost
+    that knows them reads them for less, the others get them materialised); or
+    ``None`` when it cannot give these keys (``next_keys=None`` asks for all of them),
+    and the planner steps it. The values must be those that stepping would give.
+    :meth:`GroundTruthModelEnv.imagine_candidates` is one: states from
+    :meth:`~GroundTruthModelEnv.imagine`, frames as lazy :class:`ImaginedFrames`.
 """
 
 from __future__ import annotations
@@ -59,6 +72,15 @@ _FRAME_BYTES = 3 * GRID_SIZE * GRID_SIZE
 #: in calls of 8192 (``benchmarks/predict_chunking.py``); a batched evaluation of 10
 #: tasks x 1000 candidates hands it 10,000 at once.
 DEFAULT_PREDICT_CHUNK = 1024
+
+
+@runtime_checkable
+class LazyValue(Protocol):
+    """A rollout value computed only when asked for (``imagine_candidates``' ``lazy``)."""
+
+    def materialize(self) -> torch.Tensor:
+        """The value as the tensor stepping the env would have written, ``[b, N, H, ...]``."""
+        ...
 
 
 @runtime_checkable
@@ -148,6 +170,12 @@ class GroundTruthModelEnv(_PlanningEnvBase):
     reseeds the wrapped env). ``step`` trusts ``state`` (planners feed it from the
     acting env) and validates ``action``.
 
+    Planners roll candidates out through :meth:`imagine_candidates` (states without a
+    tensordict per step, frames left undrawn) instead of stepping. It imagines this
+    class's steps: in a subclass that defines its own ``_step`` (and in that one's
+    subclasses) it returns ``None``, so the planners step it, unless the subclass
+    declares an ``imagine_candidates`` of its own.
+
     Args:
         env: the environment whose dynamics to use.
 
@@ -164,6 +192,17 @@ class GroundTruthModelEnv(_PlanningEnvBase):
         >>> out["pixels"].shape, out["state"].shape
         (torch.Size([3, 5, 3, 16, 16]), torch.Size([3, 5, 2, 2]))
     """
+
+    #: whether :meth:`imagine_candidates` gives what stepping this class gives (see
+    #: ``__init_subclass__``)
+    _imagines_its_steps = True
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        # What imagine computes is what this class's _step does: not in a subclass that
+        # redefines _step (nor in its subclasses).
+        super().__init_subclass__(**kwargs)
+        if "_step" in vars(cls):
+            cls._imagines_its_steps = False
 
     def __init__(self, env: GridWorldEnv) -> None:
         if not isinstance(env, GridWorldEnv):
@@ -279,6 +318,52 @@ class GroundTruthModelEnv(_PlanningEnvBase):
         tables = self.__dict__.setdefault("_imagined_tables", {})
         return ImaginedFrames(env, states, parts_valid=valid, tables=tables)
 
+    #: the ``("next", key)`` entries :meth:`imagine_candidates` gives
+    IMAGINED_KEYS = (("next", "pixels"), ("next", "state"))
+
+    def imagine_candidates(
+        self,
+        td: TensorDictBase,
+        actions: torch.Tensor,
+        next_keys: list[tuple[str, ...]] | None,
+    ) -> tuple[TensorDictBase, dict[tuple[str, ...], ImaginedFrames]] | None:
+        """Candidates rolled out from the rows of ``td`` without stepping (planners' fast path).
+
+        The same values as ``H`` calls of :meth:`step` (see the module docstring for the
+        contract), from :meth:`imagine`: ``("next", "state")`` in the rollout,
+        ``("next", "pixels")`` as lazy :class:`ImaginedFrames`, drawn only if a cost
+        asks for them.
+
+        Args:
+            td: the acting rows ``[b]``, holding ``state``.
+            actions: int ``[b, N, H]``, the action of every candidate at every step.
+            next_keys: the ``("next", key)`` entries wanted; ``None``: all outputs.
+
+        Returns:
+            ``(rollout, lazy)``: ``rollout [b, N, H]`` with ``action`` ``[b, N, H, 1]``
+            and ``("next", "state")`` if wanted, ``lazy`` ``{("next", "pixels"):
+            ImaginedFrames}`` if wanted; ``None`` for other keys (``reward``, ``done``,
+            ...), for ``next_keys=None``, or in a subclass that steps differently.
+        """
+        if not self._imagines_its_steps or next_keys is None:
+            return None
+        if any(key not in self.IMAGINED_KEYS for key in next_keys):
+            return None
+        state = td.get("state", None)
+        if state is None:
+            raise KeyError(
+                "GroundTruthModelEnv.step needs 'state' (the true configuration) in the "
+                "tensordict; the acting env's tensordict holds it."
+            )
+        frames = self.imagine(state.unsqueeze(1), actions)  # states [b, N, H, ...]
+        rollout = TensorDict(
+            {"action": actions.unsqueeze(-1)}, batch_size=actions.shape, device=td.device
+        )
+        if ("next", "state") in next_keys:
+            rollout.set(("next", "state"), frames.states)
+        lazy = {("next", "pixels"): frames} if ("next", "pixels") in next_keys else {}
+        return rollout, lazy
+
 
 _HASH_WEIGHTS: dict[tuple[torch.device, int], torch.Tensor] = {}
 
@@ -356,11 +441,14 @@ class ImaginedFrames:
 
     :meth:`GroundTruthModelEnv.imagine` returns one: the states a batch of action
     sequences leads to, i.e. the ``("next", "state")`` of every step, whose
-    ``("next", "pixels")`` are ``render_state(states)``. Costs that know this class ask it
-    for what they need instead of the frames themselves (see
-    :meth:`dorp_rl.planners.RolloutCost.per_step_cost_imagined`):
+    ``("next", "pixels")`` are ``render_state(states)``; it is the lazy
+    ``("next", "pixels")`` of :meth:`GroundTruthModelEnv.imagine_candidates` (a
+    :class:`LazyValue`). Costs that know this class ask it for what they need instead
+    of the frames themselves (see
+    :meth:`dorp_rl.planners.RolloutCost.per_step_cost_lazy`):
 
-    - :meth:`pixels`: all frames, uint8 ``[*L, 3, 16, 16]`` (drawn once, then kept);
+    - :meth:`pixels` (also :meth:`materialize`): all frames, uint8 ``[*L, 3, 16, 16]``
+      (drawn once, then kept);
     - :meth:`distinct`: exactly what :func:`distinct_rows` gives on the frames (with
       optional extra int64 columns), drawing only the distinct frames;
     - :meth:`squared_distances`: the exact squared L2 distance of each frame to a goal
@@ -422,6 +510,10 @@ class ImaginedFrames:
         if self._pixels is None:
             self._pixels = self.env.render_state(self.states)
         return self._pixels
+
+    def materialize(self) -> torch.Tensor:
+        """:meth:`pixels`: the frames stepping the env would have written (:class:`LazyValue`)."""
+        return self.pixels()
 
     def _flat_states(self) -> torch.Tensor:
         return self.states.reshape(self.numel, *self.env.state_shape)

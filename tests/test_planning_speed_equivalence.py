@@ -1,7 +1,7 @@
 """The fast path of planning through the true dynamics gives exactly the generic path's results.
 
 With a :class:`~dorp_rl.envs.GroundTruthModelEnv`, planners roll candidates out on raw
-states (:meth:`GroundTruthModelEnv.imagine`) and costs read
+states (:meth:`GroundTruthModelEnv.imagine_candidates`) and costs read lazy
 :class:`~dorp_rl.envs.planning.ImaginedFrames` instead of drawn frames. The reference is
 the generic TorchRL path (``env.step`` / ``step_mdp`` one step at a time, frames stacked,
 the cost's ``per_step_cost``), which the planners still take for any other planning env.
@@ -13,7 +13,6 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictSequential
 
 import dorp_rl.envs.planning as planning
 from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, KeyWallEnv, ObjectRearrangementEnv
@@ -22,12 +21,15 @@ from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,
+    CostSequence,
     PixelDistanceCost,
     RandomShootingPlanner,
     RolloutCost,
     WeightedCostSum,
+    run_cost_lazy,
 )
-from dorp_rl.planners.base import _run_cost_imagined
+
+PIXELS = ("next", "pixels")
 
 # Tiny tensors on a busy 2-core machine: single-threaded (conftest's fixture).
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -81,7 +83,7 @@ def make_cost(name: str, env):
         return StateCost()
     if name == "override":
         return HalfPixelCost()
-    return TensorDictSequential(
+    return CostSequence(
         PixelDistanceCost(out_key="pixel_cost", blur_sigmas=(2.0,)),
         CodeMatchCost(oracle, onehots="subgoal_mask", out_key="code_cost"),
         WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),
@@ -91,10 +93,24 @@ def make_cost(name: str, env):
 def both_paths(planner, td, decisions):
     """Per-step costs ``[b, N, H]`` through the generic path and the fast path."""
     generic = planner.cost(planner.imagine(td, decisions))[planner.cost_key]
-    rollout, frames = planner.imagine_states(td, decisions)
+    rollout, lazy = planner.imagine_lazy(td, decisions)
     assert "pixels" not in rollout.get("next", TensorDict()).keys()  # nothing drawn up front
-    fast = _run_cost_imagined(planner.cost, rollout, frames)[planner.cost_key]
+    fast = run_cost_lazy(planner.cost, rollout, lazy)[planner.cost_key]
     return generic, fast
+
+
+def takes_fast_path(planner, td) -> bool:
+    """Whether the planning env imagines the candidates for the keys the cost reads."""
+    keys = [k for k in planner.cost.in_keys if isinstance(k, tuple) and k[0] == "next"]
+    actions = torch.zeros(td.shape[0], 1, planner.planning_horizon, dtype=torch.long)
+    return planner.env.imagine_candidates(td, actions, keys) is not None
+
+
+class SteppedModel(GroundTruthModelEnv):
+    """The true dynamics without the fast path: the planners step it."""
+
+    def imagine_candidates(self, td, actions, next_keys):
+        return None
 
 
 def test_imagine_gives_the_states_and_frames_of_stepping_one_step_at_a_time():
@@ -172,7 +188,7 @@ def test_fast_path_costs_equal_the_generic_path(kind, cost_name):
     planner = RandomShootingPlanner(
         GroundTruthModelEnv(env), make_cost(cost_name, env), planning_horizon=4, num_candidates=48
     )
-    assert planner._imagines_states()
+    assert takes_fast_path(planner, td)
     gen = torch.Generator().manual_seed(3)
     for _ in range(2):  # the second call hits CodeMatchCost's cache
         decisions = torch.randint(0, env.num_actions, (3, 48, 4), generator=gen)
@@ -184,20 +200,15 @@ def test_fast_path_costs_equal_the_generic_path(kind, cost_name):
 def test_planners_plan_the_same_through_both_paths(variant):
     """Whole planning calls along a short episode: same actions, plans and plan costs."""
 
-    class GenericPath:
-        def _imagines_states(self) -> bool:
-            return False
-
     kwargs = dict(planning_horizon=6, num_candidates=64, seed=5, action_repeat=2)
     outputs = []
     for generic in (False, True):
         cls = RandomShootingPlanner if variant == "rs" else CategoricalCEMPlanner
         if variant == "cem":
             kwargs.update(top_k=6, optim_steps=2)
-        if generic:
-            cls = type("Generic", (GenericPath, cls), {})
         env = make_env("rearrangement", batch=3)
-        planner = cls(GroundTruthModelEnv(env), make_cost("composed", env), **kwargs)
+        model = SteppedModel(env) if generic else GroundTruthModelEnv(env)
+        planner = cls(model, make_cost("composed", env), **kwargs)
         td = with_codes(env, env.reset())
         steps = env.rollout(4, planner, auto_reset=False, tensordict=td)
         outputs.append(steps.select("action", "planner_plan", "planner_cost", "planner_length"))
@@ -320,8 +331,9 @@ def test_code_match_cost_draws_only_frames_its_cache_misses():
 
     env.render_state = counting_render
     decisions = torch.randint(0, 12, (3, 100, 4), generator=torch.Generator().manual_seed(7))
-    rollout, frames = planner.imagine_states(td, decisions)
-    first = _run_cost_imagined(planner.cost, rollout, frames)["cost"]
+    rollout, lazy = planner.imagine_lazy(td, decisions)
+    frames = lazy[PIXELS]
+    first = run_cost_lazy(planner.cost, rollout, lazy)["cost"]
     drawn_first = sum(drawn)
     distinct = frames.distinct()[2].max() + 1
     # An empty cache: every distinct imagined frame once, except those equal to one of the
@@ -331,8 +343,8 @@ def test_code_match_cost_draws_only_frames_its_cache_misses():
     assert len(imagined) == distinct < 3 * 100 * 4 and starts & imagined
     assert drawn_first == len(imagined - starts)
     drawn.clear()
-    rollout, frames = planner.imagine_states(td, decisions)
-    again = _run_cost_imagined(planner.cost, rollout, frames)["cost"]
+    rollout, lazy = planner.imagine_lazy(td, decisions)
+    again = run_cost_lazy(planner.cost, rollout, lazy)["cost"]
     assert sum(drawn) == 0 and torch.equal(first, again)  # all in the cache: none drawn
     generic = planner.cost(planner.imagine(td, decisions))["cost"]
     assert torch.equal(first, generic)
@@ -363,6 +375,6 @@ def test_code_match_cost_refuses_out_of_range_codes_on_both_paths():
     decisions = torch.zeros(3, 8, 3, dtype=torch.long)
     with pytest.raises(RuntimeError, match="out of bounds"):
         planner.cost(planner.imagine(td, decisions))
-    rollout, frames = planner.imagine_states(td, decisions)
+    rollout, lazy = planner.imagine_lazy(td, decisions)
     with pytest.raises(RuntimeError, match="out of bounds"):
-        _run_cost_imagined(planner.cost, rollout, frames)
+        run_cost_lazy(planner.cost, rollout, lazy)

@@ -5,8 +5,10 @@ file as in torchrl (``base.py``, ``random_shooting.py``, ``cem.py``), that sampl
 discrete action sequences, roll them out in a planning env
 (:class:`dorp_rl.envs.GroundTruthModelEnv`, :class:`dorp_rl.envs.WorldModelEnv`) and
 minimise a cost over the imagined rollout. Costs (``costs.py``) are TensorDict modules
-that write a per-step cost ``[B, N, H]``; they compose with
-:class:`~tensordict.nn.TensorDictSequential` and :class:`WeightedCostSum`.
+that write a per-step cost ``[B, N, H]``; they compose with :class:`CostSequence` (a
+:class:`~tensordict.nn.TensorDictSequential` that passes lazily computed predictions on)
+and :class:`WeightedCostSum`. What a planning env and a cost declare to take the fast
+path (``imagine_candidates``, ``forward_lazy``) is in ``base.py``'s docstring.
 :class:`CodeGraph` (``code_graph.py``) holds which codes follow each other in play data
 and finds DORP's shortest paths over them.
 """
@@ -28,12 +30,15 @@ from dorp_rl.planners.code_graph import (
 from dorp_rl.planners.costs import (
     STEP_AGGREGATIONS,
     CodeMatchCost,
+    CostSequence,
     MissingRolloutKeyError,
     NegativeRewardCost,
     PixelDistanceCost,
     RolloutCost,
     WeightedCostSum,
     check_step_aggregation,
+    materialize_lazy,
+    run_cost_lazy,
 )
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
 
@@ -43,6 +48,7 @@ __all__ = [
     "CategoricalCEMPlanner",
     "CodeGraph",
     "CodeMatchCost",
+    "CostSequence",
     "DiscreteMPCPlanner",
     "MissingRolloutKeyError",
     "NegativeRewardCost",
@@ -55,6 +61,8 @@ __all__ = [
     "encode_transitions",
     "encoder_fingerprint",
     "finished_rows",
+    "materialize_lazy",
     "resolve_groups",
+    "run_cost_lazy",
     "select_best",
 ]

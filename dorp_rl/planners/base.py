@@ -25,6 +25,25 @@ Scoring
     candidate that gets there earliest wins). It is not a loss reduction: it decides
     which candidate is best, and for ``"min"`` how much of it is executed open loop.
 
+Planning envs and costs: the fast-path contract
+    A planner steps its env one horizon step at a time (``env.step`` / ``step_mdp``, any
+    non-batch-locked torchrl ``EnvBase``) unless the env's class declares
+    ``imagine_candidates(td, actions, next_keys)``: from the rows ``td [b]``, the actions
+    ``[b, N, H]`` and the ``("next", key)`` entries the cost reads (``None``: all), it
+    returns ``(rollout, lazy)``, a rollout ``[b, N, H]`` holding ``action`` and the
+    values it computes, and a dict from the other requested keys to values computed on
+    demand (:class:`~dorp_rl.envs.planning.LazyValue`, e.g. undrawn
+    :class:`~dorp_rl.envs.planning.ImaginedFrames` for ``("next", "pixels")``); or
+    ``None``, and the planner steps it
+    (:meth:`~dorp_rl.envs.GroundTruthModelEnv.imagine_candidates` is one). Lazy values
+    reach the cost through :func:`~dorp_rl.planners.run_cost_lazy`: a cost whose class
+    declares ``forward_lazy(rollout, lazy)`` (:class:`~dorp_rl.planners.RolloutCost`,
+    :class:`~dorp_rl.planners.CostSequence`) reads them as it can; any other module
+    gets those it reads materialised, then is called. Both declarations are looked up
+    on the class (a ``TransformedEnv``, which forwards attributes to its base env, is
+    stepped through its transforms), and both must compute what stepping and
+    ``forward`` compute: the plans are the same either way.
+
 Execution
     ``"receding"``: every call replans and returns the first action of the best
     sequence. ``"open_loop"``: a call that finds no stored plan left plans, returns the
@@ -70,21 +89,21 @@ Randomness
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
-from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, TensorDictPrimer
 from torchrl.modules.planners import MPCPlannerBase
 
-from dorp_rl.envs.planning import GroundTruthModelEnv, ImaginedFrames
 from dorp_rl.planners.costs import (
-    IMAGINED_PIXELS,
     STEP_AGGREGATIONS,
     MissingRolloutKeyError,
-    RolloutCost,
     check_step_aggregation,
+    run_cost_lazy,
 )
 from dorp_rl.validation import MissingKeyError, check_int, check_seed, check_task_frames
 
@@ -110,10 +129,10 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         env: the planning env (not batch-locked, Categorical action of shape ``()`` or
             ``(1,)``).
         cost: a TensorDict module over the rollout ``[B, N, H]`` that writes a per-step
-            cost ``[B, N, H]`` under ``cost_key`` (:mod:`dorp_rl.planners.costs`, or a
-            :class:`~tensordict.nn.TensorDictSequential` of them). Its ``in_keys`` say
-            which predictions to stack and which root keys the acting tensordict must
-            hold (all of them when it has none).
+            cost ``[B, N, H]`` under ``cost_key`` (:mod:`dorp_rl.planners.costs`, a
+            :class:`~dorp_rl.planners.CostSequence` of them, or any TensorDict module).
+            Its ``in_keys`` say which predictions to stack and which root keys the
+            acting tensordict must hold (all of them when it has none).
         planning_horizon: env steps per candidate sequence (``H``).
         num_candidates: sequences per row and per optimisation step (``N``).
         action_repeat: env steps per decision; must divide ``planning_horizon``.
@@ -420,13 +439,8 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         self, td: TensorDictBase, decisions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scores candidates ``[b, N, H / r]``: (score ``[b, N]``, best step ``[b, N]``)."""
-        if self._imagines_states():
-            rollout, frames = self.imagine_states(td, decisions)
-            out = _run_cost_imagined(self.cost, rollout, frames)
-        else:
-            rollout = self.imagine(td, decisions)
-            out = self.cost(rollout)
-        out = rollout if out is None else out
+        rollout, lazy = self.imagine_lazy(td, decisions)
+        out = run_cost_lazy(self.cost, rollout, lazy)
         name = type(self.cost).__name__
         if not isinstance(out, TensorDictBase):
             raise ValueError(
@@ -471,72 +485,80 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 next_td = next_td.select(*wanted, strict=False)
             outputs.append(next_td)
             current = self.env.step_mdp(current)
-        horizon_shape = torch.Size([rows, n, self.planning_horizon])
-        if self._cost_keys:
-            root = td.select(*self._root_keys, strict=False)
-        else:
-            root = td.exclude("next", *self.state_keys)
-        root = root.reshape(rows, 1, 1).expand(horizon_shape)
         rollout = TensorDict(
             {
                 self.action_key: actions.unsqueeze(-1) if self._action_shape == (1,) else actions,
                 "next": torch.stack(outputs, dim=2),
             },
-            batch_size=horizon_shape,
+            batch_size=[rows, n, self.planning_horizon],
             device=td.device,
         )
-        rollout.update(root.exclude(self.action_key))
-        return rollout
+        return self._with_root(rollout, td)
 
-    def imagine_states(
+    def imagine_lazy(
         self, td: TensorDictBase, decisions: torch.Tensor
-    ) -> tuple[TensorDictBase, ImaginedFrames]:
-        """:meth:`imagine` through the true dynamics, frames left undrawn.
+    ) -> tuple[TensorDictBase, dict[NestedKey, Any]]:
+        """The rollout ``[b, N, H]`` of candidate decisions and the values left lazy in it.
 
-        For a :class:`~dorp_rl.envs.GroundTruthModelEnv` whose predictions the cost reads
-        are ``("next", "pixels")`` and ``("next", "state")``: the candidates' states come
-        from :meth:`~dorp_rl.envs.GroundTruthModelEnv.imagine` (no tensordict per step),
-        and the rollout ``[b, N, H]`` holds ``action``, ``("next", "state")`` if the cost
-        reads it and the root keys, but not ``("next", "pixels")``: the cost gets the
-        :class:`~dorp_rl.envs.planning.ImaginedFrames` instead
-        (:meth:`~dorp_rl.planners.RolloutCost.per_step_cost_imagined`), and frames are
-        drawn only for costs that need them. The scores are the same as through
-        :meth:`imagine`.
+        When the planning env's class declares ``imagine_candidates`` (the planning-env
+        contract, see the module docstring) and it returns a result for the keys the
+        cost reads, that is the rollout (plus the root keys of ``td``, as in
+        :meth:`imagine`) and its lazy values, e.g. ``{("next", "pixels"):
+        ImaginedFrames}``; otherwise :meth:`imagine` steps the env and nothing is lazy.
+        Either way the cost's scores are the same (:func:`~dorp_rl.planners.run_cost_lazy`
+        hands lazy values to costs that read them and materialises them for the others).
         """
-        rows, n = decisions.shape[:2]
-        actions = decisions.repeat_interleave(self.action_repeat, dim=-1).to(td.device)
-        state = td.get("state", None)
-        if state is None:
-            raise KeyError(
-                "GroundTruthModelEnv.step needs 'state' (the true configuration) in the "
-                "tensordict; the acting env's tensordict holds it."
-            )
-        frames = self.env.imagine(state.unsqueeze(1), actions)  # states [b, N, H, ...]
-        horizon_shape = torch.Size([rows, n, self.planning_horizon])
-        rollout = TensorDict(
-            {self.action_key: actions.unsqueeze(-1) if self._action_shape == (1,) else actions},
-            batch_size=horizon_shape,
-            device=td.device,
-        )
-        if ("next", "state") in self._next_keys:
-            rollout.set(("next", "state"), frames.states)
-        root = td.select(*self._root_keys, strict=False)
-        rollout.update(root.reshape(rows, 1, 1).expand(horizon_shape).exclude(self.action_key))
-        return rollout, frames
-
-    def _imagines_states(self) -> bool:
-        """Whether :meth:`imagine_states` gives the rollout (see there)."""
-        env = self.env
-        return (
-            isinstance(env, GroundTruthModelEnv)
-            and type(env)._step is GroundTruthModelEnv._step
-            and bool(self._cost_keys)
-            and all(key in (IMAGINED_PIXELS, ("next", "state")) for key in self._next_keys)
-        )
+        if callable(getattr(type(self.env), "imagine_candidates", None)):
+            rows, n = decisions.shape[:2]
+            actions = decisions.repeat_interleave(self.action_repeat, dim=-1).to(td.device)
+            next_keys = list(self._next_keys) if self._cost_keys else None
+            imagined = self.env.imagine_candidates(td, actions, next_keys)
+            if imagined is not None:
+                rollout, lazy = imagined
+                lazy = {unravel_key(k): v for k, v in lazy.items()}
+                self._check_imagined(rollout, lazy, (rows, n, self.planning_horizon))
+                return self._with_root(rollout, td), lazy
+        return self.imagine(td, decisions), {}
 
     # ------------------------------------------------------------------ #
     # Internals
     # ------------------------------------------------------------------ #
+    def _with_root(self, rollout: TensorDictBase, td: TensorDictBase) -> TensorDictBase:
+        """``rollout [b, N, H]`` with the root keys of the rows ``td [b]`` the cost reads
+        (all of them if it has no ``in_keys``) broadcast over candidates and steps."""
+        if self._cost_keys:
+            root = td.select(*self._root_keys, strict=False)
+        else:
+            root = td.exclude("next", *self.state_keys)
+        root = root.reshape(td.batch_size[0], 1, 1).expand(rollout.batch_size)
+        rollout.update(root.exclude(self.action_key))
+        return rollout
+
+    def _check_imagined(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any], shape: tuple[int, ...]
+    ) -> None:
+        """Refuses an ``imagine_candidates`` result of the wrong shape or missing a key."""
+        name = type(self.env).__name__
+        if not isinstance(rollout, TensorDictBase) or tuple(rollout.batch_size) != shape:
+            got = (
+                list(rollout.batch_size)
+                if isinstance(rollout, TensorDictBase)
+                else type(rollout).__name__
+            )
+            raise ValueError(
+                f"{name}.imagine_candidates must return a rollout of batch shape "
+                f"{list(shape)} ([b, N, H]), got {got}."
+            )
+        present = set(rollout.keys(True, True)) | set(lazy)
+        for key in [self.action_key, *self._next_keys]:
+            if key not in present:
+                raise ValueError(
+                    f"{name}.imagine_candidates returned no {key!r} (neither in the rollout "
+                    f"nor lazy), which the planner asked for; it holds "
+                    f"{sorted(str(k) for k in present)}. Return None for keys it cannot "
+                    "imagine, and the planner steps the env instead."
+                )
+
     def _env_output_keys(self) -> list[NestedKey]:
         env = self.env
         keys: list[NestedKey] = []
@@ -643,32 +665,6 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             f"action_repeat={self.action_repeat}, execution={self.execution!r}, "
             f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}"
         )
-
-
-def _run_cost_imagined(
-    cost: nn.Module, rollout: TensorDictBase, frames: ImaginedFrames
-) -> TensorDictBase:
-    """Runs ``cost`` on a rollout whose ``("next", "pixels")`` are ``frames``.
-
-    :class:`~dorp_rl.planners.RolloutCost` modules (alone or in a
-    :class:`~tensordict.nn.TensorDictSequential`) that keep the base ``forward`` get the
-    frames through ``forward_imagined``; any other module gets them drawn into the
-    rollout and is called as usual.
-    """
-    if isinstance(cost, RolloutCost) and type(cost).forward is RolloutCost.forward:
-        return cost.forward_imagined(rollout, frames)
-    if (
-        isinstance(cost, TensorDictSequential)
-        and not cost.partial_tolerant
-        and isinstance(cost.module, nn.ModuleList)
-    ):
-        for module in cost.module:
-            rollout = _run_cost_imagined(module, rollout, frames)
-        return rollout
-    if IMAGINED_PIXELS not in rollout.keys(True, True):
-        rollout.set(IMAGINED_PIXELS, frames.pixels())
-    out = cost(rollout)
-    return rollout if out is None else out
 
 
 def finished_rows(td: TensorDictBase) -> torch.Tensor:

@@ -13,13 +13,27 @@ acting envs and hands the cost one tensordict of batch shape ``[B, N, H]``:
 
 Each cost is a :class:`~tensordict.nn.TensorDictModuleBase`: it reads its ``in_keys``
 and writes a per-step cost, float ``[B, N, H]`` (lower is better), under its
-``out_key`` (``"cost"`` by default), so costs compose like any TensorDict modules::
+``out_key`` (``"cost"`` by default), so costs compose like any TensorDict modules, best
+in a :class:`CostSequence` (a ``TensorDictSequential`` that passes lazy values on)::
 
-    TensorDictSequential(
+    CostSequence(
         PixelDistanceCost(out_key="pixel_cost"),
         CodeMatchCost(encoder, out_key="code_cost"),
         WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),  # writes "cost"
     )
+
+Lazy values
+    A planning env may leave some predictions out of the rollout and hand them over
+    lazily (its ``imagine_candidates``; the true dynamics give ``("next", "pixels")``
+    as undrawn :class:`~dorp_rl.envs.planning.ImaginedFrames`). The planner then calls
+    :func:`run_cost_lazy`: a cost declaring ``forward_lazy(rollout, lazy)`` gets them
+    as they are, any other module gets those it reads materialised
+    (:func:`materialize_lazy`). :class:`RolloutCost` declares it: its
+    :meth:`~RolloutCost.per_step_cost_lazy` materialises what it reads and calls
+    :meth:`~RolloutCost.per_step_cost`, and :class:`PixelDistanceCost` and
+    :class:`CodeMatchCost` read imagined frames for less, with the same results. A
+    subclass that redefines ``per_step_cost`` (or ``forward``) without its lazy
+    counterpart gets the materialising default, so its override is what runs.
 
 A cost also says, with its ``step_aggregation``, how a planner should fold the ``H``
 per-step costs of one candidate into that candidate's score (it is not a loss
@@ -33,8 +47,8 @@ reduction: it decides which sequence is best and how much of it runs open loop):
 - ``"sum"``: every step counts (the total along the way).
 - ``"final"``: only the last step counts.
 
-The planner uses ``in_keys`` (for a :class:`~tensordict.nn.TensorDictSequential`, the
-keys read and not produced inside it) to stack only the predictions that are needed
+The planner uses ``in_keys`` (for a :class:`CostSequence` or any
+:class:`~tensordict.nn.TensorDictSequential`, the keys read and not produced inside it) to stack only the predictions that are needed
 and to check, before rolling out, that every key is there. A key missing from the
 rollout raises :class:`MissingRolloutKeyError` (both a ``KeyError`` and a
 ``ValueError``) naming it.
@@ -43,11 +57,12 @@ rollout raises :class:`MissingRolloutKeyError` (both a ``KeyError`` and a
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import torch
 from tensordict import NestedKey, TensorDictBase, unravel_key
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 
 from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
@@ -56,19 +71,19 @@ from dorp_rl.validation import check_float, check_int
 __all__ = [
     "STEP_AGGREGATIONS",
     "CodeMatchCost",
+    "CostSequence",
     "MissingRolloutKeyError",
     "NegativeRewardCost",
     "PixelDistanceCost",
     "RolloutCost",
     "WeightedCostSum",
     "check_step_aggregation",
+    "materialize_lazy",
+    "run_cost_lazy",
 ]
 
 #: How a planner folds a candidate's per-step costs ``[H]`` into its score.
 STEP_AGGREGATIONS = ("min", "sum", "final")
-
-#: The rollout key an :class:`~dorp_rl.envs.planning.ImaginedFrames` stands for.
-IMAGINED_PIXELS = ("next", "pixels")
 
 
 class MissingRolloutKeyError(KeyError, ValueError):
@@ -117,12 +132,68 @@ def compact_broadcast(tensor: torch.Tensor, keep_last: int) -> torch.Tensor:
     return tensor
 
 
+def materialize_lazy(
+    rollout: TensorDictBase,
+    lazy: Mapping[NestedKey, Any],
+    keys: Sequence[NestedKey] | None = None,
+) -> TensorDictBase:
+    """Writes the ``lazy`` values (those of ``keys``; ``None``: all) into ``rollout``.
+
+    Values the rollout already holds are left as they are; a lazy value is a tensor or a
+    :class:`~dorp_rl.envs.planning.LazyValue` (its ``materialize()`` gives the tensor).
+    Returns ``rollout``.
+    """
+    wanted = None if keys is None else {unravel_key(k) for k in keys}
+    for key, value in lazy.items():
+        key = unravel_key(key)
+        if (wanted is not None and key not in wanted) or key in rollout.keys(True, True):
+            continue
+        rollout.set(key, value if isinstance(value, torch.Tensor) else value.materialize())
+    return rollout
+
+
+def lazy_frames(
+    rollout: TensorDictBase, lazy: Mapping[NestedKey, Any], key: NestedKey
+) -> ImaginedFrames | None:
+    """``lazy[key]`` if it is :class:`~dorp_rl.envs.planning.ImaginedFrames` the rollout does
+    not hold drawn (a cost may then read the states behind them), else ``None``."""
+    frames = lazy.get(key)
+    if not isinstance(frames, ImaginedFrames) or key in rollout.keys(True, True):
+        return None
+    return frames
+
+
+def run_cost_lazy(
+    cost: Callable, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+) -> TensorDictBase:
+    """Runs ``cost`` on ``rollout`` whose ``lazy`` values are not materialised yet.
+
+    A cost whose class declares ``forward_lazy(rollout, lazy)`` (:class:`RolloutCost`,
+    :class:`CostSequence`) is handed the lazy values; any other module gets those it
+    reads (its ``in_keys``; all of them when it declares none) materialised into the
+    rollout and is called as usual. Without lazy values it is simply ``cost(rollout)``.
+    Returns the rollout with the cost's outputs.
+    """
+    if not lazy:
+        out = cost(rollout)
+    elif callable(getattr(type(cost), "forward_lazy", None)):
+        out = cost.forward_lazy(rollout, lazy)
+    else:
+        materialize_lazy(rollout, lazy, getattr(cost, "in_keys", None) or None)
+        out = cost(rollout)
+    return rollout if out is None else out
+
+
 class RolloutCost(TensorDictModuleBase):
     """Base class of the costs: writes a per-step cost float ``[*B, N, H]`` under ``out_key``.
 
     Subclasses set ``in_keys`` (the keys they read) and implement
     :meth:`per_step_cost`; :meth:`forward` writes its result into the rollout and
-    returns the rollout, as TensorDict modules do.
+    returns the rollout, as TensorDict modules do. Planners whose env leaves values
+    lazy call :meth:`forward_lazy` (through :meth:`per_step_cost_lazy`), which by
+    default materialises them; a subclass that redefines :meth:`per_step_cost` or
+    :meth:`forward` without :meth:`per_step_cost_lazy` / :meth:`forward_lazy` gets that
+    default back (``__init_subclass__``), so its own method is what runs.
 
     Args:
         out_key: where the per-step cost is written (``out_keys == [out_key]``).
@@ -164,40 +235,53 @@ class RolloutCost(TensorDictModuleBase):
         rollout.set(self.out_key, self.per_step_cost(rollout))
         return rollout
 
-    def per_step_cost_imagined(
-        self, rollout: TensorDictBase, frames: ImaginedFrames
+    def per_step_cost_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
     ) -> torch.Tensor:
-        """:meth:`per_step_cost` of a rollout whose ``("next", "pixels")`` are ``frames``.
+        """:meth:`per_step_cost` of ``rollout`` completed by the ``lazy`` values.
 
-        Planning through the true dynamics (:class:`~dorp_rl.envs.GroundTruthModelEnv`)
-        hands the cost the imagined states instead of drawn frames. This default draws
-        them into the rollout when the cost reads ``("next", "pixels")`` and calls
-        :meth:`per_step_cost`; a cost overrides it to ask ``frames`` for less (distinct
-        frames only, distances from the states) with exactly the same result.
+        ``lazy`` maps rollout keys the planning env left out of ``rollout`` (e.g.
+        ``("next", "pixels")``) to values computed on demand
+        (:class:`~dorp_rl.envs.planning.LazyValue`, such as
+        :class:`~dorp_rl.envs.planning.ImaginedFrames`). This default materialises the
+        ones among :attr:`in_keys` into the rollout and calls :meth:`per_step_cost`; a
+        cost that can read a lazy value for less (distinct frames only, distances from
+        the states) overrides it, with exactly the same result.
         """
-        if IMAGINED_PIXELS in self.in_keys and IMAGINED_PIXELS not in rollout.keys(True, True):
-            rollout.set(IMAGINED_PIXELS, frames.pixels())
+        materialize_lazy(rollout, lazy, self.in_keys)
         return self.per_step_cost(rollout)
 
-    def forward_imagined(self, rollout: TensorDictBase, frames: ImaginedFrames) -> TensorDictBase:
-        """:meth:`forward` through :meth:`per_step_cost_imagined`."""
-        rollout.set(self.out_key, self.per_step_cost_imagined(rollout, frames))
+    def forward_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+    ) -> TensorDictBase:
+        """:meth:`forward` through :meth:`per_step_cost_lazy`: what ``forward`` writes on
+        the rollout with its lazy values materialised (see :func:`run_cost_lazy`)."""
+        rollout.set(self.out_key, self.per_step_cost_lazy(rollout, lazy))
         return rollout
 
-    def _reads_imagined(self, rollout: TensorDictBase, key: NestedKey, cls: type) -> bool:
-        """Whether ``key`` is the undrawn imagined frames and ``cls.per_step_cost`` is in use.
-
-        A subclass that overrides :meth:`per_step_cost` gets the frames drawn (through
-        the default :meth:`per_step_cost_imagined`), so that its override is what runs.
-        """
-        return (
-            type(self).per_step_cost is cls.per_step_cost
-            and key == IMAGINED_PIXELS
-            and IMAGINED_PIXELS not in rollout.keys(True, True)
-        )
+    def __init_subclass__(cls, **kwargs) -> None:
+        # The contract: a class's lazy methods compute what its own per_step_cost /
+        # forward compute. A subclass that redefines one of those without redefining its
+        # lazy counterpart gets the default that materialises the lazy values and calls
+        # the redefined method, so that its override is what runs.
+        super().__init_subclass__(**kwargs)
+        own = vars(cls)
+        if "per_step_cost" in own and "per_step_cost_lazy" not in own:
+            cls.per_step_cost_lazy = RolloutCost.per_step_cost_lazy
+        if "forward" in own and "forward_lazy" not in own:
+            cls.forward_lazy = _forward_materialized
 
     def extra_repr(self) -> str:
         return f"out_key={self.out_key!r}, step_aggregation={self.step_aggregation!r}"
+
+
+def _forward_materialized(
+    self: RolloutCost, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+) -> TensorDictBase:
+    """``forward_lazy`` of a cost that redefines ``forward``: materialise, then call it."""
+    materialize_lazy(rollout, lazy, self.in_keys or None)
+    out = self(rollout)
+    return rollout if out is None else out
 
 
 class PixelDistanceCost(RolloutCost):
@@ -268,18 +352,20 @@ class PixelDistanceCost(RolloutCost):
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         return self._per_step_cost(rollout, None)
 
-    def per_step_cost_imagined(
-        self, rollout: TensorDictBase, frames: ImaginedFrames
+    def per_step_cost_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
     ) -> torch.Tensor:
         """The same costs from imagined states: exact distances without drawing frames.
 
-        Without ``blur_sigmas``, each squared distance is an integer below ``2**24``
-        (checked), which float32 holds exactly whatever the summation order, so it is
-        computed in integers from the frames' parts; the blurred terms are computed on
-        the distinct (frame, goal) pairs, of which only the distinct frames are drawn.
+        When the frames are lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`: without
+        ``blur_sigmas``, each squared distance is an integer below ``2**24`` (checked),
+        which float32 holds exactly whatever the summation order, so it is computed in
+        integers from the frames' parts; the blurred terms are computed on the distinct
+        (frame, goal) pairs, of which only the distinct frames are drawn.
         """
-        if not self._reads_imagined(rollout, self.pixels_key, PixelDistanceCost):
-            return super().per_step_cost_imagined(rollout, frames)
+        frames = lazy_frames(rollout, lazy, self.pixels_key)
+        if frames is None:
+            return super().per_step_cost_lazy(rollout, lazy)
         return self._per_step_cost(rollout, frames)
 
     def _per_step_cost(
@@ -663,12 +749,14 @@ class CodeMatchCost(RolloutCost):
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         return self._per_step_cost(rollout, None)
 
-    def per_step_cost_imagined(
-        self, rollout: TensorDictBase, frames: ImaginedFrames
+    def per_step_cost_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
     ) -> torch.Tensor:
-        """The same costs from imagined states, drawing and encoding distinct frames only."""
-        if not self._reads_imagined(rollout, self.pixels_key, CodeMatchCost):
-            return super().per_step_cost_imagined(rollout, frames)
+        """The same costs from lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`,
+        drawing and encoding distinct frames only."""
+        frames = lazy_frames(rollout, lazy, self.pixels_key)
+        if frames is None:
+            return super().per_step_cost_lazy(rollout, lazy)
         return self._per_step_cost(rollout, frames)
 
     def _per_step_cost(
@@ -759,11 +847,53 @@ class CodeMatchCost(RolloutCost):
         return f"target_key={self.target_key!r}, onehots={which!r}, {super().extra_repr()}"
 
 
+class CostSequence(TensorDictSequential):
+    """A :class:`~tensordict.nn.TensorDictSequential` of costs that passes lazy values on.
+
+    Called on a rollout it is the plain sequence: each cost in turn, in the order given.
+    A planner whose env leaves some predictions lazy (``("next", "pixels")`` of
+    :class:`~dorp_rl.envs.GroundTruthModelEnv` as undrawn
+    :class:`~dorp_rl.envs.planning.ImaginedFrames`) calls :meth:`forward_lazy`
+    instead, which hands those values to every member through :func:`run_cost_lazy`:
+    costs that read them lazily do, the others get them materialised. A plain
+    ``TensorDictSequential`` works with the planners too, with every lazy value it
+    reads materialised first. The costs are given in order (``CostSequence(a, b, c)``
+    or one list), not as a mapping.
+
+    Examples:
+        >>> from dorp_rl.planners import CostSequence, PixelDistanceCost, WeightedCostSum
+        >>> cost = CostSequence(
+        ...     PixelDistanceCost(out_key="near"),
+        ...     PixelDistanceCost(out_key="blurred", blur_sigmas=(2.0,)),
+        ...     WeightedCostSum({"near": 1.0, "blurred": 0.5}),
+        ... )
+        >>> cost.in_keys, cost.out_keys[-1]
+        ([('next', 'pixels'), 'goal_pixels'], 'cost')
+    """
+
+    def __init__(self, *costs: Callable) -> None:
+        if len(costs) == 1 and isinstance(costs[0], Mapping):
+            raise ValueError(
+                "CostSequence takes its costs in order, CostSequence(cost_a, cost_b, ...), "
+                "not as a mapping of names."
+            )
+        super().__init__(*costs)
+
+    def forward_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+    ) -> TensorDictBase:
+        """Runs the costs in order on ``rollout``, handing each the ``lazy`` values."""
+        for index in range(len(self)):
+            rollout = run_cost_lazy(self[index], rollout, lazy)
+        return rollout
+
+
 class WeightedCostSum(RolloutCost):
     """Writes ``sum_k weights[k] * rollout[k]``: a weighted sum of per-step costs.
 
-    The last module of a :class:`~tensordict.nn.TensorDictSequential` of costs, each
-    writing its per-step cost under its own ``out_key``. The sequence's ``in_keys`` are
+    The last module of a :class:`CostSequence` (or any
+    :class:`~tensordict.nn.TensorDictSequential`) of costs, each writing its per-step
+    cost under its own ``out_key``. The sequence's ``in_keys`` are
     the keys its costs read from the rollout (not the intermediate cost keys), which is
     what a planner needs; its last out key (this module's ``out_key``) is the one the
     planner reads by default. A sequence has no ``step_aggregation`` attribute, so pass
@@ -779,11 +909,12 @@ class WeightedCostSum(RolloutCost):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from tensordict.nn import TensorDictSequential
         >>> from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
-        >>> from dorp_rl.planners import CodeMatchCost, PixelDistanceCost, WeightedCostSum
+        >>> from dorp_rl.planners import (
+        ...     CodeMatchCost, CostSequence, PixelDistanceCost, WeightedCostSum
+        ... )
         >>> encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(8, 8)))
-        >>> cost = TensorDictSequential(
+        >>> cost = CostSequence(
         ...     PixelDistanceCost(out_key="pixel_cost"),
         ...     CodeMatchCost(encoder, out_key="code_cost"),
         ...     WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),
@@ -851,7 +982,7 @@ class WeightedCostSum(RolloutCost):
                 raise MissingRolloutKeyError(
                     f"{name} needs the per-step cost {key!r}, which is missing "
                     f"from the rollout: put a cost with out_key={key!r} before it in the "
-                    "TensorDictSequential."
+                    "CostSequence (TensorDictSequential)."
                 )
             value = value.to(torch.float32)
             if isinstance(weight, float):

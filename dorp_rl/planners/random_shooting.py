@@ -1,4 +1,10 @@
-"""Random shooting: the discrete planner that keeps the best of N random sequences."""
+"""Random shooting: the discrete planner that keeps the best of N random sequences.
+
+Its candidates are rolled out and scored by :class:`~dorp_rl.planners.DiscreteMPCPlanner`:
+through the env's ``imagine_candidates`` and the cost's ``forward_lazy`` when they
+declare them, else by stepping the env and calling the cost (``base.py``'s docstring
+has the contract).
+"""
 
 from __future__ import annotations
 
