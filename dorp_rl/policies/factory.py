@@ -7,7 +7,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.envs import EnvBase
 
@@ -16,6 +15,7 @@ from dorp_rl.planners.cem import CategoricalCEMPlanner
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.planners.costs import (
     CodeMatchCost,
+    CostSequence,
     PixelDistanceCost,
     WeightedCostSum,
     check_step_penalty,
@@ -66,7 +66,7 @@ def make_waypoint_cost(
         >>> env = ObjectRearrangementEnv(num_objects=2)
         >>> cost = make_waypoint_cost(OracleCodeEncoder(env), waypoint_goal_weight=0.003)
         >>> type(cost).__name__
-        'TensorDictSequential'
+        'CostSequence'
     """
     waypoint_goal_weight = check_float("waypoint_goal_weight", waypoint_goal_weight, low=0.0)
     alone = waypoint_goal_weight == 0
@@ -80,7 +80,7 @@ def make_waypoint_cost(
     )
     if alone:
         return code_cost
-    return TensorDictSequential(
+    return CostSequence(
         code_cost,
         PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
         WeightedCostSum(
@@ -102,7 +102,7 @@ def make_goal_cost(
     pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
     if goal_code_weight == 0:
         return pixel_cost
-    return TensorDictSequential(
+    return CostSequence(
         pixel_cost,
         CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost"),
         WeightedCostSum(
