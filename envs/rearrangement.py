@@ -223,6 +223,17 @@ class ObjectRearrangementEnv(GridWorldEnv):
             f"without overlap after {_MAX_REJECTION_ROUNDS} rounds of rejection sampling."
         )
 
+    #: whether :meth:`transitions` may roll this class's moves out its own way (see
+    #: ``__init_subclass__``)
+    _fast_transitions = True
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        # transitions below rolls out this class's moves: not those of a subclass that
+        # redefines transition (nor of its subclasses), which get the generic loop.
+        super().__init_subclass__(**kwargs)
+        if "transition" in vars(cls):
+            cls._fast_transitions = False
+
     def transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         obj = action // 4
         delta = DIRECTIONS.to(state.device)[action % 4]  # [*B, 2]
@@ -246,9 +257,9 @@ class ObjectRearrangementEnv(GridWorldEnv):
 
         The moves are decoded for all steps at once, and rows and columns are kept
         apart in int16 (coordinates are below 16), so each step is a few small kernels.
-        A subclass that changes :meth:`transition` gets the step-by-step rollout.
+        A subclass that defines its own :meth:`transition` gets the step-by-step rollout.
         """
-        if type(self).transition is not ObjectRearrangementEnv.transition:
+        if not self._fast_transitions:
             return super().transitions(state, actions)
         lead, horizon, k = actions.shape[:-1], actions.shape[-1], self.num_objects
         small = torch.int16
