@@ -181,6 +181,40 @@ class LatentModelEnv(TorchRLWorldModelEnv):
             out.set("goal_pixels", goal)
         return out
 
+    def without_frames(self) -> LatentModelEnv:
+        """The same model as a planning env that decodes no frames (codes only)."""
+        return LatentModelEnv(self.model, decode=False, device=self.device)
+
+    #: what :meth:`imagine_candidates` can give
+    IMAGINED_KEYS = (("next", "latent"), ("next", "code"), ("next", "pixels"))
+
+    def imagine_candidates(
+        self, td: TensorDictBase, actions: torch.Tensor, next_keys: list | None
+    ) -> tuple[TensorDictBase, dict] | None:
+        """Candidates ``[b, N, H]`` rolled out in latent space without a tensordict per
+        step (the planners' fast path; the same values as ``H`` calls of :meth:`step`):
+        the rows' frames are encoded once, the latents stepped in one batch, the codes
+        read off all of them at once and frames decoded only if wanted (and ``decode``).
+        ``None`` for keys it does not imagine (the planner then steps it)."""
+        if next_keys is None or any(key not in self.IMAGINED_KEYS for key in next_keys):
+            return None
+        if ("next", "pixels") in next_keys and not self.decode:
+            return None  # stepped, so that the missing frames are named
+        start = self._with_latent(td).get(self.latent_key)
+        with torch.no_grad():
+            latent = start.unsqueeze(-2).expand(*actions.shape[:-1], start.shape[-1])
+            latents = self.model.imagine(latent, actions)  # [b, N, H, D]
+            rollout = TensorDict(
+                {"action": actions.unsqueeze(-1)}, batch_size=actions.shape, device=td.device
+            )
+            if ("next", "latent") in next_keys:
+                rollout.set(("next", "latent"), latents)
+            if ("next", "code") in next_keys:
+                rollout.set(("next", "code"), self.model.codes(latents))
+            if ("next", "pixels") in next_keys:
+                rollout.set(("next", "pixels"), self.model.decode_uint8(latents))
+        return rollout, {}
+
     def imagine_latents(self, pixels: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Latents ``[*B, N, T, D]`` of candidate actions ``[*B, N, T]`` from frames
         ``[*B, C, H, W]``: one encoding per row, then batched latent steps (no tensordict

@@ -95,6 +95,29 @@ def test_torchrl_world_model_parts_and_rollout_in_latent_space():
         env.check_frame(torch.zeros(2, 3, 16, 16, dtype=torch.uint8))
 
 
+def test_imagined_candidates_equal_stepping_the_latent_env():
+    model = LatentWorldModel(4, LatentModelConfig(frame_shape=(3, 10, 13), code_sizes=(5, 3)))
+    env = LatentModelEnv(model, decode=True)
+    td = TensorDict(pixels=torch.randint(0, 256, (2, 3, 10, 13), dtype=torch.uint8), batch_size=[2])
+    actions = torch.randint(0, 4, (2, 5, 4))
+    keys = [("next", "code"), ("next", "pixels")]
+    rollout, lazy = env.imagine_candidates(td, actions, keys)
+    assert lazy == {} and rollout.shape == (2, 5, 4)
+    current = td.unsqueeze(1).expand(2, 5).clone()
+    codes, frames = [], []
+    for t in range(4):
+        current.set("action", actions[..., t : t + 1])
+        current = env.step(current)
+        codes.append(current["next", "code"])
+        frames.append(current["next", "pixels"])
+        current = env.step_mdp(current)
+    assert torch.equal(torch.stack(codes, 2), rollout["next", "code"])
+    assert torch.equal(torch.stack(frames, 2), rollout["next", "pixels"])
+    # An env that decodes no frames declines a cost that reads them (stepped, then named).
+    assert env.without_frames().imagine_candidates(td, actions, keys) is None
+    assert env.imagine_candidates(td, actions, [("next", "reward")]) is None
+
+
 def _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32)):
     torch.manual_seed(0)
     config = EncoderConfig.small(code_sizes, frame_shape=frame_shape)
@@ -181,7 +204,38 @@ def test_dorp_and_visual_foresight_plan_through_the_latent_model(tmp_path):
     policy = make_dorp_policy(
         env, encoder, graph, low_level=model, num_candidates=8, planning_horizon=3, seed=0
     )
+    # Waypoints are planned on the predicted codes alone: no frame decoded or encoded.
+    assert not policy.waypoint_planner.env.decode
+    assert ("next", "code") in policy.waypoint_planner.cost.in_keys
+    assert ("next", "pixels") not in policy.waypoint_planner.cost.in_keys
+    other = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(5, 6)))
+    with pytest.raises(ValueError, match="another encoder's codes|this encoder's codes"):
+        make_dorp_policy(env, encoder, graph, low_level=other, num_candidates=8)
     rollout = env.rollout(4, policy, break_when_any_done=False)
     assert rollout["action"].shape[:2] == (2, 4)
     vf = VisualForesightPolicy(planning, "rs", num_candidates=8, planning_horizon=3, seed=0)
     assert env.rollout(3, vf, break_when_any_done=False).shape == (2, 3)
+
+
+def test_code_match_cost_reads_predicted_codes_without_frames():
+    from dorp_rl.planners import CodeMatchCost
+
+    encoder = _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32))
+    start = torch.randint(0, 256, (1, 3, 24, 32), dtype=torch.uint8)
+    start_code = encoder(start)[0][0]
+    target = start_code.clone()
+    target[0] = (target[0] + 1) % 6  # one-hot 0 must change, one-hot 1 keep its code
+    predicted = start_code.expand(1, 2, 3, 2).clone()
+    predicted[0, 0, 2, 0] = target[0]  # candidate 0 reaches it at its last step
+    predicted[0, 1, 1] = torch.tensor([target[0], (target[1] + 1) % 6])  # 1 moves both
+    rollout = TensorDict(
+        {
+            "pixels": start.reshape(1, 1, 1, 3, 24, 32).expand(1, 2, 3, 3, 24, 32),
+            "subgoal_code": target.reshape(1, 1, 1, 2).expand(1, 2, 3, 2),
+            ("next", "code"): predicted,
+        },
+        batch_size=(1, 2, 3),
+    )
+    cost = CodeMatchCost(encoder, onehots=[0], code_key=("next", "code"))
+    assert ("next", "pixels") not in cost.in_keys
+    assert cost(rollout)["cost"][0].tolist() == [[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]]

@@ -598,6 +598,11 @@ class CodeMatchCost(RolloutCost):
             tensordict (one choice per row, as a batched DORP policy needs).
         pixels_key: the predicted frames in the rollout.
         start_pixels_key: the start frame (a root key, shared by candidates and steps).
+        code_key: the predicted codes in the rollout, int64 ``[*B, N, H, C]``, when the
+            planning env writes them (a latent world model's code head,
+            :class:`~dorp_rl.envs.LatentModelEnv`): then no predicted frame is read or
+            encoded (only the start frame, once per row) and there is no confidence
+            term. ``None`` (default): the frames under ``pixels_key`` are encoded.
         out_key: where the per-step cost ``[*B, N, H]`` is written.
         tie_break: weight of the confidence term; small so it only breaks ties.
         step_penalty: cost per step of a matching frame (e.g. ``2 * tie_break``), so
@@ -636,6 +641,7 @@ class CodeMatchCost(RolloutCost):
         *,
         pixels_key: NestedKey = ("next", "pixels"),
         start_pixels_key: NestedKey = "pixels",
+        code_key: NestedKey | None = None,
         out_key: NestedKey = "cost",
         tie_break: float = 1e-3,
         step_penalty: float = 0.0,
@@ -654,6 +660,7 @@ class CodeMatchCost(RolloutCost):
         self.target_key = unravel_key(target_key)
         self.pixels_key = unravel_key(pixels_key)
         self.start_pixels_key = unravel_key(start_pixels_key)
+        self.code_key = None if code_key is None else unravel_key(code_key)
         step_penalty = check_step_penalty(step_penalty)
         self.step_penalty = step_penalty
         self.chunk_size = int(chunk_size)
@@ -666,7 +673,8 @@ class CodeMatchCost(RolloutCost):
             self.onehots_key = unravel_key(onehots)
         elif onehots is not None:
             self.onehots = self._check_onehots(onehots, encoder)
-        in_keys = [self.pixels_key, self.start_pixels_key, self.target_key]
+        predicted = self.pixels_key if self.code_key is None else self.code_key
+        in_keys = [predicted, self.start_pixels_key, self.target_key]
         if self.onehots_key is not None:
             in_keys.append(self.onehots_key)
         self.in_keys = in_keys
@@ -767,6 +775,8 @@ class CodeMatchCost(RolloutCost):
             raise ValueError(
                 f"{name} needs a rollout of batch shape [*B, N, H], got {list(rollout.batch_size)}."
             )
+        if self.code_key is not None:
+            return self._cost_of_predicted_codes(rollout)
         predicted = (
             None if imagined is not None else get_rollout_key(rollout, self.pixels_key, name)
         )
@@ -796,11 +806,7 @@ class CodeMatchCost(RolloutCost):
                 f"{self.target_key!r} must have {num_onehots} codes (one per one-hot), "
                 f"got shape {list(target.shape)}."
             )
-        if self.onehots_key is not None:
-            chosen = get_rollout_key(rollout, self.onehots_key, name).to(torch.bool)
-        else:
-            chosen = torch.zeros(num_onehots, dtype=torch.bool, device=code.device)
-            chosen[self.onehots if self.onehots is not None else slice(None)] = True
+        chosen = self._chosen(rollout, num_onehots, code.device)
         self._check_target(target, chosen, probs.shape[-1])
         wanted = torch.where(chosen, target.to(code.device), start_code)  # [*B, N, H, C]
         num_codes = probs.shape[-1]
@@ -820,6 +826,44 @@ class CodeMatchCost(RolloutCost):
             picked = distinct_probs.reshape(-1)[index].reshape(code.shape)
         confidence = picked.mean(-1)
         cost = (~match).to(torch.float32) - self.tie_break * confidence.to(torch.float32)
+        if self.step_penalty:
+            steps = torch.arange(1, cost.shape[-1] + 1, device=cost.device, dtype=cost.dtype)
+            cost = cost + self.step_penalty * steps * match.to(cost.dtype)
+        return cost
+
+    def _chosen(self, rollout: TensorDictBase, num_onehots: int, device: Any) -> torch.Tensor:
+        """Bool mask of the one-hots that must reach the target (per row, or fixed)."""
+        if self.onehots_key is not None:
+            name = type(self).__name__
+            return get_rollout_key(rollout, self.onehots_key, name).to(torch.bool)
+        chosen = torch.zeros(num_onehots, dtype=torch.bool, device=device)
+        chosen[self.onehots if self.onehots is not None else slice(None)] = True
+        return chosen
+
+    def _cost_of_predicted_codes(self, rollout: TensorDictBase) -> torch.Tensor:
+        """Per-step costs from the codes the planning env predicted (``code_key``)."""
+        name = type(self).__name__
+        code = get_rollout_key(rollout, self.code_key, name)
+        start = get_rollout_key(rollout, self.start_pixels_key, name)
+        target = get_rollout_key(rollout, self.target_key, name)
+        if code.dtype.is_floating_point or target.dtype.is_floating_point:
+            raise ValueError(
+                f"{self.code_key!r} and {self.target_key!r} must hold integer codes, got "
+                f"{code.dtype} and {target.dtype}."
+            )
+        start_code = self._encode(start[..., :1, :1, :, :, :])[0]  # [*B, 1, 1, C]
+        num_onehots = code.shape[-1]
+        if target.shape[-1] != num_onehots or start_code.shape[-1] != num_onehots:
+            raise ValueError(
+                f"the planning env predicts {num_onehots} codes per frame under "
+                f"{self.code_key!r}; the encoder gives {start_code.shape[-1]} and "
+                f"{self.target_key!r} holds {target.shape[-1]}: the world model was trained "
+                "on another encoder's codes."
+            )
+        chosen = self._chosen(rollout, num_onehots, code.device)
+        wanted = torch.where(chosen, target.to(code.device), start_code.to(code.device))
+        match = (code == wanted.expand_as(code)).all(-1)
+        cost = (~match).to(torch.float32)
         if self.step_penalty:
             steps = torch.arange(1, cost.shape[-1] + 1, device=cost.device, dtype=cost.dtype)
             cost = cost + self.step_penalty * steps * match.to(cost.dtype)

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from tensordict import NestedKey
 from torch import nn
 from torchrl.envs import EnvBase
 
@@ -49,6 +50,7 @@ def make_waypoint_cost(
     step_penalty: float = 0.0,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     cache_size: int = 2**18,
+    code_key: NestedKey | None = None,
 ) -> nn.Module:
     """The cost DORP's waypoint planner ranks its plans by (written under ``cost``).
 
@@ -58,7 +60,9 @@ def make_waypoint_cost(
     plan's steps with ``min``), so that among plans reaching the waypoint those leaving
     the frame nearest the goal image win. ``step_penalty`` is the code term's cost per
     step of a matching frame (earlier arrival wins; see
-    :class:`~dorp_rl.planners.CodeMatchCost`).
+    :class:`~dorp_rl.planners.CodeMatchCost`). ``code_key``: the codes the planning env
+    predicts (``("next", "code")`` of a latent world model), read instead of encoding
+    predicted frames.
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -77,6 +81,7 @@ def make_waypoint_cost(
         out_key="cost" if alone else "waypoint_code_cost",
         step_penalty=step_penalty,
         cache_size=cache_size,
+        code_key=code_key,
     )
     if alone:
         return code_cost
@@ -91,10 +96,15 @@ def make_waypoint_cost(
 
 
 def make_goal_cost(
-    encoder: nn.Module, *, goal_code_weight: float, goal_blur_sigmas: Sequence[float]
+    encoder: nn.Module,
+    *,
+    goal_code_weight: float,
+    goal_blur_sigmas: Sequence[float],
+    code_key: NestedKey | None = None,
 ) -> nn.Module:
     """The goal-image phase's cost: the goal's blurred pixel distance, plus (with
-    ``goal_code_weight > 0``) a code term weighted per row by ``goal_code_weight``.
+    ``goal_code_weight > 0``) a code term weighted per row by ``goal_code_weight``
+    (reading predicted codes under ``code_key`` when the planning env writes them).
 
     The goal-image phase starts with every code at the goal's: frames that leave them
     cost more than any pixel distance, so the pixel cost cannot undo the plan.
@@ -104,7 +114,7 @@ def make_goal_cost(
         return pixel_cost
     return CostSequence(
         pixel_cost,
-        CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost"),
+        CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost", code_key=code_key),
         WeightedCostSum(
             {"pixel_cost": 1.0, "goal_code_cost": "goal_code_weight"},
             step_aggregation="min",
@@ -185,6 +195,7 @@ def make_dorp_policy(
             f"the code graph was built from another environment's play data ({details})."
         )
     planning_env = make_planning_env(env, low_level)
+    code_key, waypoint_env = _predicted_codes(planning_env, encoder, config)
     kinds = {"rs": RandomShootingPlanner, "cem": CategoricalCEMPlanner}
     goal_kind = config.goal_planner or config.planner
     if config.action_persistence is not None and "rs" not in (config.planner, goal_kind):
@@ -218,9 +229,10 @@ def make_dorp_policy(
         waypoint_goal_weight=config.waypoint_goal_weight,
         step_penalty=check_step_penalty(config.waypoint_step_penalty, "waypoint_step_penalty"),
         goal_blur_sigmas=config.goal_blur_sigmas,
+        code_key=code_key,
     )
     waypoint = kinds[config.planner](
-        planning_env,
+        waypoint_env,
         waypoint_cost,
         **shape,
         seed=seed,
@@ -233,6 +245,7 @@ def make_dorp_policy(
         encoder,
         goal_code_weight=config.goal_code_weight,
         goal_blur_sigmas=config.goal_blur_sigmas,
+        code_key=code_key,
     )
     goal = kinds[goal_kind](
         planning_env,
@@ -246,3 +259,36 @@ def make_dorp_policy(
     return AbstractGoalPolicy(
         encoder, graph, waypoint, goal, config, actions=DiscreteActions.of(env)
     )
+
+
+def _predicted_codes(
+    planning_env: EnvBase, encoder: nn.Module, config: DORPConfig
+) -> tuple[NestedKey | None, EnvBase]:
+    """Where the costs read the codes of imagined frames, and the waypoint planner's env.
+
+    A planning env that predicts the encoder's codes declares a ``code`` observation (a
+    latent world model): the costs read ``("next", "code")`` instead of encoding frames,
+    and the waypoint planner, whose cost then needs no frames (without a goal-image term),
+    plans through its ``without_frames()`` variant if it has one.
+    """
+    spec = planning_env.observation_spec
+    if "code" not in spec.keys():
+        return None, planning_env
+    predicted = int(spec["code"].shape[-1])
+    if predicted != len(encoder.code_sizes):
+        raise ValueError(
+            f"the planning env predicts {predicted} codes per frame, the encoder has "
+            f"{len(encoder.code_sizes)} one-hots (code_sizes {tuple(encoder.code_sizes)}): "
+            "its world model was trained on another encoder's codes."
+        )
+    sizes = getattr(getattr(planning_env, "model", None), "code_sizes", None)
+    if sizes is not None and tuple(sizes) != tuple(encoder.code_sizes):
+        raise ValueError(
+            f"the planning env's world model predicts codes of sizes {tuple(sizes)}, the "
+            f"encoder has {tuple(encoder.code_sizes)}: train it on this encoder's codes."
+        )
+    waypoint_env = planning_env
+    lighter = getattr(planning_env, "without_frames", None)
+    if config.waypoint_goal_weight == 0 and callable(lighter):
+        waypoint_env = lighter()
+    return ("next", "code"), waypoint_env
