@@ -32,7 +32,7 @@ from dorp_rl.data import SequenceSampler, changed_pixels, collect_play_data, eve
 from dorp_rl.metrics.world_model import open_loop_accuracy
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
 from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer, load_video_model
-from dorp_rl.trainers.world_model import HELD_OUT_SEED_OFFSET, event_windows
+from dorp_rl.trainers.windows import HELD_OUT_SEED_OFFSET, event_windows
 from dorp_rl.validation import derive_seed
 
 

@@ -3,7 +3,6 @@ encoder's codes."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,25 +15,17 @@ from torchrl.data import TensorDictReplayBuffer
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
 from dorp_rl.data import (
-    EventWindowSampler,
-    SequenceSampler,
-    check_play_buffer,
-    collect_play_data,
     play_segment_length,
 )
 from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
 from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel, check_latent_model
 from dorp_rl.objectives.latent import LatentWorldModelLoss
-from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
+from dorp_rl.trainers.base import TrainerConfig
 from dorp_rl.trainers.representation import load_encoder
-from dorp_rl.trainers.world_model import (
-    HELD_OUT_SEED_OFFSET,
-    WorldModelTrainer,
-    event_windows,
-    load_video_model,
-)
-from dorp_rl.validation import Float, Int, Text, check_device, derive_seed, frame_shape_of
+from dorp_rl.trainers.windows import WindowTrainer
+from dorp_rl.trainers.world_model import WorldModelTrainer, load_video_model
+from dorp_rl.validation import Float, Int, Text, check_device, frame_shape_of
 
 __all__ = [
     "LatentWorldModelConfig",
@@ -123,7 +114,7 @@ class LatentWorldModelConfig(TrainerConfig):
                 )
 
 
-class LatentWorldModelTrainer(OfflineTrainer):
+class LatentWorldModelTrainer(WindowTrainer):
     """Trains a :class:`~dorp_rl.modules.LatentWorldModel` with
     :class:`~dorp_rl.objectives.LatentWorldModelLoss`.
 
@@ -155,7 +146,6 @@ class LatentWorldModelTrainer(OfflineTrainer):
 
     kind = "latent_world_model"
     progress_metric = "loss_code"
-    state_keys = ("model", "optimizer")
 
     def __init__(
         self,
@@ -178,46 +168,8 @@ class LatentWorldModelTrainer(OfflineTrainer):
         config = config.replace(
             model={"frame_shape": frame_shape, "code_sizes": tuple(encoder.code_sizes)}
         )
-        super().__init__(config, env, logger)
-        self.device = torch.device(config.device)
+        super().__init__(config, env, buffer, eval_buffer, logger)
         self.encoder = encoder.to(self.device).eval()
-        for name, given in (("buffer", buffer), ("eval_buffer", eval_buffer)):
-            if given is not None:
-                check_play_buffer(given, self.env, min_trajectory_length=config.horizon, name=name)
-                given.set_sampler(
-                    self.training_sampler() if name == "buffer" else SequenceSampler(config.horizon)
-                )
-        if buffer is None:
-            buffer = collect_play_data(
-                self.env,
-                config.num_frames,
-                directory=config.data_dir,
-                seed=config.seed,
-                trajectory_length=config.trajectory_length,
-                sampler=self.training_sampler(),
-                batch_size=config.batch_size,
-                progress=config.progress,
-            )
-        if eval_buffer is None:
-            eval_buffer = collect_play_data(
-                self.env,
-                config.eval_frames,
-                seed=derive_seed(config.seed, HELD_OUT_SEED_OFFSET),
-                trajectory_length=config.trajectory_length,
-                sampler=SequenceSampler(config.horizon),
-            )
-        self.buffer = buffer
-        self.buffer.set_rng(self.data_generator)
-        eval_generator = torch.Generator().manual_seed(config.seed)
-        eval_buffer.set_rng(eval_generator)
-        self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
-        self.eval_event_windows: TensorDictBase | None = None
-        if config.event_share > 0:
-            self.eval_event_windows = event_windows(
-                eval_buffer, config.horizon, config.eval_sequences, eval_generator
-            )
-        torch.manual_seed(config.seed)
-        self.data_generator.manual_seed(derive_seed(config.seed, 1))
         self.model = LatentWorldModel(
             DiscreteActions.of(self.env).num_actions, config.model.replace()
         ).to(self.device)
@@ -245,38 +197,6 @@ class LatentWorldModelTrainer(OfflineTrainer):
             tables.append(torch.cat(parts))
         return tables[0], tables[1]
 
-    def training_sampler(self) -> SequenceSampler:
-        """Training windows: uniform, or with ``event_share`` of them holding an event."""
-        cfg = self.config
-        if cfg.event_share > 0:
-            return EventWindowSampler(cfg.horizon, cfg.event_share)
-        return SequenceSampler(cfg.horizon)
-
-    def open_loop_length_at(self, step: int) -> int:
-        """1 at step 0, growing linearly to ``horizon`` at ``open_loop_ramp * num_steps``."""
-        cfg = self.config
-        ramp = cfg.open_loop_ramp * cfg.num_steps
-        frac = 1.0 if ramp <= 0 else min(1.0, step / ramp)
-        return max(1, min(cfg.horizon, 1 + int(frac * (cfg.horizon - 1) + 1e-9)))
-
-    def lr_at(self, step: int) -> float:
-        """Cosine decay from ``lr`` to ``lr_final`` over ``num_steps``."""
-        cfg = self.config
-        frac = min(1.0, step / cfg.num_steps)
-        return cfg.lr_final + 0.5 * (cfg.lr - cfg.lr_final) * (1.0 + math.cos(math.pi * frac))
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        load_module_state(self.model, state["model"], self.checkpoint_path, "model")
-        try:
-            self.optimizer.load_state_dict(state["optimizer"])
-        except (ValueError, KeyError) as err:
-            raise ValueError(
-                f"checkpoint {self.checkpoint_path}: its optimizer state does not fit ({err})."
-            ) from err
-
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_model = LatentWorldModelConfig.from_dict(stored).model
         if stored_model != self.config.model:
@@ -289,38 +209,18 @@ class LatentWorldModelTrainer(OfflineTrainer):
         """Play actions in the env's layout (one-hot or index) as int64 indices ``[B, H, 1]``."""
         return batch.set("action", self.actions.index(batch.get("action")))
 
-    def train_step(self) -> dict[str, float]:
-        """One gradient step on a batch of windows; returns the detached metrics."""
-        self.loss.open_loop_length = self.open_loop_length_at(self.step)
-        for group in self.optimizer.param_groups:
-            group["lr"] = self.lr_at(self.step)
-        batch = self._index_actions(self.buffer.sample(self.config.batch_size).to(self.device))
+    def training_batch(self) -> TensorDictBase:
+        """Training windows with int64 action indices and the looked-up target codes."""
+        batch = self._index_actions(super().training_batch())
         index = batch.get("index").to(self.code_table.device)
         batch.set("code", self.code_table[index].to(self.device))
         batch.set(("next", "code"), self.next_code_table[index].to(self.device))
-        out = self.loss(batch)
-        total = sum(v for k, v in out.items() if k.startswith("loss_"))
-        self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        parameters = list(self.model.parameters())
-        grad_norm = self.check_gradients(total, parameters)
-        torch.nn.utils.clip_grads_with_norm_(parameters, self.config.grad_clip, grad_norm)
-        self.optimizer.step()
-        self.check_weights(self.model)
-        self.step += 1
-        metrics = {k: float(v.detach()) for k, v in out.items()}
-        metrics["grad_norm"] = float(grad_norm)
-        metrics["lr"] = self.optimizer.param_groups[0]["lr"]
+        return batch
+
+    def train_step(self) -> dict[str, float]:
+        metrics = super().train_step()
         metrics["open_loop_length"] = float(self.loss.open_loop_length)
         return metrics
-
-    @property
-    def evaluate_every(self) -> int:
-        return self.config.eval_every
-
-    @property
-    def evaluate_at_end(self) -> bool:
-        return True
 
     def evaluate(self) -> dict[str, Any]:
         """Open-loop code (and decoded pixel) accuracy on the held-out windows."""

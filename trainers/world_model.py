@@ -8,17 +8,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
 from dorp_rl.data import (
-    EventWindowSampler,
-    SequenceSampler,
-    check_play_buffer,
-    collect_play_data,
     play_segment_length,
 )
 from dorp_rl.envs import DiscreteActions, env_identity
@@ -26,12 +21,9 @@ from dorp_rl.integrity import IntegrityError
 from dorp_rl.metrics.world_model import open_loop_accuracy
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
-from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig
-from dorp_rl.validation import Choice, Float, Int, Text, check_device, derive_seed
-
-#: seed offset of the held-out play data used for evaluation
-HELD_OUT_SEED_OFFSET = 100_003
-
+from dorp_rl.trainers.base import TrainerConfig
+from dorp_rl.trainers.windows import WindowTrainer
+from dorp_rl.validation import Choice, Float, Int, Text, check_device
 
 #: Flat fields of older world-model configs that now live in ``model``.
 _FLAT_MODEL_FIELDS = ("model_preset", "latent_dim", "prior")
@@ -183,7 +175,7 @@ class WorldModelConfig(TrainerConfig):
         return self.model.replace()
 
 
-class WorldModelTrainer(OfflineTrainer):
+class WorldModelTrainer(WindowTrainer):
     """Trains a :class:`~dorp_rl.modules.VideoPredictionModel` with :class:`~dorp_rl.objectives.VideoPredictionLoss`.
 
     Play data (collected, or loaded from ``config.data_dir``) are sampled as windows of
@@ -208,7 +200,6 @@ class WorldModelTrainer(OfflineTrainer):
 
     kind = "world_model"
     progress_metric = "loss_reconstruction"
-    state_keys = ("model", "optimizer")
 
     def __init__(
         self,
@@ -218,47 +209,9 @@ class WorldModelTrainer(OfflineTrainer):
         logger: Any | None = None,
     ) -> None:
         config.validate()
-        super().__init__(config, config.make_env(batch_size=(config.num_envs,)), logger)
-        self.device = torch.device(config.device)
-        for name, given in (("buffer", buffer), ("eval_buffer", eval_buffer)):
-            if given is not None:
-                check_play_buffer(given, self.env, min_trajectory_length=config.horizon, name=name)
-                given.set_sampler(
-                    self.training_sampler() if name == "buffer" else SequenceSampler(config.horizon)
-                )
-        if buffer is None:
-            buffer = collect_play_data(
-                self.env,
-                config.num_frames,
-                directory=config.data_dir,
-                seed=config.seed,
-                trajectory_length=config.trajectory_length,
-                sampler=self.training_sampler(),
-                batch_size=config.batch_size,
-                progress=config.progress,
-            )
-        if eval_buffer is None:
-            eval_buffer = collect_play_data(
-                self.env,
-                config.eval_frames,
-                seed=derive_seed(config.seed, HELD_OUT_SEED_OFFSET),
-                trajectory_length=config.trajectory_length,
-                sampler=SequenceSampler(config.horizon),
-            )
-        self.buffer = buffer
-        self.buffer.set_rng(self.data_generator)
-        eval_generator = torch.Generator().manual_seed(config.seed)
-        eval_buffer.set_rng(eval_generator)
-        self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
-        #: held-out windows holding an event (``event_share > 0`` only; ``None`` if none)
-        self.eval_event_windows: TensorDictBase | None = None
-        if config.event_share > 0:
-            self.eval_event_windows = event_windows(
-                eval_buffer, config.horizon, config.eval_sequences, eval_generator
-            )
-        torch.manual_seed(config.seed)
-        self.data_generator.manual_seed(derive_seed(config.seed, 1))
-        palette = palette_from_frames(buffer[: min(len(buffer), 20_000)]["pixels"])
+        env = config.make_env(batch_size=(config.num_envs,))
+        super().__init__(config, env, buffer, eval_buffer, logger)
+        palette = palette_from_frames(self.buffer[: min(len(self.buffer), 20_000)]["pixels"])
         self.model = VideoPredictionModel(
             DiscreteActions.of(self.env).num_actions, palette, config.model_config()
         ).to(self.device)
@@ -272,40 +225,6 @@ class WorldModelTrainer(OfflineTrainer):
         )
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
 
-    def training_sampler(self) -> SequenceSampler:
-        """Training windows: uniform, or with ``event_share`` of them holding an event."""
-        cfg = self.config
-        if cfg.event_share > 0:
-            return EventWindowSampler(cfg.horizon, cfg.event_share)
-        return SequenceSampler(cfg.horizon)
-
-    # ------------------------------------------------------------------ schedules
-    def open_loop_length_at(self, step: int) -> int:
-        """1 at step 0, growing linearly to ``horizon`` at ``open_loop_ramp * num_steps``."""
-        cfg = self.config
-        ramp = cfg.open_loop_ramp * cfg.num_steps
-        frac = 1.0 if ramp <= 0 else min(1.0, step / ramp)
-        return max(1, min(cfg.horizon, 1 + int(frac * (cfg.horizon - 1) + 1e-9)))
-
-    def lr_at(self, step: int) -> float:
-        """Cosine decay from ``lr`` to ``lr_final`` over ``num_steps``."""
-        cfg = self.config
-        frac = min(1.0, step / cfg.num_steps)
-        return cfg.lr_final + 0.5 * (cfg.lr - cfg.lr_final) * (1.0 + math.cos(math.pi * frac))
-
-    # ------------------------------------------------------------------ checkpoints
-    def state_dict(self) -> dict[str, Any]:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        load_module_state(self.model, state["model"], self.checkpoint_path, "model")
-        try:
-            self.optimizer.load_state_dict(state["optimizer"])
-        except (ValueError, KeyError) as err:
-            raise ValueError(
-                f"checkpoint {self.checkpoint_path}: its optimizer state does not fit ({err})."
-            ) from err
-
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_model = WorldModelConfig.from_dict(stored).model_config()
         if stored_model != self.config.model_config():
@@ -313,36 +232,6 @@ class WorldModelTrainer(OfflineTrainer):
                 f"checkpoint holds a video model with {stored_model}, this trainer builds "
                 f"{self.config.model_config()}."
             )
-
-    # ------------------------------------------------------------------ steps
-    def train_step(self) -> dict[str, float]:
-        """One gradient step on a batch of windows; returns the detached metrics."""
-        self.loss.open_loop_length = self.open_loop_length_at(self.step)
-        for group in self.optimizer.param_groups:
-            group["lr"] = self.lr_at(self.step)
-        batch = self.buffer.sample(self.config.batch_size).to(self.device)
-        out = self.loss(batch)
-        total = sum(v for k, v in out.items() if k.startswith("loss_"))
-        self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        parameters = list(self.model.parameters())
-        grad_norm = self.check_gradients(total, parameters)
-        torch.nn.utils.clip_grads_with_norm_(parameters, self.config.grad_clip, grad_norm)
-        self.optimizer.step()
-        self.check_weights(self.model)
-        self.step += 1
-        metrics = {k: float(v.detach()) for k, v in out.items()}
-        metrics["grad_norm"] = float(grad_norm)
-        metrics["lr"] = self.optimizer.param_groups[0]["lr"]
-        return metrics
-
-    @property
-    def evaluate_every(self) -> int:
-        return self.config.eval_every
-
-    @property
-    def evaluate_at_end(self) -> bool:
-        return True
 
     def evaluate(self) -> dict[str, Any]:
         """Open-loop accuracy on the held-out windows (deterministic mode)."""
@@ -356,28 +245,6 @@ class WorldModelTrainer(OfflineTrainer):
             for h in steps:
                 result[f"event_exact_accuracy_step{h}"] = events["exact_accuracy"][h - 1]
         return result
-
-
-def event_windows(
-    buffer: TensorDictReplayBuffer,
-    horizon: int,
-    max_windows: int,
-    generator: torch.Generator | None = None,
-) -> TensorDictBase | None:
-    """Up to ``max_windows`` distinct ``[N, horizon]`` windows of ``buffer`` holding an event.
-
-    Events as in :class:`~dorp_rl.data.EventWindowSampler`; a random subset (from
-    ``generator``) when there are more. ``None`` when no window holds one. Used to
-    measure how a world model predicts the rare events (the door opening) that uniform
-    held-out windows hardly contain.
-    """
-    starts, has_event = EventWindowSampler(horizon, 1.0).window_events(buffer.storage)
-    starts = starts[has_event]
-    if len(starts) == 0:
-        return None
-    if len(starts) > max_windows:
-        starts = starts[torch.randperm(len(starts), generator=generator)[:max_windows]]
-    return buffer[starts.unsqueeze(-1) + torch.arange(horizon)]
 
 
 def load_video_model(
