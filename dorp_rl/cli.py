@@ -68,7 +68,7 @@ from dorp_rl.pipeline import (
     world_model_stage,
 )
 from dorp_rl.reproduce import pictures_stage, reproduce_paper, say_pictures
-from dorp_rl.trainers import OfflineTrainer, load_video_model
+from dorp_rl.trainers import OfflineTrainer, load_world_model
 
 __all__ = [
     "COMMANDS",
@@ -136,15 +136,17 @@ def _check(command: str, cmd: Any) -> None:
 
 
 def _check_world_model_file(path: str, setting: str) -> None:
-    """``--low-level <path>`` must be a world-model checkpoint of ``setting``'s environment."""
+    """``--low-level <path>`` must be a world-model checkpoint of ``setting``'s environment
+    (a palette video model or a latent world model)."""
     what = (
         f"--low-level must be 'gt', 'world-model' or a world-model checkpoint file of "
-        f"--setting {setting} (made by dorp train-world-model --setting {setting})"
+        f"--setting {setting} (made by dorp train-world-model --setting {setting}, or a "
+        "LatentWorldModelTrainer checkpoint)"
     )
     if not Path(path).is_file():
         raise UsageError(f"{what}; {path!r} is none of these.")
     try:
-        load_video_model(path, setting_of(setting).make_env())
+        load_world_model(path, setting_of(setting).make_env())
     except (ValueError, OSError) as err:  # another kind, env, a damaged or a text file
         raise UsageError(f"{what}: {err}") from None
 

@@ -124,7 +124,7 @@ def _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32)):
     return DiscreteCodeEncoder(config.replace(channels=8, mlp_sizes=(32,)))
 
 
-def _config(tmp_path, **overrides):
+def _config(tmp_path, env="push_blocks:PUSH_BLOCKS", num_objects=None, **overrides):
     values = dict(
         num_frames=480,
         num_envs=4,
@@ -140,7 +140,7 @@ def _config(tmp_path, **overrides):
         out_dir=str(tmp_path / "latent"),
         model={"latent_dim": 16, "channels": 4, "hidden": 16},
     )
-    return LatentWorldModelConfig.for_env("push_blocks:PUSH_BLOCKS", **{**values, **overrides})
+    return LatentWorldModelConfig.for_env(env, num_objects, **{**values, **overrides})
 
 
 def test_the_loss_learns_the_encoders_codes_on_frames_of_another_size():
@@ -239,3 +239,26 @@ def test_code_match_cost_reads_predicted_codes_without_frames():
     cost = CodeMatchCost(encoder, onehots=[0], code_key=("next", "code"))
     assert ("next", "pixels") not in cost.in_keys
     assert cost(rollout)["cost"][0].tolist() == [[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]]
+
+
+def test_the_command_evaluates_through_a_latent_model_checkpoint(tmp_path, capsys):
+    """``dorp evaluate --low-level <latent checkpoint>``: VF plans through the latent
+    model of the run's env; a model of another env is a usage error naming it."""
+    from dorp_rl.cli import main
+
+    cfg = _config(tmp_path, env="rearrangement", num_objects=1, trajectory_length=16)
+    from dorp_rl.modules import OracleCodeEncoder
+
+    env = cfg.make_env(batch_size=(4,))
+    LatentWorldModelTrainer(cfg, encoder=OracleCodeEncoder(env, cell_size=4)).train()
+    path = str(tmp_path / "latent" / "checkpoints" / "last.pt")
+    tiny = ["--root", str(tmp_path / "runs"), "--setting", "1obj", "--tasks", "2",
+            "--tasks-per-rollout", "2", "--candidates", "8", "--planning-horizon", "3",
+            "--max-steps", "4", "--gifs", "0", "--no-progress"]  # fmt: skip
+    main(["evaluate", *tiny, "--methods", "vf-rs", "--low-level", path])
+    rows = (tmp_path / "runs" / "demo" / "results.csv").read_text()
+    assert "vf-rs" in rows and "checkpoint" in rows
+    with pytest.raises(SystemExit) as stop:
+        main(["evaluate", *tiny, "--setting", "2obj", "--name", "other", "--low-level", path])
+    assert stop.value.code == 2
+    assert "was trained on another environment" in capsys.readouterr().err

@@ -287,12 +287,12 @@ def load_world_model(
         ValueError: a damaged file, a checkpoint of another kind (codes, say) or of
             another environment.
     """
-    kinds = {LatentWorldModelTrainer.kind: load_latent_world_model}
-    kinds[WorldModelTrainer.kind] = load_video_model
+    kinds = {WorldModelTrainer.kind: load_video_model}
+    kinds[LatentWorldModelTrainer.kind] = load_latent_world_model
     kind = load_checkpoint(path).get("kind")
     if kind not in kinds:
         raise ValueError(
-            f"checkpoint {path} holds a {kind!r} model, expected a world model "
-            f"({' or '.join(map(repr, kinds))})."
+            f"checkpoint {path} holds a {kind!r} model, expected {WorldModelTrainer.kind!r} "
+            f"(a video model) or {LatentWorldModelTrainer.kind!r}."
         )
     return kinds[kind](path, env, device=device)
