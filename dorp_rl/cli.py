@@ -4,8 +4,8 @@ Every command works in a run folder ``<root>/<name>/`` (default ``runs/demo/``):
 
 - ``config.json``: the resolved config of the last command (every field, after presets);
 - ``stages.json``: per finished stage, the config it was made with (and a summary);
-- ``play/``, ``codes/``, ``graph.pt``, ``world_model/``: play data, the representation
-  run (checkpoints, CSV logs), the code graph, the world-model run;
+- ``play/``, ``codes/``, ``graph.pt``, ``world_model/``, ``latent_model/``: play data, the
+  representation run (checkpoints, CSV logs), the code graph, the world-model runs;
 - ``log.txt``: what each command did; ``results.csv`` and ``results.md``: one row per
   evaluated method (:data:`~dorp_rl.eval.RESULT_COLUMNS`);
 - ``run.lock`` (and ``running.json`` while a command runs): the run's lock, held by one
@@ -54,6 +54,7 @@ from dorp_rl.pipeline import (
     RUN_LOCK,
     CodeOptions,
     EvaluationOptions,
+    LatentModelOptions,
     PaperOptions,
     Run,
     RunOptions,
@@ -96,14 +97,17 @@ def _check(command: str, cmd: Any) -> None:
     (:func:`~dorp_rl.pipeline.run_folder`) and a ``--low-level`` checkpoint (it must be a
     world model of ``--setting``) are checked before anything is written.
     """
-    for group in (RunOptions, CodeOptions, WorldModelOptions, EvaluationOptions, PaperOptions):
+    groups = (RunOptions, CodeOptions, WorldModelOptions, LatentModelOptions, EvaluationOptions)
+    for group in (*groups, PaperOptions):
         if isinstance(cmd, group):
             group.check(cmd, command)
     paper = isinstance(cmd, PaperOptions) and cmd.paper
     if paper and cmd.env is not None:
         raise UsageError("--env does not apply with --paper: it runs the paper's settings.")
     setting, defaults = setting_of(cmd.setting), default_command(command, cmd.setting)
-    configs = {k: getattr(cmd, k) for k in ("codes", "world_model") if hasattr(cmd, k)}
+    configs = {
+        k: getattr(cmd, k) for k in ("codes", "world_model", "latent_model") if hasattr(cmd, k)
+    }
     for key, cfg in configs.items():
         if (cfg.env, cfg.num_objects) != (setting.env, setting.num_objects):
             raise UsageError(
@@ -126,7 +130,13 @@ def _check(command: str, cmd: Any) -> None:
             "paper's Table 1 in each setting (choose among them with "
             "--paper-methods, and settings with --settings)."
         )
-    if isinstance(cmd, EvaluationOptions) and cmd.low_level not in ("gt", "world-model"):
+    if paper and isinstance(cmd, EvaluationOptions) and cmd.low_level == "latent-model":
+        raise UsageError(
+            "--low-level latent-model is not yet an option of --paper: evaluate or reproduce "
+            "one setting with it (the latent model trains on that run's codes)."
+        )
+    named = ("gt", "world-model", "latent-model")
+    if isinstance(cmd, EvaluationOptions) and cmd.low_level not in named:
         if paper:
             raise UsageError(
                 "--paper runs several settings: --low-level must be 'gt' or "

@@ -2,10 +2,11 @@
 
 :class:`Run` holds a run folder ``<root>/<name>/`` (its lock, ``stages.json``, the log)
 and runs each stage once per config (:meth:`Run.stage`); ``play_stage``, ``codes_stage``,
-``graph_stage``, ``world_model_stage`` and ``evaluate_stage`` are the pipeline's stages,
-and the command dataclasses (:class:`Collect` ... :class:`Demo`) their options, each a
-composition of the option groups it needs (:class:`RunOptions`, :class:`CodeOptions`,
-:class:`WorldModelOptions`, :class:`EvaluationOptions`, :class:`PaperOptions`). The
+``graph_stage``, ``world_model_stage``, ``latent_model_stage`` and ``evaluate_stage`` are
+the pipeline's stages, and the command dataclasses (:class:`Collect` ... :class:`Demo`)
+their options, each a composition of the option groups it needs (:class:`RunOptions`,
+:class:`CodeOptions`, :class:`WorldModelOptions`, :class:`LatentModelOptions`,
+:class:`EvaluationOptions`, :class:`PaperOptions`). The
 ``dorp`` command (:mod:`dorp_rl.cli`) parses arguments into these and runs them;
 ``dorp reproduce --paper`` (:mod:`dorp_rl.reproduce`) runs them once per setting.
 """
@@ -50,6 +51,8 @@ from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_
 from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
 from dorp_rl.policies import DORP_RECIPE
 from dorp_rl.trainers import (
+    LatentWorldModelConfig,
+    LatentWorldModelTrainer,
     OfflineTrainer,
     RepresentationConfig,
     RepresentationTrainer,
@@ -149,6 +152,10 @@ def _world_model_default() -> WorldModelConfig:
     return WorldModelConfig.for_env("rearrangement", 2)
 
 
+def _latent_model_default() -> LatentWorldModelConfig:
+    return LatentWorldModelConfig.for_env("rearrangement", 2)
+
+
 @dataclass
 class CodeOptions:
     """The representation config: the play data and the codes trained on them."""
@@ -175,6 +182,24 @@ class WorldModelOptions:
 
 
 @dataclass
+class LatentModelOptions:
+    """The latent world-model config (trained on the run's codes, with its own play data)."""
+
+    latent_model: LatentWorldModelConfig = field(default_factory=_latent_model_default)
+    """latent world-model config, used when --low-level latent-model (default: the
+    setting's preset; its encoder is the run's codes)"""
+
+    def check(self, command: str) -> None:
+        """Nothing of its own: the config checks its fields when it is built (a parse
+        error); its env and bookkeeping fields are checked against the run's."""
+        if self.latent_model.encoder_checkpoint is not None:
+            raise UsageError(
+                "--latent-model.encoder-checkpoint is set by the run: the latent world "
+                "model learns the run's codes (codes/checkpoints/last.pt)."
+            )
+
+
+@dataclass
 class EvaluationOptions:
     """Which methods run on which seeded tasks, how they plan and where they run."""
 
@@ -183,9 +208,10 @@ class EvaluationOptions:
     (codes with another similarity) and dorp-full (one graph over whole codes), vf-rs /
     vf-cem (visual foresight), random"""
     low_level: str = "gt"
-    """planning model: 'gt' (the true dynamics), 'world-model' (this run's world model,
-    trained first if needed) or the path of a world-model checkpoint; 'ground-truth' and
-    'video' are other names of 'gt' and 'world-model'"""
+    """planning model: 'gt' (the true dynamics), 'world-model' (this run's video
+    prediction model, trained first if needed), 'latent-model' (this run's latent world
+    model of its codes, trained first if needed) or the path of a checkpoint of either;
+    'ground-truth' and 'video' are other names of 'gt' and 'world-model'"""
     tasks: int = 10
     """tasks of the seeded task set (dorp_rl.eval.make_task_set)"""
     task_seed: int = 0
@@ -327,7 +353,7 @@ class TrainWorldModel(WorldModelOptions, RunOptions):
 
 
 @dataclass
-class Evaluate(EvaluationOptions, WorldModelOptions, CodeOptions, RunOptions):
+class Evaluate(EvaluationOptions, LatentModelOptions, WorldModelOptions, CodeOptions, RunOptions):
     """Evaluate methods on a seeded task set; results go to results.csv and results.md."""
 
     world_model: WorldModelConfig = field(default_factory=_world_model_default)
@@ -335,7 +361,9 @@ class Evaluate(EvaluationOptions, WorldModelOptions, CodeOptions, RunOptions):
 
 
 @dataclass
-class Reproduce(PaperOptions, EvaluationOptions, WorldModelOptions, CodeOptions, RunOptions):
+class Reproduce(
+    PaperOptions, EvaluationOptions, LatentModelOptions, WorldModelOptions, CodeOptions, RunOptions
+):
     """The whole pipeline for one setting: play data, codes, graph, then DORP and VF-CEM."""
 
     world_model: WorldModelConfig = field(default_factory=_world_model_default)
@@ -384,6 +412,9 @@ def default_command(name: str, setting: str = "2obj") -> Any:
     if "world_model" in fields:
         chosen = setting_of(setting)
         values["world_model"] = WorldModelConfig.for_env(chosen.env, chosen.num_objects)
+    if "latent_model" in fields:
+        chosen = setting_of(setting)
+        values["latent_model"] = LatentWorldModelConfig.for_env(chosen.env, chosen.num_objects)
     return cls(**values)
 
 
@@ -947,6 +978,33 @@ def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
     return checkpoint
 
 
+def latent_model_stage(
+    run: Run, latent_model: LatentWorldModelConfig, codes: RepresentationConfig
+) -> Path:
+    """The latent world-model checkpoint (trained into ``latent_model/`` on the run's
+    codes, trained first if needed, or found)."""
+    codes_stage(run, codes)
+    cfg = replace(
+        latent_model,
+        out_dir=str(run.dir / "latent_model"),
+        data_dir=str(run.dir / "latent_model_play"),
+        encoder_checkpoint=str(run.dir / "codes" / "checkpoints" / "last.pt"),
+        progress=run.progress,
+    )
+    checkpoint = run.dir / "latent_model" / "checkpoints" / "last.pt"
+
+    def build(resume: bool = False):
+        result = LatentWorldModelTrainer(cfg).train(resume=resume)
+        accuracy = result.get("evaluation", {}).get("code_accuracy_last")
+        return checkpoint, {"code_accuracy_last": accuracy}
+
+    outputs = [run.dir / "latent_model", run.dir / "latent_model_play"]
+    resume = functools.partial(build, resume=True)
+    config = {"latent_model": _stage_config(cfg), "codes": _stage_config(codes)}
+    run.stage("latent_model", config, outputs, build, lambda: checkpoint, resume)
+    return checkpoint
+
+
 def _policy(cmd: Evaluate | Reproduce, method: str, env: EnvBase, low_level: Any, dorp: Any):
     """The policy of ``method`` for ``env``, built by the same recipe as the workers'."""
     if method == "random":
@@ -985,6 +1043,9 @@ def evaluate_stage(run: Run, cmd: Evaluate | Reproduce) -> list[dict[str, Any]]:
     if cmd.low_level == "world-model":
         low_level = world_model_stage(run, cmd.world_model)
         low_config = _stage_config(cmd.world_model)
+    elif cmd.low_level == "latent-model":
+        low_level = latent_model_stage(run, cmd.latent_model, cmd.codes)
+        low_config = {"latent_model": _stage_config(cmd.latent_model)}
     elif cmd.low_level != "gt":
         low_level, level_name = Path(cmd.low_level), "checkpoint"
         low_config = {"path": str(low_level.resolve()), "mtime": low_level.stat().st_mtime}

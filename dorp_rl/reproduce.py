@@ -82,7 +82,8 @@ def _chosen_methods(cmd: PaperOptions, setting: str) -> tuple[str, ...]:
 
 
 def _level_name(cmd: EvaluationOptions) -> str:
-    return cmd.low_level if cmd.low_level in ("gt", "world-model") else "checkpoint"
+    named = ("gt", "world-model", "latent-model")
+    return cmd.low_level if cmd.low_level in named else "checkpoint"
 
 
 def _evaluation_key(cmd: EvaluationOptions, method: str) -> str:
@@ -95,6 +96,8 @@ def _low_level_path(run: Run, cmd: EvaluationOptions) -> Path | None:
         return None
     if cmd.low_level == "world-model":
         return run.dir / "world_model" / "checkpoints" / "last.pt"
+    if cmd.low_level == "latent-model":
+        return run.dir / "latent_model" / "checkpoints" / "last.pt"
     return Path(cmd.low_level)
 
 

@@ -262,3 +262,38 @@ def test_the_command_evaluates_through_a_latent_model_checkpoint(tmp_path, capsy
         main(["evaluate", *tiny, "--setting", "2obj", "--name", "other", "--low-level", path])
     assert stop.value.code == 2
     assert "was trained on another environment" in capsys.readouterr().err
+
+
+def test_the_command_trains_a_latent_model_of_the_runs_codes_and_plans_through_it(tmp_path):
+    from dorp_rl.cli import main
+
+    root = ["--root", str(tmp_path), "--setting", "1obj", "--no-progress"]
+    codes = ["--codes.num-frames", "400", "--codes.num-envs", "8", "--codes.num-steps", "5",
+             "--codes.batch-size", "16", "--codes.diagnostics-samples", "64"]  # fmt: skip
+    latent = ["--latent-model.num-frames", "320", "--latent-model.num-envs", "4",
+              "--latent-model.horizon", "3", "--latent-model.num-steps", "3",
+              "--latent-model.eval-frames", "160", "--latent-model.eval-sequences", "4",
+              "--latent-model.batch-size", "4"]  # fmt: skip
+    tiny = ["--tasks", "2", "--tasks-per-rollout", "2", "--candidates", "8",
+            "--planning-horizon", "3", "--max-steps", "4", "--gifs", "0"]  # fmt: skip
+    main(
+        [
+            "evaluate",
+            *root,
+            *codes,
+            *latent,
+            *tiny,
+            "--methods",
+            "dorp",
+            "--low-level",
+            "latent-model",
+        ]
+    )
+    run = tmp_path / "demo"
+    assert (run / "latent_model" / "checkpoints" / "last.pt").is_file()
+    rows = (run / "results.csv").read_text()
+    assert "latent-model" in rows
+    import json
+
+    stages = json.loads((run / "stages.json").read_text())
+    assert "latent_model" in stages and "evaluate:dorp:latent-model" in stages
