@@ -297,3 +297,13 @@ def test_the_command_trains_a_latent_model_of_the_runs_codes_and_plans_through_i
 
     stages = json.loads((run / "stages.json").read_text())
     assert "latent_model" in stages and "evaluate:dorp:latent-model" in stages
+
+
+def test_the_paper_run_refuses_the_latent_model_for_now(tmp_path, capsys):
+    from dorp_rl.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["reproduce", "--paper", "--root", str(tmp_path), "--low-level", "latent-model"])
+    assert stop.value.code == 2
+    assert "--low-level latent-model is not yet an option of --paper" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing was written
