@@ -185,7 +185,12 @@ def test_a_minigrid_env_through_torchrl_gym_wrapper_to_codes_and_graph(tmp_path,
     assert stages["play"]["summary"]["frames"] == 400
     assert stages["graph"]["summary"]["nodes"][0] >= 1
     encoder = load_encoder(tmp_path / "mg" / "codes" / "checkpoints" / "last.pt")
-    assert encoder.frame_shape == (3, 20, 20) and tuple(encoder.code_sizes) == (16, 2)
+    import gymnasium_env
+
+    # The example's code recipe: its one-hots, the agent's 16 codes first.
+    wanted = tuple(gymnasium_env.CODES["encoder"]["code_sizes"])
+    assert encoder.frame_shape == (3, 20, 20) and tuple(encoder.code_sizes) == wanted
+    assert wanted[0] == 16
     from dorp_rl.data import load_play_data
 
     play = load_play_data(tmp_path / "mg" / "play")[:400]
