@@ -957,25 +957,38 @@ def dorp_stages(run: Run, cmd: Evaluate | Reproduce, method: str) -> tuple[Any, 
     return encoder, graph, _tagged("graph", variant)
 
 
-def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
-    """The world-model checkpoint (trained into ``world_model/``, or found)."""
-    cfg = replace(
-        world_model,
-        out_dir=str(run.dir / "world_model"),
-        data_dir=str(run.dir / "world_model_play"),
-        progress=run.progress,
-    )
-    checkpoint = run.dir / "world_model" / "checkpoints" / "last.pt"
+def _model_stage(run: Run, folder: str, trainer: Any, cfg: Any, metric: str, config: Any) -> Path:
+    """A world model's checkpoint: trained by ``trainer(cfg)`` into ``<folder>/`` (its play
+    data in ``<folder>_play/``) as the stage ``folder``, resumed, or found."""
+    checkpoint = run.dir / folder / "checkpoints" / "last.pt"
 
     def build(resume: bool = False):
-        result = WorldModelTrainer(cfg).train(resume=resume)
-        accuracy = result.get("evaluation", {}).get("exact_accuracy_last")
-        return checkpoint, {"exact_accuracy_last": accuracy}
+        result = trainer(cfg).train(resume=resume)
+        return checkpoint, {metric: result.get("evaluation", {}).get(metric)}
 
-    outputs = [run.dir / "world_model", run.dir / "world_model_play"]
+    outputs = [run.dir / folder, run.dir / f"{folder}_play"]
     resume = functools.partial(build, resume=True)
-    run.stage("world_model", _stage_config(cfg), outputs, build, lambda: checkpoint, resume)
+    run.stage(folder, config, outputs, build, lambda: checkpoint, resume)
     return checkpoint
+
+
+def _in_run(run: Run, cfg: Any, folder: str, **more: Any) -> Any:
+    """``cfg`` writing into the run folder: ``<folder>/``, its play data, the run's bars."""
+    return replace(
+        cfg,
+        out_dir=str(run.dir / folder),
+        data_dir=str(run.dir / f"{folder}_play"),
+        progress=run.progress,
+        **more,
+    )
+
+
+def world_model_stage(run: Run, world_model: WorldModelConfig) -> Path:
+    """The world-model checkpoint (trained into ``world_model/``, or found)."""
+    cfg = _in_run(run, world_model, "world_model")
+    return _model_stage(
+        run, "world_model", WorldModelTrainer, cfg, "exact_accuracy_last", _stage_config(cfg)
+    )
 
 
 def latent_model_stage(
@@ -984,25 +997,12 @@ def latent_model_stage(
     """The latent world-model checkpoint (trained into ``latent_model/`` on the run's
     codes, trained first if needed, or found)."""
     codes_stage(run, codes)
-    cfg = replace(
-        latent_model,
-        out_dir=str(run.dir / "latent_model"),
-        data_dir=str(run.dir / "latent_model_play"),
-        encoder_checkpoint=str(run.dir / "codes" / "checkpoints" / "last.pt"),
-        progress=run.progress,
-    )
-    checkpoint = run.dir / "latent_model" / "checkpoints" / "last.pt"
-
-    def build(resume: bool = False):
-        result = LatentWorldModelTrainer(cfg).train(resume=resume)
-        accuracy = result.get("evaluation", {}).get("code_accuracy_last")
-        return checkpoint, {"code_accuracy_last": accuracy}
-
-    outputs = [run.dir / "latent_model", run.dir / "latent_model_play"]
-    resume = functools.partial(build, resume=True)
+    encoder = str(run.dir / "codes" / "checkpoints" / "last.pt")
+    cfg = _in_run(run, latent_model, "latent_model", encoder_checkpoint=encoder)
     config = {"latent_model": _stage_config(cfg), "codes": _stage_config(codes)}
-    run.stage("latent_model", config, outputs, build, lambda: checkpoint, resume)
-    return checkpoint
+    return _model_stage(
+        run, "latent_model", LatentWorldModelTrainer, cfg, "code_accuracy_last", config
+    )
 
 
 def _policy(cmd: Evaluate | Reproduce, method: str, env: EnvBase, low_level: Any, dorp: Any):
