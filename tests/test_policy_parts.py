@@ -115,3 +115,15 @@ def test_the_state_declaration_gives_primer_fills_and_shape_errors():
     assert values["edge"].tolist() == [[-1], [7]]
     with pytest.raises(ValueError, match=r"'mask' must have shape \[2, 3\]"):
         state.read(TensorDict({"mask": torch.zeros(2, 4, dtype=torch.bool)}, [2]))
+
+
+def test_every_registered_profile_names_only_dorp_config_fields():
+    from dorp_rl.envs import env_profile, registered_profiles
+
+    names = registered_profiles()
+    assert len(names) >= 3
+    for name in names:
+        profile = env_profile(name)
+        config = DORPConfig.for_env(profile)
+        for key, value in profile.dorp.items():
+            assert getattr(config, key) == value
