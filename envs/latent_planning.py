@@ -214,12 +214,3 @@ class LatentModelEnv(TorchRLWorldModelEnv):
             if ("next", "pixels") in next_keys:
                 rollout.set(("next", "pixels"), self.model.decode_uint8(latents))
         return rollout, {}
-
-    def imagine_latents(self, pixels: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """Latents ``[*B, N, T, D]`` of candidate actions ``[*B, N, T]`` from frames
-        ``[*B, C, H, W]``: one encoding per row, then batched latent steps (no tensordict
-        per step)."""
-        with torch.no_grad():
-            latent = self.model.encode(pixels)  # [*B, D]
-            latent = latent.unsqueeze(-2).expand(*actions.shape[:-1], latent.shape[-1])
-            return self.model.imagine(latent, actions)
