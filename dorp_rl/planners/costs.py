@@ -74,6 +74,7 @@ __all__ = [
     "CostSequence",
     "MissingRolloutKeyError",
     "NegativeRewardCost",
+    "ObjectMapCost",
     "PixelDistanceCost",
     "RolloutCost",
     "WeightedCostSum",
@@ -330,19 +331,7 @@ class PixelDistanceCost(RolloutCost):
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         chunk_size = check_int("chunk_size", chunk_size, low=1)
-        if isinstance(blur_sigmas, (str, bytes)) or not isinstance(blur_sigmas, Sequence):
-            raise ValueError(
-                f"blur_sigmas must be a sequence of positive widths, got {blur_sigmas!r}."
-            )
-        sigmas = [
-            check_float(f"blur_sigmas[{i}]", x, low=0.0, low_open=True)
-            for i, x in enumerate(blur_sigmas)
-        ]
-        self.blur_sigmas = tuple(sigmas)
-        for i, sigma in enumerate(sigmas):
-            radius = min(15, math.ceil(3 * sigma))
-            taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1) / sigma) ** 2)
-            self.register_buffer(f"_blur{i}", taps / taps.sum(), persistent=False)
+        self.blur_sigmas = _register_blurs(self, blur_sigmas)
         self.goal_key = unravel_key(goal_key)
         self.pixels_key = unravel_key(pixels_key)
         self.chunk_size = int(chunk_size)
@@ -371,50 +360,20 @@ class PixelDistanceCost(RolloutCost):
     def _per_step_cost(
         self, rollout: TensorDictBase, imagined: ImaginedFrames | None
     ) -> torch.Tensor:
-        name = type(self).__name__
-        if imagined is None:
-            pixels = get_rollout_key(rollout, self.pixels_key, name)
-            frame_shape, lead = pixels.shape[-3:], pixels.shape[:-3]
-        else:
-            frame_shape, lead = imagined.frame_shape, imagined.shape
-        goal = get_rollout_key(rollout, self.goal_key, name)
-        if tuple(frame_shape) != tuple(goal.shape[-3:]):
-            raise ValueError(
-                f"{self.goal_key!r} must have the frame shape of {self.pixels_key!r} "
-                f"({list(frame_shape)}), got {list(goal.shape)}."
-            )
-        # The goal is a broadcast view: keep one copy per distinct goal and an index from
-        # each frame to its goal, instead of materialising it N * H times.
-        goal = compact_broadcast(goal.expand(*lead, *goal.shape[-3:]), keep_last=3)
-        goal_rows = goal.reshape(-1, frame_shape.numel())
-        goals = goal_rows.to(torch.float32)
-        owner = torch.arange(goals.shape[0], device=goals.device).reshape(goal.shape[:-3])
-        owner = owner.expand(lead).reshape(-1)
-        inverse = None
-        if imagined is None:
-            frames = pixels.reshape(-1, frame_shape.numel())
-            if self.blur_sigmas and frames.dtype == torch.uint8 and frames.shape[0] > 1:
-                # Blurring costs ~50x the plain distance; imagined frames repeat a lot, so
-                # score each distinct (frame, goal) pair once.
-                owner_bytes = owner.unsqueeze(-1).contiguous().view(torch.uint8)
-                pairs, inverse = distinct_rows(torch.cat([frames, owner_bytes], -1))
-                if inverse is not None:
-                    frames = pairs[:, : frames.shape[1]]
-                    owner = pairs[:, frames.shape[1] :].contiguous().view(torch.int64).squeeze(-1)
-        elif not self.blur_sigmas:
-            squared = imagined.squared_distances(goal_rows, owner)
+        pairs = _GoalPairs(rollout, imagined, self.pixels_key, self.goal_key, type(self).__name__)
+        goals = pairs.goals.reshape(pairs.goals.shape[0], -1).to(torch.float32)
+        if imagined is not None and not self.blur_sigmas:
+            goal_rows = pairs.goals.reshape(goals.shape)
+            squared = imagined.squared_distances(goal_rows, pairs.owner)
             if squared is not None and (squared.numel() == 0 or int(squared.max()) < 2**24):
                 # Exactly what the float loop below gives: every partial sum of the
                 # squared differences is an integer below 2**24, which float32 holds.
-                return squared.to(torch.float32).sqrt_().div_(255.0).reshape(lead)
-            frames = imagined.pixels().reshape(-1, frame_shape.numel())
-        elif imagined.numel > 1:
-            # The same distinct (frame, goal) pairs as above, drawing only distinct frames.
-            distinct, goal_index, inverse, _ = imagined.distinct(owner.unsqueeze(-1))
-            frames = distinct.reshape(distinct.shape[0], -1)
-            owner = goal_index.squeeze(-1)
-        else:
-            frames = imagined.pixels().reshape(-1, frame_shape.numel())
+                return squared.to(torch.float32).sqrt_().div_(255.0).reshape(pairs.lead)
+        # Blurring costs ~50x the plain distance; imagined frames repeat a lot, so
+        # score each distinct (frame, goal) pair once.
+        frames, owner, inverse = pairs.distinct(dedupe=bool(self.blur_sigmas))
+        frames = frames.reshape(frames.shape[0], -1)
+        frame_shape = pairs.frame_shape
         out = torch.empty(frames.shape[0], dtype=torch.float32, device=frames.device)
         # Chunks of a few hundred frames stay in cache: ~10x faster than one pass.
         for start in range(0, frames.shape[0], self.chunk_size):
@@ -429,7 +388,7 @@ class PixelDistanceCost(RolloutCost):
             out[start:stop] = total
         if inverse is not None:
             out = out[inverse]
-        return out.div_(255.0).reshape(lead)
+        return out.div_(255.0).reshape(pairs.lead)
 
     def extra_repr(self) -> str:
         blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
@@ -463,6 +422,200 @@ def _blur_matrix(taps: torch.Tensor, size: int) -> torch.Tensor:
     source = torch.where(source >= size, 2 * size - 1 - source, source)
     matrix = torch.zeros(size, size, dtype=taps.dtype, device=taps.device)
     return matrix.scatter_add_(1, source, taps.expand(size, -1).contiguous())
+
+
+class _GoalPairs:
+    """The (frame, goal) pairs of a rollout that a distance to the goal image scores.
+
+    ``goals`` uint8 ``[G, *frame_shape]`` holds one copy per distinct goal (the goal is
+    a broadcast view: it is never materialised ``N * H`` times) and ``owner [n]`` maps
+    each of the ``n`` flat steps to its goal; ``lead`` is the rollout's ``[*B, N, H]``.
+    """
+
+    def __init__(
+        self,
+        rollout: TensorDictBase,
+        imagined: ImaginedFrames | None,
+        pixels_key: NestedKey,
+        goal_key: NestedKey,
+        name: str,
+    ) -> None:
+        self.imagined = imagined
+        self.pixels = None
+        if imagined is None:
+            self.pixels = get_rollout_key(rollout, pixels_key, name)
+            self.frame_shape, self.lead = self.pixels.shape[-3:], self.pixels.shape[:-3]
+        else:
+            self.frame_shape, self.lead = imagined.frame_shape, imagined.shape
+        goal = get_rollout_key(rollout, goal_key, name)
+        if tuple(self.frame_shape) != tuple(goal.shape[-3:]):
+            raise ValueError(
+                f"{goal_key!r} must have the frame shape of {pixels_key!r} "
+                f"({list(self.frame_shape)}), got {list(goal.shape)}."
+            )
+        goal = compact_broadcast(goal.expand(*self.lead, *goal.shape[-3:]), keep_last=3)
+        self.goals = goal.reshape(-1, *self.frame_shape)
+        owner = torch.arange(self.goals.shape[0], device=goal.device).reshape(goal.shape[:-3])
+        self.owner = owner.expand(self.lead).reshape(-1)
+
+    def distinct(
+        self, dedupe: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``(frames [m, *frame_shape], owner [m], inverse [n] | None)``: with ``dedupe``,
+        each distinct (frame, goal) pair once (imagined frames: only those are drawn),
+        and ``inverse`` from every step to its pair (``None``: every step, in order)."""
+        imagined, owner = self.imagined, self.owner
+        if imagined is None:
+            frames = self.pixels.reshape(-1, *self.frame_shape)
+            if dedupe and frames.dtype == torch.uint8 and frames.shape[0] > 1:
+                rows = frames.reshape(frames.shape[0], -1)
+                owner_bytes = owner.unsqueeze(-1).contiguous().view(torch.uint8)
+                pairs, inverse = distinct_rows(torch.cat([rows, owner_bytes], -1))
+                if inverse is not None:
+                    width = rows.shape[1]
+                    frames = pairs[:, :width].reshape(-1, *self.frame_shape)
+                    return (
+                        frames,
+                        pairs[:, width:].contiguous().view(torch.int64).squeeze(-1),
+                        inverse,
+                    )
+            return frames, owner, None
+        if dedupe and imagined.numel > 1:
+            distinct, goal_index, inverse, _ = imagined.distinct(owner.unsqueeze(-1))
+            return distinct, goal_index.squeeze(-1), inverse
+        return imagined.pixels().reshape(-1, *self.frame_shape), owner, None
+
+
+class ObjectMapCost(RolloutCost):
+    """Distance of each object's map in the predicted frames to its map in the goal image.
+
+    The encoder's object extractor gives one map per one-hot (``encoder.object_maps``,
+    float ``[*B, K, H, W]``; with DORP's codes, one object each). Per step::
+
+        sum_k ( ||m_k - g_k||_2 + sum_s ||blur_s(m_k - g_k)||_2 )
+
+    over the maps ``m_k`` of the predicted frame and ``g_k`` of the goal image. Each
+    object has its own term, so moving one object towards its goal place never pays for
+    another: pixel distance trades objects off (two blocks each in the other's goal place
+    are a local minimum for it, since a block stepping aside first makes the frame differ
+    from the goal in more cells), object maps do not. The goal-image phase of
+    :class:`~dorp_rl.policies.AbstractGoalPolicy` adds it to the pixel distance.
+
+    Args:
+        encoder: anything with ``object_maps(pixels) -> [*B, K, H, W]``
+            (:class:`~dorp_rl.modules.DiscreteCodeEncoder`); run in eval mode without
+            gradients, its mode restored after.
+        goal_key: the goal image in the acting tensordict.
+        pixels_key: the predicted frames in the rollout.
+        out_key: where the per-step cost ``[*B, N, H]`` is written.
+        step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
+        chunk_size: frames per encoder call (bounds memory).
+        blur_sigmas: widths of the blurred terms, in cells (as :class:`PixelDistanceCost`).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
+        >>> from dorp_rl.planners import ObjectMapCost
+        >>> encoder = DiscreteCodeEncoder(EncoderConfig.small(code_sizes=(8, 8)))
+        >>> frames = torch.randint(0, 256, (2, 5, 4, 3, 16, 16), dtype=torch.uint8)
+        >>> goal = frames[:, :1, :1].expand(2, 5, 4, 3, 16, 16)
+        >>> rollout = TensorDict(
+        ...     {"goal_pixels": goal, ("next", "pixels"): frames}, batch_size=(2, 5, 4)
+        ... )
+        >>> cost = ObjectMapCost(encoder, blur_sigmas=(2.0,))(rollout)["cost"]
+        >>> cost.shape, float(cost[0, 0, 0])
+        (torch.Size([2, 5, 4]), 0.0)
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        goal_key: NestedKey = "goal_pixels",
+        pixels_key: NestedKey = ("next", "pixels"),
+        *,
+        out_key: NestedKey = "cost",
+        step_aggregation: str = "min",
+        chunk_size: int = 1024,
+        blur_sigmas: Sequence[float] = (),
+    ) -> None:
+        super().__init__(out_key=out_key, step_aggregation=step_aggregation)
+        if not callable(getattr(encoder, "object_maps", None)):
+            raise ValueError(
+                f"ObjectMapCost needs an encoder with object_maps(pixels) -> [*B, K, H, W] "
+                f"(a DiscreteCodeEncoder), got {type(encoder).__name__}, which has none."
+            )
+        self.encoder = encoder
+        self.chunk_size = check_int("chunk_size", chunk_size, low=1)
+        self.blur_sigmas = _register_blurs(self, blur_sigmas)
+        self.goal_key = unravel_key(goal_key)
+        self.pixels_key = unravel_key(pixels_key)
+        self.in_keys = [self.pixels_key, self.goal_key]
+        self.root_frame_keys = [self.goal_key]
+
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        return self._per_step_cost(rollout, None)
+
+    def per_step_cost_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+    ) -> torch.Tensor:
+        """The same costs, drawing and mapping distinct (frame, goal) pairs only."""
+        frames = lazy_frames(rollout, lazy, self.pixels_key)
+        if frames is None:
+            return super().per_step_cost_lazy(rollout, lazy)
+        return self._per_step_cost(rollout, frames)
+
+    @torch.no_grad()
+    def _maps(self, frames: torch.Tensor) -> torch.Tensor:
+        return torch.cat([self.encoder.object_maps(c) for c in frames.split(self.chunk_size)])
+
+    @torch.no_grad()
+    def _per_step_cost(
+        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
+    ) -> torch.Tensor:
+        pairs = _GoalPairs(rollout, imagined, self.pixels_key, self.goal_key, type(self).__name__)
+        frames, owner, inverse = pairs.distinct()
+        module = self.encoder if isinstance(self.encoder, nn.Module) else None
+        was_training = module.training if module is not None else False
+        if module is not None:
+            module.eval()
+        try:
+            goal_maps = self._maps(pairs.goals).to(torch.float32)
+            out = torch.empty(frames.shape[0], dtype=torch.float32, device=goal_maps.device)
+            for start in range(0, frames.shape[0], self.chunk_size):
+                stop = start + self.chunk_size
+                diff = self._maps(frames[start:stop]).to(torch.float32)
+                diff.sub_(goal_maps.index_select(0, owner[start:stop]))
+                total = diff.flatten(2).square().sum(-1).sqrt_().sum(-1)
+                for i in range(len(self.blur_sigmas)):
+                    blurred = _blur(diff, getattr(self, f"_blur{i}"))
+                    total += blurred.flatten(2).square().sum(-1).sqrt_().sum(-1)
+                out[start:stop] = total
+        finally:
+            if module is not None:
+                module.train(was_training)
+        if inverse is not None:
+            out = out[inverse]
+        return out.reshape(pairs.lead)
+
+    def extra_repr(self) -> str:
+        blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
+        return f"goal_key={self.goal_key!r}{blur}, {super().extra_repr()}"
+
+
+def _register_blurs(module: nn.Module, blur_sigmas: Sequence[float]) -> tuple[float, ...]:
+    """Checks ``blur_sigmas`` and registers the Gaussian taps of each as ``_blur{i}``."""
+    if isinstance(blur_sigmas, (str, bytes)) or not isinstance(blur_sigmas, Sequence):
+        raise ValueError(f"blur_sigmas must be a sequence of positive widths, got {blur_sigmas!r}.")
+    sigmas = [
+        check_float(f"blur_sigmas[{i}]", x, low=0.0, low_open=True)
+        for i, x in enumerate(blur_sigmas)
+    ]
+    for i, sigma in enumerate(sigmas):
+        radius = min(15, math.ceil(3 * sigma))
+        taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1) / sigma) ** 2)
+        module.register_buffer(f"_blur{i}", taps / taps.sum(), persistent=False)
+    return tuple(sigmas)
 
 
 class _EncodingCache:

@@ -103,6 +103,11 @@ class DORPConfig(ConfigMixin):
     goal_code_weight: float = checked(100.0, Float(low=0.0))
     """goal phase: cost of a frame whose codes are not the goal's, added to its pixel
     distance (0: pixel distance alone, as the paper)"""
+    goal_map_weight: float | None = checked(None, Float(low=0.0, optional=True))
+    """goal phase: weight of the distance of the encoder's object maps to the goal
+    image's (:class:`~dorp_rl.planners.ObjectMapCost`), added to the pixel distance:
+    each object is pulled to its own place (None: 1 when the encoder has
+    ``object_maps``, else 0)"""
     goal_patience: int | None = checked(14, Int(low=1, optional=True))
     """goal-phase steps without a lower plan cost after which the goal-code term is
     dropped (None: never)"""

@@ -17,6 +17,7 @@ from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.planners.costs import (
     CodeMatchCost,
     CostSequence,
+    ObjectMapCost,
     PixelDistanceCost,
     WeightedCostSum,
     check_step_penalty,
@@ -32,11 +33,13 @@ __all__ = ["DEFAULT_ACTION_PRIOR_MIX", "DORP_RECIPE", "make_dorp_policy", "make_
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 3
+DORP_RECIPE = 4
 #: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: the random-shooting planners' ``action_persistence`` when the config leaves it ``None``
 DEFAULT_ACTION_PERSISTENCE = 0.5
+#: goal_map_weight when the config leaves it None and the encoder has object maps.
+DEFAULT_GOAL_MAP_WEIGHT = 1.0
 _CEM_ONLY = frozenset(
     ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
 )
@@ -100,26 +103,33 @@ def make_goal_cost(
     *,
     goal_code_weight: float,
     goal_blur_sigmas: Sequence[float],
+    goal_map_weight: float = 0.0,
     code_key: NestedKey | None = None,
 ) -> nn.Module:
     """The goal-image phase's cost: the goal's blurred pixel distance, plus (with
-    ``goal_code_weight > 0``) a code term weighted per row by ``goal_code_weight``
-    (reading predicted codes under ``code_key`` when the planning env writes them).
+    ``goal_map_weight > 0``) the blurred distance of the encoder's object maps to the
+    goal's, and (with ``goal_code_weight > 0``) a code term weighted per row by
+    ``goal_code_weight`` (reading predicted codes under ``code_key`` when the planning
+    env writes them).
 
     The goal-image phase starts with every code at the goal's: frames that leave them
     cost more than any pixel distance, so the pixel cost cannot undo the plan.
     """
     pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
-    if goal_code_weight == 0:
+    goal_map_weight = check_float("goal_map_weight", goal_map_weight, low=0.0)
+    if goal_code_weight == 0 and goal_map_weight == 0:
         return pixel_cost
-    return CostSequence(
-        pixel_cost,
-        CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost", code_key=code_key),
-        WeightedCostSum(
-            {"pixel_cost": 1.0, "goal_code_cost": "goal_code_weight"},
-            step_aggregation="min",
-        ),
-    )
+    terms: list[nn.Module] = [pixel_cost]
+    weights: dict[str, float | str] = {"pixel_cost": 1.0}
+    if goal_map_weight > 0:
+        terms.append(ObjectMapCost(encoder, out_key="goal_map_cost", blur_sigmas=goal_blur_sigmas))
+        weights["goal_map_cost"] = goal_map_weight
+    if goal_code_weight > 0:
+        terms.append(
+            CodeMatchCost(encoder, "goal_code", out_key="goal_code_cost", code_key=code_key)
+        )
+        weights["goal_code_cost"] = "goal_code_weight"
+    return CostSequence(*terms, WeightedCostSum(weights, step_aggregation="min"))
 
 
 def make_dorp_policy(
@@ -241,10 +251,14 @@ def make_dorp_policy(
         **shared,
         **(cem_only if config.planner == "cem" else rs_only),
     )
+    if config.goal_map_weight is None:
+        has_maps = callable(getattr(encoder, "object_maps", None))
+        config = config.replace(goal_map_weight=DEFAULT_GOAL_MAP_WEIGHT if has_maps else 0.0)
     goal_cost = make_goal_cost(
         encoder,
         goal_code_weight=config.goal_code_weight,
         goal_blur_sigmas=config.goal_blur_sigmas,
+        goal_map_weight=config.goal_map_weight,
         code_key=code_key,
     )
     goal = kinds[goal_kind](
