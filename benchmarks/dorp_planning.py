@@ -86,6 +86,7 @@ def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[An
         encoder = load_encoder(checkpoint, env)
     groups = setting.groups
     tag = groups if isinstance(groups, str) else "-".join("".join(map(str, g)) for g in groups)
+    tag += "-completed" if setting.completes_graph() else ""
     graph_path = args.out_dir / "graphs" / f"{name}-{args.codes}-{tag}.pt"
     if graph_path.exists():
         graph = CodeGraph.load(graph_path, encoder=encoder, env_config=env.config())
@@ -98,7 +99,7 @@ def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[An
             trajectory_length=cfg.trajectory_length,
         )
         start = time.perf_counter()
-        graph = CodeGraph.from_play_data(buffer, encoder, groups)
+        graph = setting.make_graph(buffer, encoder)
         timings["graph_s"] = time.perf_counter() - start
         graph.save(graph_path)
     return encoder, graph, timings

@@ -929,7 +929,7 @@ def graph_stage(
         key = (codes_variant, encoder_fingerprint(encoder))
         if key not in run.encoded:
             run.encoded[key] = encode_transitions(buffer, encoder, progress=run.progress)
-        graph = CodeGraph.from_play_data(
+        graph = setting_of(setting).make_graph(
             buffer, encoder, groups, transitions=run.encoded[key], num_actions=num_actions
         )
         graph.save(path)
@@ -940,7 +940,12 @@ def graph_stage(
         return CodeGraph.load(path, encoder=encoder, env_config=env_config)
 
     # "action_counts": graphs keep their play data's actions (older graphs are rebuilt).
-    config = {"groups": groups, "codes": _stage_config(codes), "action_counts": True}
+    config = {
+        "groups": groups,
+        "codes": _stage_config(codes),
+        "action_counts": True,
+        "completed": setting_of(setting).completes_graph(groups),
+    }
     return encoder, run.stage(_tagged("graph", variant), config, [path], build, load)
 
 

@@ -104,6 +104,11 @@ class EnvProfile:
         world_model: overrides of :class:`~dorp_rl.trainers.WorldModelConfig`, likewise.
         groups: the code graph's groups (``"onehot"``, ``"full"`` or tuples of one-hot
             indices), a value or a function of ``num_objects``.
+        graph_completion: whether the pipeline completes the code graphs of groups of
+            several one-hots (:meth:`~dorp_rl.planners.CodeGraph.completed`): true when
+            the one-hots of a group are objects that move independently (blocks), false
+            when they change together (an agent and the key it carries). Never applied
+            to the full-graph ablation (``groups="full"``).
         dorp: fields of :class:`~dorp_rl.policies.DORPConfig` that suit the env (e.g.
             ``reenter``, ``replan_on_miss``, ``waypoint_goal_weight``), over its defaults
             (:meth:`~dorp_rl.policies.DORPConfig.for_env`).
@@ -136,6 +141,7 @@ class EnvProfile:
     codes: Callable[[int], Mapping[str, Any]] | None = None
     world_model: Callable[[int], Mapping[str, Any]] | None = None
     groups: Any = "onehot"
+    graph_completion: bool = False
     dorp: Mapping[str, Any] = field(default_factory=dict)
     draw_tasks: Callable[[EnvBase, int, int], TensorDictBase] | None = None
     lower_bound: Callable[[EnvBase, torch.Tensor, torch.Tensor], torch.Tensor] | None = None

@@ -393,6 +393,9 @@ REARRANGEMENT = register_env_profile(
         # Failed hops are removed at once (blocks stand in the way) and waypoint plans are
         # ranked by the goal image too (docs/NOTES.md has the measurements).
         dorp={"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003},
+        # Blocks move one at a time: a block's move seen in one joint code of its group
+        # is a move in the group's other joint codes too (CodeGraph.completed).
+        graph_completion=True,
         draw_tasks=draw_grid_tasks,
         description="k coloured 2x4 blocks on a 16x16 grid, moved one cell at a time",
     )

@@ -216,3 +216,53 @@ def test_group_of_edge_names_each_edges_group():
     assert graph.group_of_edge(-1).item() == -1
     with pytest.raises(ValueError, match="edge ids"):
         graph.group_of_edge(graph.indices.shape[0])
+
+
+def test_completion_adds_the_edges_of_one_member_moving_alone():
+    # Member 0 was seen moving 0 -> 1 only while member 1 held 0; member 1 moving 0 -> 1
+    # only while member 0 held 0. The joint codes (1, 1) and (2, 1) were seen, never
+    # entered or left: in the play data's graph they are cut off from (0, 0).
+    codes = torch.tensor([[0, 0], [0, 0], [1, 1], [2, 1], [2, 1]])
+    nexts = torch.tensor([[1, 0], [0, 1], [1, 1], [2, 1], [2, 1]])
+    graph = CodeGraph.from_transitions(codes, nexts, (3, 2), [(0, 1)])
+    start, goal = torch.tensor([0, 0]), torch.tensor([1, 1])
+    assert graph.shortest_path(0, start, goal) == []
+    done = graph.completed()
+    node = {tuple(graph.node_code(i).tolist()): i for i in range(graph.num_nodes(0))}
+    # (1, 0) -> (1, 1) by member 1's move and (0, 1) -> (1, 1) by member 0's; (2, 1)
+    # stays apart: no member was seen moving to or from code 2.
+    edges = {(int(a), int(b)) for a, b in zip(done.edge_source, done.indices, strict=True)}
+    added = edges - {
+        (int(a), int(b)) for a, b in zip(graph.edge_source, graph.indices, strict=True)
+    }
+    assert added == {
+        (node[1, 0], node[1, 1]),
+        (node[1, 1], node[1, 0]),
+        (node[0, 1], node[1, 1]),
+        (node[1, 1], node[0, 1]),
+    }
+    assert len(done.shortest_path(0, start, goal)) == 3
+    assert done.shortest_path(0, start, torch.tensor([2, 1])) == []
+    # Seen edges keep their counts, added ones count 0; nodes are unchanged.
+    for a, b, count in zip(done.edge_source, done.indices, done.edge_counts, strict=True):
+        key = (int(a), int(b))
+        assert int(count) == (0 if key in added else 1)
+    assert torch.equal(done.node_keys, graph.node_keys)
+    # Groups of one one-hot have nothing to complete.
+    single = CodeGraph.from_transitions(codes, nexts, (3, 2), "onehot")
+    assert torch.equal(single.completed().indices, single.indices)
+
+
+def test_settings_complete_the_graphs_their_profile_allows():
+    from dorp_rl.eval import setting_of
+
+    assert setting_of("5obj").completes_graph() and not setting_of("5obj-full").completes_graph()
+    assert not setting_of("keywall").completes_graph()  # agent and key bit change together
+    setting = setting_of("5obj")
+    env = setting.make_env(batch_size=(4,), seed=0)
+    play = collect_play_data(env, 3000, seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=8)
+    plain = CodeGraph.from_play_data(play, oracle, setting.groups)
+    made = setting.make_graph(play, oracle)
+    assert torch.equal(made.indices, plain.completed().indices)
+    assert made.num_edges(1) > plain.num_edges(1) and made.num_edges(0) >= plain.num_edges(0)

@@ -113,10 +113,10 @@ def test_the_goal_phase_adds_the_object_maps_when_the_encoder_has_them():
     encoder = map_encoder((3, 16, 16), code_sizes=(8,))
     graph = CodeGraph.from_play_data(play, encoder)
     policy = make_dorp_policy(env, encoder, graph, seed=0, **small)
-    assert policy.config.goal_map_weight == 1.0
+    assert policy.config.goal_map_weight == 4.0
     assert ObjectMapCost in goal_terms(policy) and PixelDistanceCost in goal_terms(policy)
     weights = policy.goal_planner.cost.module[-1].weights
-    assert weights["goal_map_cost"] == 1.0
+    assert weights["goal_map_cost"] == 4.0
     off = make_dorp_policy(env, encoder, graph, seed=0, goal_map_weight=0, **small)
     assert ObjectMapCost not in goal_terms(off)
     # Oracle codes have no object maps: left to the default, the term is off; asked

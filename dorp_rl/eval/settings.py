@@ -60,6 +60,23 @@ class Setting:
         """The acting environment of this setting."""
         return self.profile.build(self.num_objects, **kwargs)
 
+    def completes_graph(self, groups: Any = None) -> bool:
+        """Whether this setting's graphs over ``groups`` (default: its own) are completed
+        (:meth:`~dorp_rl.planners.CodeGraph.completed`): when the profile says so, never
+        for the full graph."""
+        groups = self.groups if groups is None else groups
+        return bool(self.profile.graph_completion) and groups != "full"
+
+    def make_graph(self, buffer: Any, encoder: Any, groups: Any = None, **kwargs: Any) -> Any:
+        """The code graph of this setting over a play buffer (``groups`` default: its own),
+        completed when :meth:`completes_graph`; ``kwargs`` go to
+        :meth:`~dorp_rl.planners.CodeGraph.from_play_data`."""
+        from dorp_rl.planners import CodeGraph
+
+        groups = self.groups if groups is None else groups
+        graph = CodeGraph.from_play_data(buffer, encoder, groups, **kwargs)
+        return graph.completed() if self.completes_graph(groups) else graph
+
 
 def setting_of(name: str) -> Setting:
     """The setting called ``name``: one of :data:`SETTINGS`, else the setting of the env

@@ -888,6 +888,89 @@ class CodeGraph(nn.Module):
         uniform = torch.full_like(weights, 1.0 / width)
         return torch.where(total > 0, weights / total.clamp_min(1e-12), uniform)
 
+    def completed(self) -> CodeGraph:
+        """This graph with the edges that moving one group member alone implies.
+
+        In a group of several one-hots (a pair or a triple of blocks) the play data sees
+        only some of the joint codes' transitions, so the group's graph can split into
+        parts and a goal can be out of reach although every member can get to its own
+        goal code. When the play data saw member ``k`` go from code ``x`` to ``y``
+        (others unchanged, in any joint code), this adds the edge from every joint node
+        with ``x`` at ``k`` to the node with ``y`` at ``k`` and the other members the same,
+        if that node was seen. That assumes the members move independently, as objects do
+        while nothing blocks them (a hop that fails is removed like any other); it does
+        not hold for one-hots that change together (an agent picking up a key), so it is
+        a choice of the env (its profile's ``graph_completion``). The new edges have count
+        0, so among equally short paths the policy prefers seen ones
+        (:meth:`next_waypoint`). Groups of one one-hot are unchanged.
+
+        Examples:
+            >>> import torch
+            >>> from dorp_rl.planners import CodeGraph
+            >>> codes = torch.tensor([[0, 0], [0, 1]])
+            >>> nexts = torch.tensor([[1, 0], [0, 0]])  # member 0 moves at (., 0) only
+            >>> seen = torch.tensor([[1, 1], [1, 1]])  # (1, 1) is seen, never entered
+            >>> graph = CodeGraph.from_transitions(
+            ...     torch.cat([codes, seen]), torch.cat([nexts, seen]), (2, 2), [(0, 1)]
+            ... )
+            >>> graph.num_edges(0), graph.completed().num_edges(0)
+            (2, 4)
+        """
+        src, dst, counts = [self.edge_source], [self.indices], [self.edge_counts]
+        for g, members in enumerate(self.groups):
+            if len(members) < 2:
+                continue
+            lo, hi = self._offsets[g], self._offsets[g + 1]
+            keys = self.node_keys[lo:hi]
+            radix = self.group_radix[g, : len(members)]
+            sizes = torch.tensor([self.code_sizes[j] for j in members])
+            codes = (keys.unsqueeze(-1) // radix) % sizes  # [n, m]
+            inside = (self.edge_source >= lo) & (self.edge_source < hi)
+            a, b = self.edge_source[inside] - lo, self.indices[inside] - lo
+            changed = codes[a] != codes[b]
+            for k in range(len(members)):
+                alone = changed[:, k] & (changed.sum(-1) == 1)
+                moves = torch.unique(
+                    torch.stack([codes[a[alone], k], codes[b[alone], k]], -1), dim=0
+                )
+                if moves.shape[0] == 0:
+                    continue
+                # Every node with a move's first code at k, and the node it moves to.
+                node, move = (codes[:, k].unsqueeze(1) == moves[:, 0]).nonzero(as_tuple=True)
+                target = keys[node] + (moves[move, 1] - moves[move, 0]) * radix[k]
+                pos = torch.searchsorted(keys, target).clamp_max(keys.shape[0] - 1)
+                seen = keys[pos] == target
+                src.append(node[seen] + lo)
+                dst.append(pos[seen] + lo)
+                counts.append(torch.zeros(int(seen.sum()), dtype=torch.int64))
+        src, dst, cnt = torch.cat(src), torch.cat(dst), torch.cat(counts)
+        total = int(self.node_keys.shape[0])
+        # Seen edges first, so that unique keeps their counts over the added zeros.
+        pair = src * total + dst
+        order = torch.argsort(pair, stable=True)
+        pair, cnt = pair[order], cnt[order]
+        unique, first = torch.unique_consecutive(pair, return_inverse=True)
+        keep = torch.zeros(unique.shape[0], dtype=torch.int64).scatter_reduce(
+            0, first, cnt, reduce="amax", include_self=False
+        )
+        src, dst = unique // total, unique % total
+        indptr = torch.zeros(total + 1, dtype=torch.int64)
+        indptr[1:] = torch.bincount(src, minlength=total).cumsum(0)
+        return type(self)(
+            self.code_sizes,
+            self.groups,
+            node_keys=self.node_keys.clone(),
+            node_offsets=self.node_offsets.clone(),
+            node_counts=self.node_counts.clone(),
+            indptr=indptr,
+            indices=dst,
+            edge_counts=keep,
+            fingerprint=self.fingerprint,
+            env_config=self.env_config,
+            dense_limit=self.dense_limit,
+            action_counts=self.action_counts,
+        )
+
     def config(self) -> dict[str, Any]:
         """What identifies this graph: code sizes, groups, encoder fingerprint, limits.
 

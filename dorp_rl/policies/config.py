@@ -106,7 +106,7 @@ class DORPConfig(ConfigMixin):
     goal_map_weight: float | None = checked(None, Float(low=0.0, optional=True))
     """goal phase: weight of the distance of the encoder's object maps to the goal
     image's (:class:`~dorp_rl.planners.ObjectMapCost`), added to the pixel distance:
-    each object is pulled to its own place (None: 1 when the encoder has
+    each object is pulled to its own place (None: 4 when the encoder has
     ``object_maps``, else 0)"""
     goal_patience: int | None = checked(14, Int(low=1, optional=True))
     """goal-phase steps without a lower plan cost after which the goal-code term is
@@ -132,6 +132,9 @@ class DORPConfig(ConfigMixin):
     waypoint_goal_weight: float = checked(0.0, Float(low=0.0))
     """weight of the goal image's pixel distance in the waypoint cost: ranks plans that
     reach the waypoint by how close their frame is to the goal (0: the code match alone)"""
+    waypoint_goal_maps: bool = checked(False, Flag())
+    """the waypoint cost's goal-image term also counts the object maps' distance to the
+    goal (``goal_map_weight`` of it), as the goal-image phase does"""
     waypoint_step_penalty: float = checked(0.0, _step_penalty)
     """waypoint cost per step of a frame at the waypoint: earlier arrival wins"""
     action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
