@@ -132,9 +132,6 @@ class DORPConfig(ConfigMixin):
     waypoint_goal_weight: float = checked(0.0, Float(low=0.0))
     """weight of the goal image's pixel distance in the waypoint cost: ranks plans that
     reach the waypoint by how close their frame is to the goal (0: the code match alone)"""
-    waypoint_goal_maps: bool = checked(False, Flag())
-    """the waypoint cost's goal-image term also counts the object maps' distance to the
-    goal (``goal_map_weight`` of it), as the goal-image phase does"""
     waypoint_step_penalty: float = checked(0.0, _step_penalty)
     """waypoint cost per step of a frame at the waypoint: earlier arrival wins"""
     action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))

@@ -52,7 +52,6 @@ def make_waypoint_cost(
     waypoint_goal_weight: float = 0.0,
     step_penalty: float = 0.0,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
-    goal_map_weight: float = 0.0,
     cache_size: int = 2**18,
     code_key: NestedKey | None = None,
 ) -> nn.Module:
@@ -62,9 +61,7 @@ def make_waypoint_cost(
     ``subgoal_mask``; with ``waypoint_goal_weight > 0``, plus that weight times the goal
     image's blurred :class:`~dorp_rl.planners.PixelDistanceCost` (each folded over the
     plan's steps with ``min``), so that among plans reaching the waypoint those leaving
-    the frame nearest the goal image win (with ``goal_map_weight > 0`` that distance also
-    counts the encoder's object maps, as in the goal-image phase: each block's own way to
-    its place, :class:`~dorp_rl.planners.ObjectMapCost`). ``step_penalty`` is the code term's cost per
+    the frame nearest the goal image win. ``step_penalty`` is the code term's cost per
     step of a matching frame (earlier arrival wins; see
     :class:`~dorp_rl.planners.CodeMatchCost`). ``code_key``: the codes the planning env
     predicts (``("next", "code")`` of a latent world model), read instead of encoding
@@ -91,20 +88,13 @@ def make_waypoint_cost(
     )
     if alone:
         return code_cost
-    goal_map_weight = check_float("goal_map_weight", goal_map_weight, low=0.0)
-    terms: list[nn.Module] = [
+    return CostSequence(
         code_cost,
         PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
-    ]
-    weights = {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)}
-    if goal_map_weight > 0:
-        terms.append(
-            ObjectMapCost(encoder, out_key="waypoint_map_cost", blur_sigmas=goal_blur_sigmas)
-        )
-        weights["waypoint_map_cost"] = float(waypoint_goal_weight * goal_map_weight)
-    return CostSequence(
-        *terms,
-        WeightedCostSum(weights, step_aggregation="min"),
+        WeightedCostSum(
+            {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)},
+            step_aggregation="min",
+        ),
     )
 
 
@@ -250,7 +240,6 @@ def make_dorp_policy(
     waypoint_cost = make_waypoint_cost(
         encoder,
         waypoint_goal_weight=config.waypoint_goal_weight,
-        goal_map_weight=config.goal_map_weight if config.waypoint_goal_maps else 0.0,
         step_penalty=check_step_penalty(config.waypoint_step_penalty, "waypoint_step_penalty"),
         goal_blur_sigmas=config.goal_blur_sigmas,
         code_key=code_key,
