@@ -285,7 +285,32 @@ def _forward_materialized(
     return rollout if out is None else out
 
 
-class PixelDistanceCost(RolloutCost):
+class _GoalFrameCost(RolloutCost):
+    """A cost of each predicted frame against the goal image (the shared keys and blurs)."""
+
+    def _set_frame_keys(
+        self,
+        goal_key: NestedKey,
+        pixels_key: NestedKey,
+        chunk_size: int,
+        blur_sigmas: Sequence[float],
+    ) -> None:
+        self.chunk_size = check_int("chunk_size", chunk_size, low=1)
+        self.blur_sigmas = _register_blurs(self, blur_sigmas)
+        self.goal_key = unravel_key(goal_key)
+        self.pixels_key = unravel_key(pixels_key)
+        self.in_keys = [self.pixels_key, self.goal_key]
+        self.root_frame_keys = [self.goal_key]
+
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        return self._per_step_cost(rollout, None)
+
+    def extra_repr(self) -> str:
+        blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
+        return f"goal_key={self.goal_key!r}{blur}, {super().extra_repr()}"
+
+
+class PixelDistanceCost(_GoalFrameCost):
     """L2 distance between each predicted frame and the goal image (the paper's VF cost).
 
     Per step: ``|| next_pixels / 255 - goal / 255 ||_2`` over the 768 values of the frame
@@ -330,16 +355,7 @@ class PixelDistanceCost(RolloutCost):
         blur_sigmas: Sequence[float] = (),
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
-        chunk_size = check_int("chunk_size", chunk_size, low=1)
-        self.blur_sigmas = _register_blurs(self, blur_sigmas)
-        self.goal_key = unravel_key(goal_key)
-        self.pixels_key = unravel_key(pixels_key)
-        self.chunk_size = int(chunk_size)
-        self.in_keys = [self.pixels_key, self.goal_key]
-        self.root_frame_keys = [self.goal_key]
-
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
-        return self._per_step_cost(rollout, None)
+        self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas)
 
     def per_step_cost_lazy(
         self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
@@ -389,10 +405,6 @@ class PixelDistanceCost(RolloutCost):
         if inverse is not None:
             out = out[inverse]
         return out.div_(255.0).reshape(pairs.lead)
-
-    def extra_repr(self) -> str:
-        blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
-        return f"goal_key={self.goal_key!r}{blur}, {super().extra_repr()}"
 
 
 def _blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
@@ -486,7 +498,7 @@ class _GoalPairs:
         return imagined.pixels().reshape(-1, *self.frame_shape), owner, None
 
 
-class ObjectMapCost(RolloutCost):
+class ObjectMapCost(_GoalFrameCost):
     """Distance of each object's map in the predicted frames to its map in the goal image.
 
     The encoder's object extractor gives one map per one-hot (``encoder.object_maps``,
@@ -546,15 +558,7 @@ class ObjectMapCost(RolloutCost):
                 f"(a DiscreteCodeEncoder), got {type(encoder).__name__}, which has none."
             )
         self.encoder = encoder
-        self.chunk_size = check_int("chunk_size", chunk_size, low=1)
-        self.blur_sigmas = _register_blurs(self, blur_sigmas)
-        self.goal_key = unravel_key(goal_key)
-        self.pixels_key = unravel_key(pixels_key)
-        self.in_keys = [self.pixels_key, self.goal_key]
-        self.root_frame_keys = [self.goal_key]
-
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
-        return self._per_step_cost(rollout, None)
+        self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas)
 
     def per_step_cost_lazy(
         self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
@@ -597,10 +601,6 @@ class ObjectMapCost(RolloutCost):
         if inverse is not None:
             out = out[inverse]
         return out.reshape(pairs.lead)
-
-    def extra_repr(self) -> str:
-        blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
-        return f"goal_key={self.goal_key!r}{blur}, {super().extra_repr()}"
 
 
 def _register_blurs(module: nn.Module, blur_sigmas: Sequence[float]) -> tuple[float, ...]:
