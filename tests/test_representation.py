@@ -525,6 +525,62 @@ def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
     assert trainer.entanglement_hook.entanglement_reason(500) is None
 
 
+def test_dead_onehot_check_runs_on_its_schedule_and_names_the_onehot(tmp_path):
+    cfg = RepresentationConfig.key_wall(
+        encoder={"code_sizes": (8,)},
+        trajectory_length=16,
+        num_frames=512,
+        num_envs=16,
+        batch_size=32,
+        num_steps=40,
+        diagnostics_every=10**9,
+        progress=False,
+        out_dir=str(tmp_path / "run"),
+        dead_check_after=10,
+        dead_check_every=5,
+    )
+    trainer = RepresentationTrainer(cfg)
+    codes = torch.stack([torch.arange(64) % 8, torch.zeros(64, dtype=torch.int64)], 1)
+    hook = trainer.dead_hook
+    with mock.patch.object(trainer, "play_codes", return_value=codes) as play:
+        for step, due in ((9, False), (10, True), (12, False), (15, True), (40, True)):
+            trainer.step = step
+            reason = hook.reason({}, True)
+            assert (reason is not None) == due, step
+        assert play.call_count == 3
+        assert "one-hot(s) [1]" in reason and "64 evenly spaced play frames" in reason
+        trainer.step = 39  # the attempt's last step is checked off the schedule too
+        trainer.attempt_start = -1
+        assert hook.reason({}, True) is not None
+    # The key bit takes both codes: nothing is dead.
+    alive = codes.clone()
+    alive[::7, 1] = 1
+    with mock.patch.object(trainer, "play_codes", return_value=alive):
+        assert hook.reason({}, True) is None
+    trainer.config = cfg.replace(dead_check_frames=0)
+    with mock.patch.object(trainer, "play_codes", return_value=codes) as play:
+        assert hook.reason({}, True) is None and play.call_count == 0
+
+
+def test_a_dead_onehot_restarts_the_attempt_for_a_whole_new_run(tmp_path):
+    cfg = _tiny_config(tmp_path, num_steps=12, dead_check_after=12, max_restarts=2)
+    trainer = RepresentationTrainer(cfg)
+    real = trainer.play_codes
+
+    def dead_in_the_first_attempt(count):
+        codes = real(count)
+        return codes * 0 if trainer.attempt == 0 else codes
+
+    frames = real(10**6)
+    assert frames.shape == (min(len(trainer.buffer), 10**6), 1)
+    trainer.play_codes = dead_in_the_first_attempt
+    with pytest.warns(RuntimeWarning, match=r"restarted at step 12 \(one-hot\(s\) \[0\]"):
+        result = trainer.train()
+    assert [r["reason"].split(" give")[0] for r in result["restarts"]] == ["one-hot(s) [0]"]
+    assert result["attempt"] == 1 and result["step"] == 24  # 12 more steps after the restart
+    assert trainer.hooks["dead"].restarts[0]["step"] == 12
+
+
 def test_key_bit_does_not_count_as_collapse():
     torch.manual_seed(0)
     encoder = DiscreteCodeEncoder(EncoderConfig(code_sizes=(8, 2), channels=8, mlp_sizes=(32, 32)))

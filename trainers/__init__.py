@@ -24,6 +24,7 @@ from dorp_rl.trainers.latent_world_model import (
 from dorp_rl.trainers.representation import (
     CandidateScreening,
     CollapseRestart,
+    DeadOneHotRestart,
     EntanglementRestart,
     RepresentationConfig,
     RepresentationTrainer,
@@ -37,6 +38,7 @@ __all__ = [
     "ENV_NAMES",
     "CandidateScreening",
     "CollapseRestart",
+    "DeadOneHotRestart",
     "EntanglementRestart",
     "LatentWorldModelConfig",
     "LatentWorldModelTrainer",

@@ -109,8 +109,14 @@ class RepresentationConfig(TrainerConfig):
     """steps of an attempt before the entanglement check"""
     entanglement_threshold: float = checked(0.07, Float(low=0.0))
     """map entanglement above this restarts the attempt"""
+    dead_check_after: int = checked(1000, Int(low=0))
+    """steps of an attempt before the dead one-hot check (also made at its last step)"""
+    dead_check_every: int = checked(500, Int(low=1))
+    """steps between dead one-hot checks"""
+    dead_check_frames: int = checked(8192, Int(low=0))
+    """evenly spaced play frames the dead one-hot check encodes (0: no check)"""
     max_restarts: int = checked(3, Int(low=0))
-    """restarts after a collapse or entanglement"""
+    """restarts after a collapse, entanglement or dead one-hot"""
     # initialisation screening
     num_candidates: int = checked(1, Int(low=1))
     """initialisations screened before training (1: no screening)"""
@@ -332,6 +338,46 @@ class EntanglementRestart(RestartHook):
         return None
 
 
+class DeadOneHotRestart(RestartHook):
+    """Restarts an attempt in which a one-hot codes every play frame alike (a dead one-hot).
+
+    After ``dead_check_after`` steps of an attempt, every ``dead_check_every`` steps and
+    at the attempt's last step, the encoder codes ``dead_check_frames`` evenly spaced
+    stored play frames; a one-hot giving all of them one code carries nothing about play
+    (no ground truth needed). Two-code one-hots such as a key bit are judged too, which
+    the collapse check cannot do from a batch: a collapsed key-room run hid its key in a
+    wide one-hot together with a coarse agent place and left the key bit at one code.
+    A restart at the last step starts a whole new attempt.
+    """
+
+    default_name = "dead"
+
+    def reason(self, metrics: dict[str, float], logged: bool = True) -> str | None:
+        trainer = self.trainer
+        cfg = trainer.config
+        steps = trainer.step - trainer.attempt_start
+        due = steps >= cfg.dead_check_after and (
+            steps % cfg.dead_check_every == 0 or steps >= cfg.num_steps
+        )
+        if cfg.dead_check_frames <= 0 or not due:
+            return None
+        dead = self.dead_onehots()
+        if not dead:
+            return None
+        return (
+            f"one-hot(s) {dead} give every one of {self.frames_checked} evenly spaced play "
+            "frames the same code (dead)"
+        )
+
+    def dead_onehots(self) -> list[int]:
+        """One-hots whose code is the same on every checked frame (see the class docstring)."""
+        codes = self.trainer.play_codes(self.trainer.config.dead_check_frames)
+        self.frames_checked = codes.shape[0]
+        if codes.shape[0] < 2:
+            return []
+        return [i for i in range(codes.shape[1]) if bool((codes[:, i] == codes[0, i]).all())]
+
+
 class CandidateScreening(TrainerHook):
     """Trains ``num_candidates`` initialisations for ``candidate_steps`` each, then continues the best.
 
@@ -361,12 +407,7 @@ class CandidateScreening(TrainerHook):
 
     def score(self) -> float:
         """Label-free ``unique_information`` (nats) of the codes of evenly spaced stored play frames."""
-        trainer = self.trainer
-        stored = len(trainer.buffer)
-        count = min(stored, trainer.config.screening_frames)
-        index = torch.linspace(0, stored - 1, count).round().long()
-        pixels = trainer.buffer.storage[index]["pixels"]
-        codes = trainer.encoder.encode(pixels.reshape(-1, *pixels.shape[-3:]))
+        codes = self.trainer.play_codes(self.trainer.config.screening_frames)
         return float(code_information(codes)["unique_information"])
 
     def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
@@ -430,7 +471,7 @@ class RepresentationTrainer(OfflineTrainer):
     weights, optimiser, step, RNG states, hook states) every ``checkpoint_every`` steps
     and at the end; ``train(resume=True)`` ends exactly where an uninterrupted run would.
 
-    Three hooks (:attr:`~dorp_rl.trainers.OfflineTrainer.hooks`), called in this order
+    Four hooks (:attr:`~dorp_rl.trainers.OfflineTrainer.hooks`), called in this order
     after every step, each with its own checkpointed state:
 
     - ``"screening"`` (:class:`CandidateScreening`, ``num_candidates > 1``): some
@@ -454,8 +495,13 @@ class RepresentationTrainer(OfflineTrainer):
       ``entanglement_check_after`` steps of an attempt, if the mean ``map_entanglement``
       of the last five logged steps is above ``entanglement_threshold``, the attempt is
       restarted the same way.
+    - ``"dead"`` (:class:`DeadOneHotRestart`): after ``dead_check_after`` steps of an
+      attempt, every ``dead_check_every`` steps and at its last step, if a one-hot (a
+      two-code key bit included) gives all of ``dead_check_frames`` evenly spaced play
+      frames one code, the attempt is restarted the same way (at the last step: a new
+      attempt of ``num_steps``).
 
-    Restarts of both kinds share ``max_restarts``; ``num_steps`` counts the steps of the
+    Restarts of every kind share ``max_restarts``; ``num_steps`` counts the steps of the
     last attempt, so restarts add steps rather than eat the budget. The result of
     :meth:`train` lists ``restarts``, ``candidates`` and ``chosen_candidate``.
 
@@ -465,13 +511,13 @@ class RepresentationTrainer(OfflineTrainer):
         ...     progress=False, out_dir="/tmp/dorp_doc_repr", diagnostics_every=10**9)
         >>> result = RepresentationTrainer(cfg).train()
         >>> result["step"], list(RepresentationTrainer.hook_names)
-        (20, ['screening', 'collapse', 'entanglement'])
+        (20, ['screening', 'collapse', 'entanglement', 'dead'])
     """
 
     kind = "representation"
     progress_metric = "loss_cpc"
     state_keys = ("encoder", "similarity", "optimizer")
-    hook_names = ("screening", "collapse", "entanglement")
+    hook_names = ("screening", "collapse", "entanglement", "dead")
 
     def __init__(
         self,
@@ -511,7 +557,9 @@ class RepresentationTrainer(OfflineTrainer):
         self.screening_hook = CandidateScreening()
         self.collapse_hook = CollapseRestart()
         self.entanglement_hook = EntanglementRestart()
-        for hook in (self.screening_hook, self.collapse_hook, self.entanglement_hook):
+        self.dead_hook = DeadOneHotRestart()
+        hooks = (self.screening_hook, self.collapse_hook, self.entanglement_hook, self.dead_hook)
+        for hook in hooks:
             hook.register(self)  # in this order: screening claims its steps first
         self._build(seed=config.seed)
 
@@ -624,8 +672,8 @@ class RepresentationTrainer(OfflineTrainer):
     # ------------------------------------------------------------------ attempts
     @property
     def restarts(self) -> list[dict[str, Any]]:
-        """Every restart (collapse and entanglement hooks), in step order."""
-        hooks = (self.collapse_hook, self.entanglement_hook)
+        """Every restart (collapse, entanglement and dead one-hot hooks), in step order."""
+        hooks = (self.collapse_hook, self.entanglement_hook, self.dead_hook)
         return sorted((r for h in hooks for r in h.restarts), key=lambda r: r["step"])
 
     @property
@@ -642,6 +690,15 @@ class RepresentationTrainer(OfflineTrainer):
     def chosen_candidate(self) -> dict[str, Any] | None:
         """The highest-scoring candidate once screening has ended (else ``None``)."""
         return self.screening_hook.chosen
+
+    def play_codes(self, count: int) -> torch.Tensor:
+        """Codes int64 ``[n, C]`` of ``n = min(count, stored)`` evenly spaced stored play
+        frames (the screening score and the dead one-hot check read them)."""
+        stored = len(self.buffer)
+        count = min(stored, count)
+        index = torch.linspace(0, stored - 1, count).round().long()
+        pixels = self.buffer.storage[index]["pixels"]
+        return self.encoder.encode(pixels.reshape(-1, *pixels.shape[-3:]))
 
     def recent_loss(self, metrics: dict[str, float], window: int = 5) -> float:
         """Mean ``loss_cpc`` of this attempt's last ``window`` logged steps (else this step's).
