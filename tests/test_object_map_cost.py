@@ -102,6 +102,48 @@ def test_through_the_true_dynamics_the_fast_path_equals_the_drawn_frames():
     assert torch.allclose(fast, cost(planner.imagine(td, decisions))["cost"], atol=1e-5)
 
 
+@pytest.mark.parametrize("make_cost", ["maps", "pixels"])
+def test_pairs_scored_in_an_earlier_call_come_from_the_cache_with_the_same_costs(make_cost):
+    encoder = map_encoder()
+    maps_seen: list[int] = []
+    object_maps = encoder.object_maps
+
+    def counted(pixels):
+        maps_seen.append(pixels.shape[0])
+        return object_maps(pixels)
+
+    encoder.object_maps = counted
+
+    def cost_of(cache_size: int):
+        if make_cost == "maps":
+            return ObjectMapCost(encoder, blur_sigmas=(2.0,), cache_size=cache_size)
+        return PixelDistanceCost(blur_sigmas=(2.0,), cache_size=cache_size)
+
+    gen = torch.Generator().manual_seed(3)
+    frames = torch.randint(0, 256, (2, 3, 4, 3, 12, 10), dtype=torch.uint8, generator=gen)
+    goals = torch.randint(0, 256, (2, 3, 12, 10), dtype=torch.uint8, generator=gen)
+    cached, plain = cost_of(2**10), cost_of(0)
+    first = cached(rollout_of(frames, goals))["cost"]
+    again = frames.clone()
+    again[:, :, :2] = torch.randint(0, 256, again[:, :, :2].shape, dtype=torch.uint8, generator=gen)
+    maps_seen.clear()
+    second = cached(rollout_of(again, goals))["cost"]
+    if make_cost == "maps":  # the goals' maps, then only the 12 new frames of each row
+        assert maps_seen == [2, 12]
+    assert torch.allclose(first, plain(rollout_of(frames, goals))["cost"], atol=1e-5)
+    assert torch.allclose(second, plain(rollout_of(again, goals))["cost"], atol=1e-5)
+    # A frame held for one goal is scored afresh against another goal.
+    swapped = cached(rollout_of(frames, goals.flip(0)))["cost"]
+    assert torch.allclose(swapped, plain(rollout_of(frames, goals.flip(0)))["cost"], atol=1e-5)
+    assert not torch.allclose(swapped, first)
+    if make_cost == "maps":  # new weights: nothing held is used
+        with torch.no_grad():
+            next(encoder.parameters()).add_(0.5)
+        maps_seen.clear()
+        cached(rollout_of(frames, goals))
+        assert maps_seen == [2, 24]
+
+
 def goal_terms(policy) -> list[type]:
     return [type(module) for module in policy.goal_planner.cost.module]
 

@@ -73,8 +73,8 @@ def make_cost(name: str, env):
     oracle = OracleCodeEncoder(env)
     if name == "pixel":
         return PixelDistanceCost()
-    if name == "blur":
-        return PixelDistanceCost(blur_sigmas=(1.0, 3.0), chunk_size=100)
+    if name == "blur":  # no cache between calls: each path computes its own costs
+        return PixelDistanceCost(blur_sigmas=(1.0, 3.0), chunk_size=100, cache_size=0)
     if name == "code":
         return CodeMatchCost(oracle, onehots=[0], cache_size=0)
     if name == "code_mask_cached":

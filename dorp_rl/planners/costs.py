@@ -285,6 +285,10 @@ def _forward_materialized(
     return rollout if out is None else out
 
 
+#: Joins a frame's and a goal's row hashes into the key of the pair (an odd 64-bit factor).
+_PAIR_KEY_FACTOR = 0x9E3779B97F4A7C15 - 2**64
+
+
 class _GoalFrameCost(RolloutCost):
     """A cost of each predicted frame against the goal image (the shared keys and blurs)."""
 
@@ -294,6 +298,7 @@ class _GoalFrameCost(RolloutCost):
         pixels_key: NestedKey,
         chunk_size: int,
         blur_sigmas: Sequence[float],
+        cache_size: int,
     ) -> None:
         self.chunk_size = check_int("chunk_size", chunk_size, low=1)
         self.blur_sigmas = _register_blurs(self, blur_sigmas)
@@ -301,6 +306,24 @@ class _GoalFrameCost(RolloutCost):
         self.pixels_key = unravel_key(pixels_key)
         self.in_keys = [self.pixels_key, self.goal_key]
         self.root_frame_keys = [self.goal_key]
+        self.cache = _KeyedCache(check_int("cache_size", cache_size, low=0))
+
+    def _pair_costs(
+        self,
+        frames: torch.Tensor,
+        goals: torch.Tensor,
+        owner: torch.Tensor,
+        compute: Callable[[torch.Tensor], torch.Tensor],
+        module: nn.Module | None = None,
+    ) -> torch.Tensor:
+        """Costs ``[m]`` of the (frame, goal) pairs ``frames[i]``, ``goals[owner[i]]``:
+        ``compute(indices)`` for the pairs not scored in an earlier call (the goal phase
+        plans from nearly the same state many times), the others from the cache."""
+        if self.cache.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0:
+            return compute(torch.arange(frames.shape[0], device=frames.device))
+        goal_keys = row_hashes(goals).index_select(0, owner)
+        keys = row_hashes(frames) * _PAIR_KEY_FACTOR + goal_keys  # wraps modulo 2**64
+        return self.cache.fetch(keys, lambda miss: (compute(miss),), module)[0]
 
     def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
         return self._per_step_cost(rollout, None)
@@ -353,9 +376,10 @@ class PixelDistanceCost(_GoalFrameCost):
         step_aggregation: str = "min",
         chunk_size: int = 512,
         blur_sigmas: Sequence[float] = (),
+        cache_size: int = 2**18,
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
-        self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas)
+        self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas, cache_size)
 
     def per_step_cost_lazy(
         self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
@@ -388,20 +412,28 @@ class PixelDistanceCost(_GoalFrameCost):
         # Blurring costs ~50x the plain distance; imagined frames repeat a lot, so
         # score each distinct (frame, goal) pair once.
         frames, owner, inverse = pairs.distinct(dedupe=bool(self.blur_sigmas))
-        frames = frames.reshape(frames.shape[0], -1)
         frame_shape = pairs.frame_shape
-        out = torch.empty(frames.shape[0], dtype=torch.float32, device=frames.device)
-        # Chunks of a few hundred frames stay in cache: ~10x faster than one pass.
-        for start in range(0, frames.shape[0], self.chunk_size):
-            stop = start + self.chunk_size
-            diff = frames[start:stop].to(torch.float32)
-            diff.sub_(goals.index_select(0, owner[start:stop]))
-            total = diff.square().sum(-1).sqrt_()
-            for i in range(len(self.blur_sigmas)):
-                # Blurring is linear: the blurred frames differ by the blurred difference.
-                blurred = _blur(diff.view(-1, *frame_shape), getattr(self, f"_blur{i}"))
-                total += blurred.flatten(1).square().sum(-1).sqrt_()
-            out[start:stop] = total
+
+        def compute(index: torch.Tensor) -> torch.Tensor:
+            rows = frames.reshape(frames.shape[0], -1).index_select(0, index)
+            out = torch.empty(rows.shape[0], dtype=torch.float32, device=rows.device)
+            # Chunks of a few hundred frames stay in cache: ~10x faster than one pass.
+            for start in range(0, rows.shape[0], self.chunk_size):
+                stop = start + self.chunk_size
+                diff = rows[start:stop].to(torch.float32)
+                diff.sub_(goals.index_select(0, owner[index[start:stop]]))
+                total = diff.square().sum(-1).sqrt_()
+                for i in range(len(self.blur_sigmas)):
+                    # Blurring is linear: the blurred frames differ by the blurred difference.
+                    blurred = _blur(diff.view(-1, *frame_shape), getattr(self, f"_blur{i}"))
+                    total += blurred.flatten(1).square().sum(-1).sqrt_()
+                out[start:stop] = total
+            return out
+
+        if self.blur_sigmas:
+            out = self._pair_costs(frames, pairs.goals, owner, compute)
+        else:  # plain distances cost less than the cache's hashing
+            out = compute(torch.arange(frames.shape[0], device=frames.device))
         if inverse is not None:
             out = out[inverse]
         return out.div_(255.0).reshape(pairs.lead)
@@ -550,6 +582,7 @@ class ObjectMapCost(_GoalFrameCost):
         step_aggregation: str = "min",
         chunk_size: int = 1024,
         blur_sigmas: Sequence[float] = (),
+        cache_size: int = 2**18,
     ) -> None:
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         if not callable(getattr(encoder, "object_maps", None)):
@@ -558,7 +591,7 @@ class ObjectMapCost(_GoalFrameCost):
                 f"(a DiscreteCodeEncoder), got {type(encoder).__name__}, which has none."
             )
         self.encoder = encoder
-        self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas)
+        self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas, cache_size)
 
     def per_step_cost_lazy(
         self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
@@ -585,16 +618,21 @@ class ObjectMapCost(_GoalFrameCost):
             module.eval()
         try:
             goal_maps = self._maps(pairs.goals).to(torch.float32)
-            out = torch.empty(frames.shape[0], dtype=torch.float32, device=goal_maps.device)
-            for start in range(0, frames.shape[0], self.chunk_size):
-                stop = start + self.chunk_size
-                diff = self._maps(frames[start:stop]).to(torch.float32)
-                diff.sub_(goal_maps.index_select(0, owner[start:stop]))
-                total = diff.flatten(2).square().sum(-1).sqrt_().sum(-1)
-                for i in range(len(self.blur_sigmas)):
-                    blurred = _blur(diff, getattr(self, f"_blur{i}"))
-                    total += blurred.flatten(2).square().sum(-1).sqrt_().sum(-1)
-                out[start:stop] = total
+
+            def compute(index: torch.Tensor) -> torch.Tensor:
+                out = torch.empty(index.shape[0], dtype=torch.float32, device=goal_maps.device)
+                for start in range(0, index.shape[0], self.chunk_size):
+                    chunk = index[start : start + self.chunk_size]
+                    diff = self._maps(frames.index_select(0, chunk)).to(torch.float32)
+                    diff.sub_(goal_maps.index_select(0, owner.index_select(0, chunk)))
+                    total = diff.flatten(2).square().sum(-1).sqrt_().sum(-1)
+                    for i in range(len(self.blur_sigmas)):
+                        blurred = _blur(diff, getattr(self, f"_blur{i}"))
+                        total += blurred.flatten(2).square().sum(-1).sqrt_().sum(-1)
+                    out[start : start + chunk.shape[0]] = total
+                return out
+
+            out = self._pair_costs(frames, pairs.goals, owner, compute, module)
         finally:
             if module is not None:
                 module.train(was_training)
@@ -618,24 +656,26 @@ def _register_blurs(module: nn.Module, blur_sigmas: Sequence[float]) -> tuple[fl
     return tuple(sigmas)
 
 
-class _EncodingCache:
-    """Codes and probabilities of frames already encoded, keyed by a hash of their bytes.
+class _KeyedCache:
+    """Values of rows already computed, keyed by a 64-bit hash of the rows' bytes.
 
     Planning calls keep imagining the same few thousand frames around the current state,
-    so most encoder calls repeat earlier ones. Entries are appended to fixed storage of
-    ``size`` rows; a sorted index of their keys (looked up with ``searchsorted``) is
-    all that is re-sorted per call, so an insertion costs 16 bytes per held entry rather
-    than a copy of every held probability. When the storage is full the cache starts
-    afresh. It is emptied whenever the encoder's weights change (their ``_version``
-    counters, which every in-place update such as an optimiser step increments) and is
-    not part of any state dict. Frames are matched by a 64-bit hash: two different
-    frames share one with probability about 1e-19 per pair.
+    so most model, encoder and cost calls repeat earlier ones. Each entry is a tuple of
+    tensor rows (codes and probabilities of a frame; the cost of a (frame, goal) pair).
+    Entries are appended to fixed storage of ``size`` rows; a sorted index of their keys
+    (looked up with ``searchsorted``) is all that is re-sorted per call, so an insertion
+    costs 16 bytes per held entry rather than a copy of every held value. When the
+    storage is full the cache starts afresh. It is emptied whenever the weights of the
+    module computing the values change (their ``_version`` counters, which every in-place
+    update such as an optimiser step increments) and is not part of any state dict. Rows
+    are matched by a 64-bit hash: two different rows share one with probability about
+    1e-19 per pair.
     """
 
     def __init__(self, size: int) -> None:
         self.size = size
         self.keys = self.slots = None  # sorted keys [n] and their storage rows [n]
-        self.codes = self.probs = None  # storage [size, C] and [size, C, Z]
+        self.values: tuple[torch.Tensor, ...] | None = None  # storage [size, ...] each
         self.count = 0
         self.version: tuple | None = None
 
@@ -643,6 +683,66 @@ class _EncodingCache:
         """Forget every entry (the storage is kept for reuse)."""
         self.keys = self.slots = None
         self.count = 0
+
+    def fetch(
+        self,
+        keys: torch.Tensor,
+        compute: Callable[[torch.Tensor], tuple[torch.Tensor, ...]],
+        module: nn.Module | None,
+    ) -> tuple[torch.Tensor, ...]:
+        """The values of the rows of ``keys`` (int64 ``[n]``): held ones from the cache,
+        the others from ``compute(indices)`` (the indices into ``keys`` it misses), which
+        are then held too."""
+        count = keys.shape[0]
+        version = (id(module), *(p._version for p in module.parameters())) if module else None
+        if version != self.version:
+            self.clear()
+            self.version = version
+        hit = torch.zeros(count, dtype=torch.bool, device=keys.device)
+        slot = None
+        if self.keys is not None and self.keys.device == keys.device:
+            pos = torch.searchsorted(self.keys, keys).clamp_max(self.keys.shape[0] - 1)
+            hit = self.keys[pos] == keys
+            slot = self.slots[pos]
+        miss = (~hit).nonzero().squeeze(-1)
+        new = compute(miss) if miss.numel() else None
+        if slot is None:
+            out = tuple(
+                torch.empty(count, *v.shape[1:], dtype=v.dtype, device=v.device) for v in new
+            )
+        else:
+            slot = slot.masked_fill(~hit, 0)
+            out = tuple(stored[slot] for stored in self.values)
+        if new is not None:
+            for target, value in zip(out, new, strict=True):
+                target[miss] = value
+            self._insert(keys[miss], new)
+        return out
+
+    def _insert(self, keys: torch.Tensor, values: tuple[torch.Tensor, ...]) -> None:
+        added = keys.shape[0]
+        if added > self.size:
+            return
+        if self.count + added > self.size:
+            self.clear()
+        if self.values is None or any(
+            stored.shape[1:] != v.shape[1:] or stored.dtype != v.dtype or stored.device != v.device
+            for stored, v in zip(self.values, values, strict=True)
+        ):
+            self.clear()
+            self.values = tuple(v.new_empty(self.size, *v.shape[1:]) for v in values)
+        rows = torch.arange(self.count, self.count + added, device=keys.device)
+        for stored, value in zip(self.values, values, strict=True):
+            stored[rows] = value
+        self.count += added
+        if self.keys is not None:
+            keys, rows = torch.cat([self.keys, keys]), torch.cat([self.slots, rows])
+        order = torch.argsort(keys)
+        self.keys, self.slots = keys[order], rows[order]
+
+
+class _EncodingCache(_KeyedCache):
+    """Codes and probabilities of frames already encoded (a :class:`_KeyedCache` of frames)."""
 
     def encode(self, frames, encode_frames, module: nn.Module | None, keys=None):
         """Codes and probabilities of ``frames``; ``keys``: their row hashes if known.
@@ -655,58 +755,10 @@ class _EncodingCache:
             frames, lazy = frames(None), False
         if not lazy and (self.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0):
             return encode_frames(frames)
-        count = keys.shape[0] if lazy else frames.shape[0]
-        version = (id(module), *(p._version for p in module.parameters())) if module else None
-        if version != self.version:
-            self.clear()
-            self.version = version
         keys = row_hashes(frames) if keys is None else keys
-        hit = torch.zeros(count, dtype=torch.bool, device=keys.device)
-        slot = None
-        if self.keys is not None and self.keys.device == keys.device:
-            pos = torch.searchsorted(self.keys, keys).clamp_max(self.keys.shape[0] - 1)
-            hit = self.keys[pos] == keys
-            slot = self.slots[pos]
-        miss = (~hit).nonzero().squeeze(-1)
-        new_codes = new_probs = None
-        if miss.numel():
-            new_codes, new_probs = encode_frames(frames(miss) if lazy else frames[miss])
-        if slot is None:
-            code = torch.empty(count, *new_codes.shape[1:], dtype=new_codes.dtype)
-            prob = torch.empty(count, *new_probs.shape[1:], dtype=new_probs.dtype)
-            code, prob = code.to(new_codes.device), prob.to(new_probs.device)
-        else:
-            slot = slot.masked_fill(~hit, 0)
-            code, prob = self.codes[slot], self.probs[slot]
-        if new_codes is not None:
-            code[miss], prob[miss] = new_codes, new_probs
-            self._insert(keys[miss], new_codes, new_probs)
-        return code, prob
-
-    def _insert(self, keys, codes, probs) -> None:
-        added = keys.shape[0]
-        if added > self.size:
-            return
-        if self.count + added > self.size:
-            self.clear()
-        if (
-            self.codes is None
-            or self.codes.shape[1:] != codes.shape[1:]
-            or self.probs.shape[1:] != probs.shape[1:]
-            or self.codes.device != codes.device
-            or self.probs.dtype != probs.dtype
-        ):
-            self.clear()
-            self.codes = codes.new_empty(self.size, *codes.shape[1:])
-            self.probs = probs.new_empty(self.size, *probs.shape[1:])
-        rows = torch.arange(self.count, self.count + added, device=keys.device)
-        self.codes[rows] = codes
-        self.probs[rows] = probs
-        self.count += added
-        if self.keys is not None:
-            keys, rows = torch.cat([self.keys, keys]), torch.cat([self.slots, rows])
-        order = torch.argsort(keys)
-        self.keys, self.slots = keys[order], rows[order]
+        return self.fetch(
+            keys, lambda miss: encode_frames(frames(miss) if lazy else frames[miss]), module
+        )
 
 
 #: ``step_penalty`` of :class:`CodeMatchCost` stays below this, so that a match at step 25
