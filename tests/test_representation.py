@@ -525,7 +525,7 @@ def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
     assert trainer.entanglement_hook.entanglement_reason(500) is None
 
 
-def test_dead_onehot_check_runs_on_its_schedule_and_names_the_onehot(tmp_path):
+def test_dead_onehot_check_judges_the_attempts_end_and_names_the_onehot(tmp_path):
     cfg = RepresentationConfig.key_wall(
         encoder={"code_sizes": (8,)},
         trajectory_length=16,
@@ -536,21 +536,18 @@ def test_dead_onehot_check_runs_on_its_schedule_and_names_the_onehot(tmp_path):
         diagnostics_every=10**9,
         progress=False,
         out_dir=str(tmp_path / "run"),
-        dead_check_after=10,
-        dead_check_every=5,
     )
     trainer = RepresentationTrainer(cfg)
     codes = torch.stack([torch.arange(64) % 8, torch.zeros(64, dtype=torch.int64)], 1)
     hook = trainer.dead_hook
     with mock.patch.object(trainer, "play_codes", return_value=codes) as play:
-        for step, due in ((9, False), (10, True), (12, False), (15, True), (40, True)):
+        for step, due in ((10, False), (39, False), (40, True)):
             trainer.step = step
             reason = hook.reason({}, True)
             assert (reason is not None) == due, step
-        assert play.call_count == 3
+        assert play.call_count == 1
         assert "one-hot(s) [1]" in reason and "64 evenly spaced play frames" in reason
-        trainer.step = 39  # the attempt's last step is checked off the schedule too
-        trainer.attempt_start = -1
+        trainer.step, trainer.attempt_start = 45, 5  # a restarted attempt's end
         assert hook.reason({}, True) is not None
     # The key bit takes both codes: nothing is dead.
     alive = codes.clone()
@@ -563,7 +560,7 @@ def test_dead_onehot_check_runs_on_its_schedule_and_names_the_onehot(tmp_path):
 
 
 def test_a_dead_onehot_restarts_the_attempt_for_a_whole_new_run(tmp_path):
-    cfg = _tiny_config(tmp_path, num_steps=12, dead_check_after=12, max_restarts=2)
+    cfg = _tiny_config(tmp_path, num_steps=12, max_restarts=2)
     trainer = RepresentationTrainer(cfg)
     real = trainer.play_codes
 

@@ -109,12 +109,9 @@ class RepresentationConfig(TrainerConfig):
     """steps of an attempt before the entanglement check"""
     entanglement_threshold: float = checked(0.07, Float(low=0.0))
     """map entanglement above this restarts the attempt"""
-    dead_check_after: int = checked(1000, Int(low=0))
-    """steps of an attempt before the dead one-hot check (also made at its last step)"""
-    dead_check_every: int = checked(500, Int(low=1))
-    """steps between dead one-hot checks"""
     dead_check_frames: int = checked(8192, Int(low=0))
-    """evenly spaced play frames the dead one-hot check encodes (0: no check)"""
+    """evenly spaced play frames the dead one-hot check at an attempt's end encodes (0: no
+    check)"""
     max_restarts: int = checked(3, Int(low=0))
     """restarts after a collapse, entanglement or dead one-hot"""
     # initialisation screening
@@ -339,15 +336,15 @@ class EntanglementRestart(RestartHook):
 
 
 class DeadOneHotRestart(RestartHook):
-    """Restarts an attempt in which a one-hot codes every play frame alike (a dead one-hot).
+    """Restarts an attempt that ends with a one-hot coding every play frame alike (dead).
 
-    After ``dead_check_after`` steps of an attempt, every ``dead_check_every`` steps and
-    at the attempt's last step, the encoder codes ``dead_check_frames`` evenly spaced
+    At the attempt's last step the encoder codes ``dead_check_frames`` evenly spaced
     stored play frames; a one-hot giving all of them one code carries nothing about play
-    (no ground truth needed). Two-code one-hots such as a key bit are judged too, which
-    the collapse check cannot do from a batch: a collapsed key-room run hid its key in a
-    wide one-hot together with a coarse agent place and left the key bit at one code.
-    A restart at the last step starts a whole new attempt.
+    (no ground truth needed), and a new attempt of ``num_steps`` starts. Two-code
+    one-hots such as a key bit are judged too, which the collapse check cannot do from a
+    batch: a collapsed key-room run hid its key in a wide one-hot together with a coarse
+    agent place and left the key bit at one code. Only the end is judged: a key bit may
+    stay at one code for a while before the key is learned.
     """
 
     default_name = "dead"
@@ -355,11 +352,8 @@ class DeadOneHotRestart(RestartHook):
     def reason(self, metrics: dict[str, float], logged: bool = True) -> str | None:
         trainer = self.trainer
         cfg = trainer.config
-        steps = trainer.step - trainer.attempt_start
-        due = steps >= cfg.dead_check_after and (
-            steps % cfg.dead_check_every == 0 or steps >= cfg.num_steps
-        )
-        if cfg.dead_check_frames <= 0 or not due:
+        at_end = trainer.step - trainer.attempt_start >= cfg.num_steps
+        if cfg.dead_check_frames <= 0 or not at_end:
             return None
         dead = self.dead_onehots()
         if not dead:
@@ -495,11 +489,9 @@ class RepresentationTrainer(OfflineTrainer):
       ``entanglement_check_after`` steps of an attempt, if the mean ``map_entanglement``
       of the last five logged steps is above ``entanglement_threshold``, the attempt is
       restarted the same way.
-    - ``"dead"`` (:class:`DeadOneHotRestart`): after ``dead_check_after`` steps of an
-      attempt, every ``dead_check_every`` steps and at its last step, if a one-hot (a
-      two-code key bit included) gives all of ``dead_check_frames`` evenly spaced play
-      frames one code, the attempt is restarted the same way (at the last step: a new
-      attempt of ``num_steps``).
+    - ``"dead"`` (:class:`DeadOneHotRestart`): at an attempt's last step, if a one-hot
+      (a two-code key bit included) gives all of ``dead_check_frames`` evenly spaced
+      play frames one code, a new attempt of ``num_steps`` starts the same way.
 
     Restarts of every kind share ``max_restarts``; ``num_steps`` counts the steps of the
     last attempt, so restarts add steps rather than eat the budget. The result of
