@@ -521,6 +521,34 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
     assert not bool(td["dorp_relaxed"][0]) and not bool(td["dorp_failed"][0])
 
 
+def test_a_relaxed_goal_phase_stalled_off_the_goal_codes_goes_back_to_the_graph():
+    """Quadrant codes and a graph 0-1, 0-2, 2-1, 1-3; the goal lies in quadrant 1. The
+    relaxed goal phase (pixel distance alone) pushed the block out into quadrant 0 and
+    stalls there: the policy leaves the goal phase and plans the waypoint 1 again, with
+    the code term back. Stalled inside the goal codes, it stays relaxed."""
+    world = QuadrantWorld(False, {0: [2, 2], 1: [2, 9], 2: [12, 2]}, goal=[2, 12])
+    at, policy = world.at, world.policy
+    patience = policy.config.goal_patience
+    stalled = {
+        "dorp_goal_best": float("-inf"),
+        "dorp_goal_stall": patience - 1,
+        policy.goal_planner.length_key: 0,
+    }
+    assert int(at(0)["subgoal_code"][0, 0]) == 1
+    assert int(at(1)["dorp_mode"][0]) == MODES["goal"]
+    td = at(1, **stalled)
+    assert bool(td["dorp_relaxed"][0]) and float(td["goal_code_weight"][0]) == 0.0
+    td = at(1, **stalled)  # stalled again, but every code is the goal's: still relaxed
+    assert bool(td["dorp_relaxed"][0]) and int(td["dorp_mode"][0]) == MODES["goal"]
+    td = at(0, **stalled)  # stalled again with the block out of its goal code
+    assert int(td["dorp_mode"][0]) == MODES["goal"]  # this step was still a goal step
+    assert not bool(td["dorp_relaxed"][0]) and float(td["goal_code_weight"][0]) == 100.0
+    assert int(td[policy.goal_planner.length_key][0]) == 0
+    td = at(0)
+    assert int(td["dorp_mode"][0]) == MODES["waypoint"] and int(td["subgoal_code"][0, 0]) == 1
+    assert not bool(td["dorp_failed"][0])
+
+
 def test_key_room_and_rearrangement_defaults(two_objects):
     env, oracle, graph = two_objects
     policy = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)

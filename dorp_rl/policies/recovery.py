@@ -351,7 +351,11 @@ class GoalRelaxation(RecoveryRule):
     The goal planner's cost reads the term's weight per row from ``goal_code_weight``
     (``weight`` until relaxed, then 0). After ``patience`` goal-phase steps without a
     lower goal-plan cost the term is dropped (``None``: never), unless another rule takes
-    the stall over; a relaxed task gets twice the goal phase's step budget.
+    the stall over; a relaxed task gets twice the goal phase's step budget. A relaxed
+    goal phase that stalls again for ``patience`` steps while some code is no longer the
+    goal's goes back to the code graph (the term restored): pixel distance alone had
+    pushed an object out of its goal code into a place it cannot leave towards the goal,
+    and waypoints lead it back into the goal code from another side.
     """
 
     def __init__(self, weight: float, patience: int | None) -> None:
@@ -406,6 +410,14 @@ class GoalRelaxation(RecoveryRule):
             state["dorp_goal_stall"][give_up] = 0
             state["dorp_goal_best"][give_up] = float("inf")
             plans[planner.length_key][give_up] = 0  # replan without the term next step
+        off_goal = (state["code"] != state["goal_code"]).any(-1)
+        back = rows & relaxed & off_goal & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
+        if back.any():  # leave the goal phase: the loop plans waypoints next step
+            state["dorp_relaxed"][back] = False
+            state["goal_code_weight"][back] = self.weight
+            state["dorp_goal_stall"][back] = 0
+            state["dorp_goal_best"][back] = float("inf")
+            plans[planner.length_key][back] = 0
 
 
 def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[RecoveryRule]:
