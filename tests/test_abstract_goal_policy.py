@@ -546,7 +546,12 @@ def test_a_relaxed_goal_phase_stalled_off_the_goal_codes_goes_back_to_the_graph(
     assert int(td[policy.goal_planner.length_key][0]) == 0
     td = at(0)
     assert int(td["dorp_mode"][0]) == MODES["waypoint"] and int(td["subgoal_code"][0, 0]) == 1
-    assert not bool(td["dorp_failed"][0])
+    assert not bool(td["dorp_failed"][0]) and int(td["dorp_goal_returns"][0]) == 1
+    # Once per task (max_goal_returns=1): relaxed and stalled off the goal codes again,
+    # it stays relaxed, so the two phases cannot take turns to the step limit.
+    td = at(0, dorp_relaxed=True, goal_code_weight=0.0, **stalled)
+    assert bool(td["dorp_relaxed"][0]) and int(td["dorp_mode"][0]) == MODES["goal"]
+    assert int(td["dorp_goal_returns"][0]) == 1
 
 
 def test_key_room_and_rearrangement_defaults(two_objects):

@@ -104,6 +104,7 @@ LOOP_FIELDS = (
     "max_reentries",
     "goal_code_weight",
     "goal_patience",
+    "max_goal_returns",
     "action_prior_mix",
 )
 #: State keys the planners of the policy may read.

@@ -353,14 +353,17 @@ class GoalRelaxation(RecoveryRule):
     lower goal-plan cost the term is dropped (``None``: never), unless another rule takes
     the stall over; a relaxed task gets twice the goal phase's step budget. A relaxed
     goal phase that stalls again for ``patience`` steps while some code is no longer the
-    goal's goes back to the code graph (the term restored): pixel distance alone had
-    pushed an object out of its goal code into a place it cannot leave towards the goal,
-    and waypoints lead it back into the goal code from another side.
+    goal's goes back to the code graph (the term restored), at most ``max_returns`` times
+    per task: pixel distance alone can push an object out of its goal code into a place
+    it cannot leave towards the goal, and waypoints lead it back into the goal code from
+    another side. (Without the bound, codes covering places on both sides of a wall made
+    tasks cycle between the two phases to the step limit.)
     """
 
-    def __init__(self, weight: float, patience: int | None) -> None:
+    def __init__(self, weight: float, patience: int | None, max_returns: int = 1) -> None:
         self.weight = float(weight)
         self.patience = patience
+        self.max_returns = int(max_returns)
 
     def state_keys(self) -> tuple[StateKey, ...]:
         return (
@@ -372,6 +375,7 @@ class GoalRelaxation(RecoveryRule):
             ),
             StateKey("dorp_goal_stall", doc="goal-phase steps since that cost last fell"),
             StateKey("dorp_relaxed", torch.bool, doc="the goal phase dropped its code term"),
+            StateKey("dorp_goal_returns", doc="relaxed goal phases sent back to the graph"),
             StateKey(
                 "goal_code_weight",
                 torch.float32,
@@ -412,7 +416,9 @@ class GoalRelaxation(RecoveryRule):
             plans[planner.length_key][give_up] = 0  # replan without the term next step
         off_goal = (state["code"] != state["goal_code"]).any(-1)
         back = rows & relaxed & off_goal & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
+        back &= state["dorp_goal_returns"].squeeze(-1) < self.max_returns
         if back.any():  # leave the goal phase: the loop plans waypoints next step
+            state["dorp_goal_returns"][back] += 1
             state["dorp_relaxed"][back] = False
             state["goal_code_weight"][back] = self.weight
             state["dorp_goal_stall"][back] = 0
@@ -435,5 +441,7 @@ def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[Recovery
     if config.reenter:
         rules.append(Reentry(config.max_reentries, hops=config.reenter is True))
     if goal_code_term:
-        rules.append(GoalRelaxation(config.goal_code_weight, config.goal_patience))
+        rules.append(
+            GoalRelaxation(config.goal_code_weight, config.goal_patience, config.max_goal_returns)
+        )
     return rules
