@@ -524,9 +524,13 @@ def test_a_stalled_goal_phase_reenters_the_goal_code_another_way_first(reenter):
 def test_a_relaxed_goal_phase_stalled_off_the_goal_codes_goes_back_to_the_graph():
     """Quadrant codes and a graph 0-1, 0-2, 2-1, 1-3; the goal lies in quadrant 1. The
     relaxed goal phase (pixel distance alone) pushed the block out into quadrant 0 and
-    stalls there: the policy leaves the goal phase and plans the waypoint 1 again, with
-    the code term back. Stalled inside the goal codes, it stays relaxed."""
-    world = QuadrantWorld(False, {0: [2, 2], 1: [2, 9], 2: [12, 2]}, goal=[2, 12])
+    stalls there: with ``max_goal_returns=1`` the policy leaves the goal phase and plans
+    the waypoint 1 again, with the code term back. Stalled inside the goal codes, or with
+    the default 0, it stays relaxed."""
+    cells, goal = {0: [2, 2], 1: [2, 9], 2: [12, 2]}, [2, 12]
+    default = QuadrantWorld(False, cells, goal=goal)
+    assert default.policy.config.max_goal_returns == 0
+    world = QuadrantWorld(False, cells, goal=goal, max_goal_returns=1)
     at, policy = world.at, world.policy
     patience = policy.config.goal_patience
     stalled = {
@@ -534,6 +538,11 @@ def test_a_relaxed_goal_phase_stalled_off_the_goal_codes_goes_back_to_the_graph(
         "dorp_goal_stall": patience - 1,
         policy.goal_planner.length_key: 0,
     }
+    default.at(0)
+    default.at(1)
+    default.at(1, **stalled)
+    td = default.at(0, **stalled)
+    assert bool(td["dorp_relaxed"][0]) and int(td["dorp_mode"][0]) == MODES["goal"]
     assert int(at(0)["subgoal_code"][0, 0]) == 1
     assert int(at(1)["dorp_mode"][0]) == MODES["goal"]
     td = at(1, **stalled)

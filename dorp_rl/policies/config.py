@@ -111,9 +111,9 @@ class DORPConfig(ConfigMixin):
     goal_patience: int | None = checked(14, Int(low=1, optional=True))
     """goal-phase steps without a lower plan cost after which the goal-code term is
     dropped (None: never)"""
-    max_goal_returns: int = checked(1, Int(low=0))
+    max_goal_returns: int = checked(0, Int(low=0))
     """times a task's relaxed goal phase, stalled again while a code is not the goal's,
-    goes back to the code graph with the code term restored (0: it stays relaxed)"""
+    may go back to the code graph with the code term restored (0: it stays relaxed)"""
     # planners
     planner: str = checked("rs", Choice(("rs", "cem")))
     """waypoint planner: 'rs' (random shooting) or 'cem' (categorical CEM)"""

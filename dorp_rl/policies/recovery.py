@@ -360,7 +360,7 @@ class GoalRelaxation(RecoveryRule):
     tasks cycle between the two phases to the step limit.)
     """
 
-    def __init__(self, weight: float, patience: int | None, max_returns: int = 1) -> None:
+    def __init__(self, weight: float, patience: int | None, max_returns: int = 0) -> None:
         self.weight = float(weight)
         self.patience = patience
         self.max_returns = int(max_returns)
