@@ -526,18 +526,9 @@ def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
 
 
 def test_dead_onehot_check_judges_the_attempts_end_and_names_the_onehot(tmp_path):
-    cfg = RepresentationConfig.key_wall(
-        encoder={"code_sizes": (8,)},
-        trajectory_length=16,
-        num_frames=512,
-        num_envs=16,
-        batch_size=32,
-        num_steps=40,
-        diagnostics_every=10**9,
-        progress=False,
-        out_dir=str(tmp_path / "run"),
-    )
+    cfg = _tiny_config(tmp_path, env="key-wall", trajectory_length=16, num_steps=40)
     trainer = RepresentationTrainer(cfg)
+    assert cfg.code_sizes == (8, 2)  # an agent one-hot and a key bit
     codes = torch.stack([torch.arange(64) % 8, torch.zeros(64, dtype=torch.int64)], 1)
     hook = trainer.dead_hook
     with mock.patch.object(trainer, "play_codes", return_value=codes) as play:
