@@ -32,6 +32,7 @@ class TinyConfigs:
             progress=False,
             out_dir=str(out_dir),
             collapse_check_after=10**9,
+            dead_check_frames=0,
         )
         return base.replace(**overrides)
 

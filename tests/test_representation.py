@@ -48,6 +48,7 @@ def _tiny_config(tmp_path, **overrides) -> RepresentationConfig:
         progress=False,
         out_dir=str(tmp_path / "run"),
         collapse_check_after=10**9,
+        dead_check_frames=0,
     )
     return base.replace(**overrides)
 
@@ -526,7 +527,9 @@ def test_entanglement_check_uses_recent_map_entanglement(tmp_path):
 
 
 def test_dead_onehot_check_judges_the_attempts_end_and_names_the_onehot(tmp_path):
-    cfg = _tiny_config(tmp_path, env="key-wall", trajectory_length=16, num_steps=40)
+    cfg = _tiny_config(
+        tmp_path, env="key-wall", trajectory_length=16, num_steps=40, dead_check_frames=64
+    )
     trainer = RepresentationTrainer(cfg)
     assert cfg.code_sizes == (8, 2)  # an agent one-hot and a key bit
     codes = torch.stack([torch.arange(64) % 8, torch.zeros(64, dtype=torch.int64)], 1)
@@ -551,7 +554,7 @@ def test_dead_onehot_check_judges_the_attempts_end_and_names_the_onehot(tmp_path
 
 
 def test_a_dead_onehot_restarts_the_attempt_for_a_whole_new_run(tmp_path):
-    cfg = _tiny_config(tmp_path, num_steps=12, max_restarts=2)
+    cfg = _tiny_config(tmp_path, num_steps=12, max_restarts=2, dead_check_frames=8192)
     trainer = RepresentationTrainer(cfg)
     real = trainer.play_codes
 

@@ -146,8 +146,11 @@ class RepresentationConfig(TrainerConfig):
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
         """Older flat configs: ``code_size``, ``encoder_preset``, ``map_competition`` and
-        ``extractor_kernel_size`` become the ``encoder`` field."""
+        ``extractor_kernel_size`` become the ``encoder`` field; configs without
+        ``dead_check_frames`` (stored before that check) get 0."""
         values = super().upgrade(values)
+        # Configs stored before the dead one-hot check existed resume as they ran.
+        values.setdefault("dead_check_frames", 0)
         flat = cls.pop_flat_fields(values, _FLAT_ENCODER_FIELDS, "encoder")
         if flat:
             preset = flat.get("encoder_preset", "small")
