@@ -358,21 +358,16 @@ class DeadOneHotRestart(RestartHook):
         at_end = trainer.step - trainer.attempt_start >= cfg.num_steps
         if cfg.dead_check_frames <= 0 or not at_end:
             return None
-        dead = self.dead_onehots()
+        codes = trainer.play_codes(cfg.dead_check_frames)  # [n, C]
+        if codes.shape[0] < 2:
+            return None
+        dead = [i for i in range(codes.shape[1]) if bool((codes[:, i] == codes[0, i]).all())]
         if not dead:
             return None
         return (
-            f"one-hot(s) {dead} give every one of {self.frames_checked} evenly spaced play "
+            f"one-hot(s) {dead} give every one of {codes.shape[0]} evenly spaced play "
             "frames the same code (dead)"
         )
-
-    def dead_onehots(self) -> list[int]:
-        """One-hots whose code is the same on every checked frame (see the class docstring)."""
-        codes = self.trainer.play_codes(self.trainer.config.dead_check_frames)
-        self.frames_checked = codes.shape[0]
-        if codes.shape[0] < 2:
-            return []
-        return [i for i in range(codes.shape[1]) if bool((codes[:, i] == codes[0, i]).all())]
 
 
 class CandidateScreening(TrainerHook):
