@@ -128,6 +128,8 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         forget_blocked_edges=not args.keep_removed_edges,
         **_switch("reenter", args.reenter),
         **_switch("replan_on_miss", args.replan_on_miss),
+        **_switch("waypoint_first_arrival", args.waypoint_first_arrival),
+        **args.dorp,
         order=args.order,
         goal_planner=args.goal_planner,
         seed=args.seed,
@@ -187,10 +189,14 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "planner": args.planner,
         "waypoint_goal_weight": args.waypoint_goal_weight,
         "waypoint_step_penalty": args.waypoint_step_penalty,
+        "waypoint_first_arrival": policy.config.waypoint_first_arrival,
         "max_misses": policy.config.max_misses,
         "action_persistence": getattr(policy.waypoint_planner, "action_persistence", None),
         "task_ids": args.task_ids,
+        "dorp": args.dorp,
         "solved": [bool(x) for x in result["success"]],
+        "steps": [int(x) for x in result["steps"]],
+        "lower_bounds": [int(x) for x in tasks["lower_bound"]],
         **timings,
     }
 
@@ -244,6 +250,19 @@ def main() -> None:
         default="auto",
         help="cut a waypoint plan that reaches the waypoint nowhere to its first step "
         "(auto: in the key rooms)",
+    )
+    parser.add_argument(
+        "--waypoint-first-arrival",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="judge a waypoint plan at its first step reaching the waypoint (auto: the "
+        "config's default)",
+    )
+    parser.add_argument(
+        "--dorp",
+        type=json.loads,
+        default={},
+        help="more DORPConfig fields as JSON, e.g. '{\"action_prior_mix\": 0.95}'",
     )
     parser.add_argument("--order", choices=["index", "nearest"], default="index")
     parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)

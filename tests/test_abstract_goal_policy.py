@@ -14,7 +14,7 @@ from dorp_rl.data import collect_play_data
 from dorp_rl.envs import KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
-from dorp_rl.planners import CodeGraph, CodeMatchCost
+from dorp_rl.planners import CodeGraph, CodeMatchCost, FirstArrival
 from dorp_rl.policies import MODES, AbstractGoalPolicy, make_dorp_policy
 
 SMALL = {"num_candidates": 200, "planning_horizon": 10}
@@ -636,6 +636,34 @@ def test_waypoint_step_penalty_reaches_the_code_term(two_objects):
     assert [m.step_penalty for m in code_terms] == [2e-3]
     with pytest.raises(ValueError, match="step_penalty"):
         make_dorp_policy(env, oracle, graph, waypoint_step_penalty=0.5, **SMALL)
+
+
+def test_first_arrival_plans_end_where_they_first_reach_the_waypoint(two_objects):
+    """With ``waypoint_first_arrival`` a waypoint plan is judged, and runs open loop, up
+    to the first imagined step whose codes are the waypoint's: replayed in the env, the
+    plan's last step is that first arrival, never a later one."""
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_first_arrival=True, **SMALL)
+    assert any(isinstance(m, FirstArrival) for m in policy.waypoint_planner.cost.modules())
+    plain = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    assert not any(isinstance(m, FirstArrival) for m in plain.waypoint_planner.cost.modules())
+    tasks = make_task_set(env, 4, seed=2)
+    td = policy(fresh_batch(env, tasks))
+    plan = td["waypoint_planner_plan"]
+    length = td["waypoint_planner_length"].squeeze(-1)
+    reaches = td["waypoint_planner_cost"].squeeze(-1) < 0.5
+    assert reaches.any()
+    target, mask = td["subgoal_code"], td["subgoal_mask"]
+    step = fresh_batch(env, tasks)
+    arrived = torch.zeros(plan.shape, dtype=torch.bool)
+    for t in range(plan.shape[-1]):
+        step["action"] = plan[:, t : t + 1]
+        step = env.step(step)["next"].clone()
+        code = oracle.encode(step["pixels"])
+        arrived[:, t] = ((code == target) | ~mask).all(-1)
+    first = arrived.float().argmax(-1)
+    assert torch.equal(length[reaches], first[reaches] + 1)
+    assert arrived[reaches].any(-1).all()
 
 
 # ---------------------------------------------------------------- order, budgets, key rooms

@@ -21,6 +21,7 @@ from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,
+    FirstArrival,
     MissingRolloutKeyError,
     NegativeRewardCost,
     PixelDistanceCost,
@@ -186,6 +187,28 @@ def test_code_match_cost_on_chosen_onehots():
     assert cost[0] < 0.01 and cost[1] > 0.99
     with pytest.raises(MissingRolloutKeyError, match="subgoal_code"):
         CodeMatchCost(CornerEncoder())(rollout.exclude("subgoal_code"))
+
+
+def test_first_arrival_judges_a_plan_where_it_first_reaches_its_target():
+    # Two candidates, both reaching the code at step 1; the first gets cheaper later
+    # (step 3), which a policy that stops at the first arrival never executes.
+    code = torch.tensor([[[1.0, 0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0]]])
+    total = torch.tensor([[[1.3, 0.08, 1.2, 0.01], [1.3, 0.05, 0.06, 0.07]]])
+    rollout = TensorDict({"code": code, "total": total}, batch_size=(1, 2, 4))
+    plain, step = aggregate_steps(total[0], "min")
+    assert plain.argmin() == 0 and step.tolist() == [3, 1]  # the later step wins
+    cut = FirstArrival("code", cost_key="total", out_key="cost")(rollout)["cost"][0]
+    assert torch.isinf(cut[:, 2:]).all() and torch.equal(cut[:, :2], total[0, :, :2])
+    score, step = aggregate_steps(cut, "min")
+    assert score.argmin() == 1 and step.tolist() == [1, 1]  # judged at arrival
+    # A candidate that never arrives keeps every step.
+    never = TensorDict(
+        {"code": torch.ones(1, 1, 3), "total": torch.tensor([[[1.2, 1.1, 1.3]]])},
+        batch_size=(1, 1, 3),
+    )
+    assert torch.equal(FirstArrival("code", cost_key="total")(never)["total"], never["total"])
+    with pytest.raises(MissingRolloutKeyError, match="'code'"):
+        FirstArrival("code", cost_key="total")(never.exclude("code"))
 
 
 def test_code_match_cost_prefers_confident_matches():

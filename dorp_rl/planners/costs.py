@@ -72,6 +72,7 @@ __all__ = [
     "STEP_AGGREGATIONS",
     "CodeMatchCost",
     "CostSequence",
+    "FirstArrival",
     "MissingRolloutKeyError",
     "NegativeRewardCost",
     "ObjectMapCost",
@@ -1250,6 +1251,70 @@ class WeightedCostSum(RolloutCost):
 
     def extra_repr(self) -> str:
         return f"weights={self.weights!r}, {super().extra_repr()}"
+
+
+class FirstArrival(RolloutCost):
+    """Ends each candidate at the first step a target term calls reached: later steps cost ``inf``.
+
+    A policy that stops following a plan once its target is reached (DORP's waypoints)
+    executes only the plan's steps up to that first arrival, so that is where a plan
+    should be judged: folded with ``"min"``, a candidate's score is then its cost at the
+    first arrival (or its best step if it never arrives), not at a later step that
+    would never run. Steps up to and including the first arrival keep ``cost_key``'s
+    values.
+
+    Args:
+        reached_key: the per-step term ``[*B, N, H]`` that says whether the target is
+            reached (e.g. a :class:`CodeMatchCost`'s out key: below ``threshold``).
+        cost_key: the per-step cost ``[*B, N, H]`` to cut.
+        threshold: a step is an arrival when ``reached_key`` is below it.
+        out_key: where the cut cost is written (default: over ``cost_key``).
+        step_aggregation: how planners fold the steps (default ``"min"``).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.planners import FirstArrival
+        >>> rollout = TensorDict(
+        ...     {"code_cost": torch.tensor([[1.0, 0.0, 0.0, 1.0]]),
+        ...      "cost": torch.tensor([[1.2, 0.1, 0.05, 1.0]])},
+        ...     batch_size=(1, 4),
+        ... )
+        >>> FirstArrival("code_cost")(rollout)["cost"]
+        tensor([[1.2000, 0.1000,    inf,    inf]])
+    """
+
+    def __init__(
+        self,
+        reached_key: NestedKey,
+        *,
+        cost_key: NestedKey = "cost",
+        threshold: float = 0.5,
+        out_key: NestedKey | None = None,
+        step_aggregation: str = "min",
+    ) -> None:
+        cost_key = unravel_key(cost_key)
+        super().__init__(
+            out_key=cost_key if out_key is None else out_key, step_aggregation=step_aggregation
+        )
+        self.reached_key = unravel_key(reached_key)
+        self.cost_key = cost_key
+        self.threshold = check_float("threshold", threshold)
+        self.in_keys = list(dict.fromkeys([self.cost_key, self.reached_key]))
+
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        name = type(self).__name__
+        cost = get_rollout_key(rollout, self.cost_key, name).to(torch.float32)
+        reached = get_rollout_key(rollout, self.reached_key, name).reshape(cost.shape)
+        arrived = (reached < self.threshold).to(torch.int64).cumsum(-1)
+        # Steps after the first arrival: the first arrival is counted once in the cumsum.
+        after = (arrived - (reached < self.threshold).to(torch.int64)) > 0
+        return cost.masked_fill(after, math.inf)
+
+    def extra_repr(self) -> str:
+        return (
+            f"reached_key={self.reached_key!r}, threshold={self.threshold}, {super().extra_repr()}"
+        )
 
 
 class NegativeRewardCost(RolloutCost):

@@ -137,6 +137,9 @@ class DORPConfig(ConfigMixin):
     reach the waypoint by how close their frame is to the goal (0: the code match alone)"""
     waypoint_step_penalty: float = checked(0.0, _step_penalty)
     """waypoint cost per step of a frame at the waypoint: earlier arrival wins"""
+    waypoint_first_arrival: bool = checked(False, Flag())
+    """judge a waypoint plan at its first step that reaches the waypoint, where the policy
+    stops following it (False: at its best step, which may come later and never run)"""
     action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
     """share of the waypoint planner's actions drawn from those that changed the hop's
     one-hots in the play data (None: 0.8 when the graph has action counts, else 0)"""

@@ -17,6 +17,7 @@ from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.planners.costs import (
     CodeMatchCost,
     CostSequence,
+    FirstArrival,
     ObjectMapCost,
     PixelDistanceCost,
     WeightedCostSum,
@@ -51,6 +52,7 @@ def make_waypoint_cost(
     *,
     waypoint_goal_weight: float = 0.0,
     step_penalty: float = 0.0,
+    first_arrival: bool = False,
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     cache_size: int = 2**18,
     code_key: NestedKey | None = None,
@@ -63,7 +65,10 @@ def make_waypoint_cost(
     plan's steps with ``min``), so that among plans reaching the waypoint those leaving
     the frame nearest the goal image win. ``step_penalty`` is the code term's cost per
     step of a matching frame (earlier arrival wins; see
-    :class:`~dorp_rl.planners.CodeMatchCost`). ``code_key``: the codes the planning env
+    :class:`~dorp_rl.planners.CodeMatchCost`). ``first_arrival``: a plan is judged at
+    the first step that reaches the waypoint, where the policy stops following it
+    (:class:`~dorp_rl.planners.FirstArrival`), not at a later, better step that never
+    runs. ``code_key``: the codes the planning env
     predicts (``("next", "code")`` of a latent world model), read instead of encoding
     predicted frames.
 
@@ -76,7 +81,7 @@ def make_waypoint_cost(
         'CostSequence'
     """
     waypoint_goal_weight = check_float("waypoint_goal_weight", waypoint_goal_weight, low=0.0)
-    alone = waypoint_goal_weight == 0
+    alone = waypoint_goal_weight == 0 and not first_arrival
     code_cost = CodeMatchCost(
         encoder,
         "subgoal_code",
@@ -88,14 +93,16 @@ def make_waypoint_cost(
     )
     if alone:
         return code_cost
-    return CostSequence(
-        code_cost,
-        PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas),
-        WeightedCostSum(
-            {"waypoint_code_cost": 1.0, "waypoint_pixel_cost": float(waypoint_goal_weight)},
-            step_aggregation="min",
-        ),
-    )
+    parts: list[nn.Module] = [code_cost]
+    weights = {"waypoint_code_cost": 1.0}
+    if waypoint_goal_weight > 0:
+        parts.append(PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas))
+        weights["waypoint_pixel_cost"] = float(waypoint_goal_weight)
+    total = "waypoint_cost" if first_arrival else "cost"
+    parts.append(WeightedCostSum(weights, out_key=total, step_aggregation="min"))
+    if first_arrival:
+        parts.append(FirstArrival("waypoint_code_cost", cost_key=total, out_key="cost"))
+    return CostSequence(*parts)
 
 
 def make_goal_cost(
@@ -241,6 +248,7 @@ def make_dorp_policy(
         encoder,
         waypoint_goal_weight=config.waypoint_goal_weight,
         step_penalty=check_step_penalty(config.waypoint_step_penalty, "waypoint_step_penalty"),
+        first_arrival=config.waypoint_first_arrival,
         goal_blur_sigmas=config.goal_blur_sigmas,
         code_key=code_key,
     )
