@@ -645,7 +645,7 @@ def test_first_arrival_plans_end_where_they_first_reach_the_waypoint(two_objects
     env, oracle, graph = two_objects
     policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_first_arrival=True, **SMALL)
     assert any(isinstance(m, FirstArrival) for m in policy.waypoint_planner.cost.modules())
-    plain = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    plain = make_dorp_policy(env, oracle, graph, seed=0, waypoint_first_arrival=False, **SMALL)
     assert not any(isinstance(m, FirstArrival) for m in plain.waypoint_planner.cost.modules())
     tasks = make_task_set(env, 4, seed=2)
     td = policy(fresh_batch(env, tasks))

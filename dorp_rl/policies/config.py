@@ -135,9 +135,10 @@ class DORPConfig(ConfigMixin):
     waypoint_goal_weight: float = checked(0.0, Float(low=0.0))
     """weight of the goal image's pixel distance in the waypoint cost: ranks plans that
     reach the waypoint by how close their frame is to the goal (0: the code match alone)"""
-    waypoint_step_penalty: float = checked(0.0, _step_penalty)
-    """waypoint cost per step of a frame at the waypoint: earlier arrival wins"""
-    waypoint_first_arrival: bool = checked(False, Flag())
+    waypoint_step_penalty: float = checked(0.002, _step_penalty)
+    """waypoint cost per step of a frame at the waypoint: earlier arrival wins (0: any
+    step reaching the waypoint scores alike)"""
+    waypoint_first_arrival: bool = checked(True, Flag())
     """judge a waypoint plan at its first step that reaches the waypoint, where the policy
     stops following it (False: at its best step, which may come later and never run)"""
     action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
