@@ -1306,9 +1306,8 @@ class FirstArrival(RolloutCost):
         name = type(self).__name__
         cost = get_rollout_key(rollout, self.cost_key, name).to(torch.float32)
         reached = get_rollout_key(rollout, self.reached_key, name).reshape(cost.shape)
-        arrived = (reached < self.threshold).to(torch.int64).cumsum(-1)
-        # Steps after the first arrival: the first arrival is counted once in the cumsum.
-        after = (arrived - (reached < self.threshold).to(torch.int64)) > 0
+        hit = (reached < self.threshold).to(torch.int64)
+        after = (hit.cumsum(-1) - hit) > 0  # an arrival at an earlier step
         return cost.masked_fill(after, math.inf)
 
     def extra_repr(self) -> str:

@@ -408,22 +408,25 @@ class GoalRelaxation(RecoveryRule):
                 give_up[row] = False
                 state["dorp_goal_stall"][row] = 0
                 state["dorp_goal_best"][row] = float("inf")
-        if give_up.any():
-            state["dorp_relaxed"][give_up] = True
-            state["goal_code_weight"][give_up] = 0.0
-            state["dorp_goal_stall"][give_up] = 0
-            state["dorp_goal_best"][give_up] = float("inf")
-            plans[planner.length_key][give_up] = 0  # replan without the term next step
+        if give_up.any():  # replan without the term next step
+            self._set_code_term(state, plans, give_up, relaxed=True)
         off_goal = (state["code"] != state["goal_code"]).any(-1)
         back = rows & relaxed & off_goal & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
         back &= state["dorp_goal_returns"].squeeze(-1) < self.max_returns
         if back.any():  # leave the goal phase: the loop plans waypoints next step
             state["dorp_goal_returns"][back] += 1
-            state["dorp_relaxed"][back] = False
-            state["goal_code_weight"][back] = self.weight
-            state["dorp_goal_stall"][back] = 0
-            state["dorp_goal_best"][back] = float("inf")
-            plans[planner.length_key][back] = 0
+            self._set_code_term(state, plans, back, relaxed=False)
+
+    def _set_code_term(
+        self, state: State, plans: State, rows: torch.Tensor, *, relaxed: bool
+    ) -> None:
+        """Drops (``relaxed``) or restores the goal-code term of ``rows``, restarting the
+        stall watch and the goal plan."""
+        state["dorp_relaxed"][rows] = relaxed
+        state["goal_code_weight"][rows] = 0.0 if relaxed else self.weight
+        state["dorp_goal_stall"][rows] = 0
+        state["dorp_goal_best"][rows] = float("inf")
+        plans[self.policy.goal_planner.length_key][rows] = 0
 
 
 def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[RecoveryRule]:
