@@ -369,27 +369,40 @@ _HASH_WEIGHTS: dict[tuple[torch.device, int], torch.Tensor] = {}
 
 
 def row_hashes(rows: torch.Tensor) -> torch.Tensor:
-    """A 64-bit hash ``[n]`` of each row of a uint8 ``[n, ...]`` tensor (same bytes, same hash)."""
+    """A 64-bit hash ``[n]`` of each row of a uint8 ``[n, ...]`` tensor (same bytes, same hash).
+
+    The hash is ``sum_b weight_b * byte_b`` modulo 2**64 with an odd random weight per
+    byte position (:func:`_hash_weights`). Odd weights make any one changed byte change
+    the hash, and two different rows share a hash with probability at most about 2**-56
+    (a weighted sum of byte differences, each below 2**8 in size, vanishing modulo
+    2**64). A weight per 8-byte word instead would let a difference in a word's top byte
+    reach only the hash's top 8 bits: frames differing there collided one time in 256.
+    """
     n = rows.shape[0]
     flat = rows.reshape(n, -1)
-    pad = (-flat.shape[1]) % 8
-    if pad:
-        flat = torch.nn.functional.pad(flat, (0, pad))
-    words = flat.contiguous().view(torch.int64)
-    return (words * _hash_weights(rows.device, words.shape[1])).sum(-1)
+    weights = _hash_weights(rows.device, flat.shape[1])
+    out = torch.empty(n, dtype=torch.int64, device=rows.device)
+    for start in range(0, n, _HASH_CHUNK):  # bounds the int64 copy of the bytes
+        chunk = flat[start : start + _HASH_CHUNK].to(torch.int64)
+        out[start : start + _HASH_CHUNK] = (chunk * weights).sum(-1)
+    return out
 
 
-def _hash_weights(device: torch.device, num_words: int) -> torch.Tensor:
-    """The odd int64 weights ``[num_words]`` of :func:`row_hashes` for rows of that many words.
+#: rows hashed at once by :func:`row_hashes`
+_HASH_CHUNK = 2048
 
-    The hash is linear in the words (modulo 2**64), which :class:`ImaginedFrames` uses to
+
+def _hash_weights(device: torch.device, num_bytes: int) -> torch.Tensor:
+    """The odd int64 weights ``[num_bytes]`` of :func:`row_hashes` for rows of that many bytes.
+
+    The hash is linear in the bytes (modulo 2**64), which :class:`ImaginedFrames` uses to
     hash frames from their parts without drawing them.
     """
-    key_id = (device, num_words)
+    key_id = (device, num_bytes)
     weights = _HASH_WEIGHTS.get(key_id)
     if weights is None:
         gen = torch.Generator().manual_seed(0x5EED)
-        weights = torch.randint(-(2**62), 2**62, (num_words,), generator=gen) | 1
+        weights = torch.randint(-(2**62), 2**62, (num_bytes,), generator=gen) | 1
         weights = _HASH_WEIGHTS.setdefault(key_id, weights.to(device))
     return weights
 
@@ -532,9 +545,9 @@ class ImaginedFrames:
                 value = parts.to(torch.float64)
             elif name == "norms":
                 value = parts.to(torch.int64).square().sum(-1)
-            else:  # part hashes for rows of `name` words
-                words = parts.view(torch.int64)
-                value = (words * _hash_weights(self.states.device, name)[: words.shape[1]]).sum(-1)
+            else:  # part hashes for rows of `name` bytes
+                weights = _hash_weights(self.states.device, name)[: parts.shape[1]]
+                value = (parts.to(torch.int64) * weights).sum(-1)
             self._tables[key] = value
         return self._tables[key]
 
@@ -567,10 +580,12 @@ class ImaginedFrames:
         if not self._has_parts:
             return self._distinct_drawn(extra)
         parts = self._flat_parts()
-        num_words = _FRAME_BYTES // 8 + (0 if extra is None else extra.shape[1])
-        key = self._table(num_words)[parts].sum(-1)  # the hash is linear in the words
+        num_bytes = _FRAME_BYTES + (0 if extra is None else 8 * extra.shape[1])
+        key = self._table(num_bytes)[parts].sum(-1)  # the hash is linear in the bytes
         if extra is not None:
-            key = key + (extra * _hash_weights(key.device, num_words)[-extra.shape[1] :]).sum(-1)
+            extra_bytes = extra.contiguous().view(torch.uint8).to(torch.int64)
+            weights = _hash_weights(key.device, num_bytes)[_FRAME_BYTES:]
+            key = key + (extra_bytes * weights).sum(-1)
         unique, inverse = torch.unique(key, return_inverse=True)
         first = torch.full((unique.shape[0],), n, dtype=torch.long, device=key.device)
         first.scatter_reduce_(0, inverse, torch.arange(n, device=key.device), reduce="amin")

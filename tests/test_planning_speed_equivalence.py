@@ -165,6 +165,47 @@ def test_imagined_frames_distinct_is_distinct_rows_of_the_drawn_frames():
     assert torch.equal(keys, row_hashes(expected))
 
 
+def test_row_hashes_tell_apart_rows_differing_in_any_byte():
+    # A weight per 8-byte word let a change in a word's top byte reach only the hash's top
+    # 8 bits: one frame in 50 of the key rooms (the agent in columns 7 and 15) shared its
+    # hash with another, and the planners' caches then gave it the other frame's codes.
+    env = KeyWallEnv(batch_size=(1,))
+    table = env.frame_part_table()  # every (cell, has-key) frame
+    assert (
+        torch.unique(row_hashes(table)).shape[0] == torch.unique(table.flatten(1), dim=0).shape[0]
+    )
+    one_byte = torch.eye(768, dtype=torch.uint8) * 255  # each byte lit alone
+    assert torch.unique(row_hashes(one_byte)).shape[0] == 768
+    # linear in the bytes: the hash of a sum of disjoint rows is the sum of their hashes
+    a, b = one_byte[7], one_byte[15] // 2
+    assert row_hashes((a + b)[None]) == row_hashes(a[None]) + row_hashes(b[None])
+
+
+@pytest.mark.parametrize("name", ["code_mask_cached", "blur_cached"])
+def test_cached_costs_stay_right_when_hashes_collide(monkeypatch, name):
+    """Frames sharing a hash are kept out of the caches keyed by hashes: later calls,
+    which read the caches, score every candidate as an uncached cost does."""
+    monkeypatch.setattr(
+        planning, "_hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
+    )
+    env = make_env("rearrangement", batch=2)
+    td = with_codes(env, env.reset())
+    if name == "blur_cached":
+        cached = PixelDistanceCost(blur_sigmas=(1.0,))
+        plain = PixelDistanceCost(blur_sigmas=(1.0,), cache_size=0)
+    else:
+        cached = make_cost(name, env)
+        plain = CodeMatchCost(OracleCodeEncoder(env), onehots="subgoal_mask", cache_size=0)
+    planners = [
+        RandomShootingPlanner(GroundTruthModelEnv(env), cost, planning_horizon=3, num_candidates=16)
+        for cost in (cached, plain)
+    ]
+    for seed in range(3):  # the first call fills the cache, the next ones read it
+        decisions = torch.randint(0, 12, (2, 16, 3), generator=torch.Generator().manual_seed(seed))
+        fast = [run_cost_lazy(p.cost, *p.imagine_lazy(td, decisions))[p.cost_key] for p in planners]
+        assert torch.equal(fast[0], fast[1])
+
+
 def test_squared_distances_are_exact():
     env = make_env("rearrangement", batch=4)
     td = env.reset()

@@ -316,11 +316,19 @@ class _GoalFrameCost(RolloutCost):
         owner: torch.Tensor,
         compute: Callable[[torch.Tensor], torch.Tensor],
         module: nn.Module | None = None,
+        cached: bool = True,
     ) -> torch.Tensor:
         """Costs ``[m]`` of the (frame, goal) pairs ``frames[i]``, ``goals[owner[i]]``:
         ``compute(indices)`` for the pairs not scored in an earlier call (the goal phase
-        plans from nearly the same state many times), the others from the cache."""
-        if self.cache.size == 0 or frames.dtype != torch.uint8 or frames.shape[0] == 0:
+        plans from nearly the same state many times), the others from the cache.
+        ``cached=False`` computes them all: deduplication found two frames sharing a hash,
+        which the cache, keyed by hashes, would confuse."""
+        if (
+            not cached
+            or self.cache.size == 0
+            or frames.dtype != torch.uint8
+            or frames.shape[0] == 0
+        ):
             return compute(torch.arange(frames.shape[0], device=frames.device))
         goal_keys = row_hashes(goals).index_select(0, owner)
         keys = row_hashes(frames) * _PAIR_KEY_FACTOR + goal_keys  # wraps modulo 2**64
@@ -432,7 +440,7 @@ class PixelDistanceCost(_GoalFrameCost):
             return out
 
         if self.blur_sigmas:
-            out = self._pair_costs(frames, pairs.goals, owner, compute)
+            out = self._pair_costs(frames, pairs.goals, owner, compute, cached=inverse is not None)
         else:  # plain distances cost less than the cache's hashing
             out = compute(torch.arange(frames.shape[0], device=frames.device))
         if inverse is not None:
@@ -633,7 +641,9 @@ class ObjectMapCost(_GoalFrameCost):
                     out[start : start + chunk.shape[0]] = total
                 return out
 
-            out = self._pair_costs(frames, pairs.goals, owner, compute, module)
+            out = self._pair_costs(
+                frames, pairs.goals, owner, compute, module, cached=inverse is not None
+            )
         finally:
             if module is not None:
                 module.train(was_training)
@@ -669,8 +679,9 @@ class _KeyedCache:
     storage is full the cache starts afresh. It is emptied whenever the weights of the
     module computing the values change (their ``_version`` counters, which every in-place
     update such as an optimiser step increments) and is not part of any state dict. Rows
-    are matched by a 64-bit hash: two different rows share one with probability about
-    1e-19 per pair.
+    are matched by their :func:`~dorp_rl.envs.planning.row_hashes`: two different rows
+    share one with probability at most about 2**-56 per pair, and rows found sharing one
+    while deduplicating a call are not cached.
     """
 
     def __init__(self, size: int) -> None:
@@ -946,7 +957,12 @@ class CodeMatchCost(RolloutCost):
                     # Imagined frames repeat a lot, within a call and across calls: encode
                     # each distinct frame once, and frames seen in earlier calls not at all.
                     flat, inverse = distinct_rows(flat)
-            code, prob = self.cache.encode(flat, self._encode_frames, module, keys=keys)
+            if inverse is None and not callable(flat) and flat.shape[0] > 1:
+                # deduplication found two frames sharing a hash: keep them out of the
+                # cache, which is keyed by hashes
+                code, prob = self._encode_frames(flat)
+            else:
+                code, prob = self.cache.encode(flat, self._encode_frames, module, keys=keys)
         finally:
             if module is not None:
                 module.train(was_training)
