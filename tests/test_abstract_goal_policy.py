@@ -638,21 +638,11 @@ def test_waypoint_step_penalty_reaches_the_code_term(two_objects):
         make_dorp_policy(env, oracle, graph, waypoint_step_penalty=0.5, **SMALL)
 
 
-def test_first_arrival_plans_end_where_they_first_reach_the_waypoint(two_objects):
-    """With ``waypoint_first_arrival`` a waypoint plan is judged, and runs open loop, up
-    to the first imagined step whose codes are the waypoint's: replayed in the env, the
-    plan's last step is that first arrival, never a later one."""
-    env, oracle, graph = two_objects
-    policy = make_dorp_policy(env, oracle, graph, seed=0, waypoint_first_arrival=True, **SMALL)
-    assert any(isinstance(m, FirstArrival) for m in policy.waypoint_planner.cost.modules())
-    plain = make_dorp_policy(env, oracle, graph, seed=0, waypoint_first_arrival=False, **SMALL)
-    assert not any(isinstance(m, FirstArrival) for m in plain.waypoint_planner.cost.modules())
-    tasks = make_task_set(env, 4, seed=2)
-    td = policy(fresh_batch(env, tasks))
+def replay_waypoint_plans(env, oracle, tasks, td):
+    """Replays each row's waypoint plan from its task's start: (reaches [b], first
+    arrival step [b], arrived at all [b])."""
     plan = td["waypoint_planner_plan"]
-    length = td["waypoint_planner_length"].squeeze(-1)
     reaches = td["waypoint_planner_cost"].squeeze(-1) < 0.5
-    assert reaches.any()
     target, mask = td["subgoal_code"], td["subgoal_mask"]
     step = fresh_batch(env, tasks)
     arrived = torch.zeros(plan.shape, dtype=torch.bool)
@@ -661,9 +651,48 @@ def test_first_arrival_plans_end_where_they_first_reach_the_waypoint(two_objects
         step = env.step(step)["next"].clone()
         code = oracle.encode(step["pixels"])
         arrived[:, t] = ((code == target) | ~mask).all(-1)
-    first = arrived.float().argmax(-1)
+    return reaches, arrived.float().argmax(-1), arrived.any(-1)
+
+
+@pytest.mark.parametrize("prune", [False, True])
+def test_first_arrival_plans_end_where_they_first_reach_the_waypoint(two_objects, prune):
+    """With ``waypoint_first_arrival`` a waypoint plan is judged, and runs open loop, up
+    to the first imagined step whose codes are the waypoint's: replayed in the env, the
+    plan's last step is that first arrival, never a later one (pruned plans too)."""
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(
+        env, oracle, graph, seed=0, waypoint_first_arrival=True, prune_plans=prune, **SMALL
+    )
+    assert any(isinstance(m, FirstArrival) for m in policy.waypoint_planner.cost.modules())
+    assert policy.waypoint_planner.prune is policy.goal_planner.prune is prune
+    plain = make_dorp_policy(env, oracle, graph, seed=0, waypoint_first_arrival=False, **SMALL)
+    assert not any(isinstance(m, FirstArrival) for m in plain.waypoint_planner.cost.modules())
+    tasks = make_task_set(env, 4, seed=2)
+    td = policy(fresh_batch(env, tasks))
+    length = td["waypoint_planner_length"].squeeze(-1)
+    reaches, first, arrived = replay_waypoint_plans(env, oracle, tasks, td)
+    assert reaches.any()
     assert torch.equal(length[reaches], first[reaches] + 1)
-    assert arrived[reaches].any(-1).all()
+    assert arrived[reaches].all()
+
+
+def test_pruned_waypoint_plans_are_never_longer(two_objects):
+    """Pruning drops the detours of the same best candidates: every plan that reaches its
+    waypoint is as short or shorter, and together they are shorter (few candidates: their
+    best carries detours)."""
+    env, oracle, graph = two_objects
+    tasks = make_task_set(env, 4, seed=3)
+    lengths = {}
+    for prune in (False, True):
+        policy = make_dorp_policy(
+            env, oracle, graph, seed=0, prune_plans=prune, num_candidates=20, planning_horizon=10
+        )
+        td = policy(fresh_batch(env, tasks))
+        reaches, _, _ = replay_waypoint_plans(env, oracle, tasks, td)
+        assert reaches.all()
+        lengths[prune] = td["waypoint_planner_length"].squeeze(-1)
+    assert (lengths[True] <= lengths[False]).all()
+    assert lengths[True].sum() < lengths[False].sum()
 
 
 # ---------------------------------------------------------------- order, budgets, key rooms

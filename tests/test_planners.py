@@ -21,6 +21,7 @@ from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,
+    DiscreteMPCPlanner,
     FirstArrival,
     MissingRolloutKeyError,
     NegativeRewardCost,
@@ -29,6 +30,7 @@ from dorp_rl.planners import (
     RolloutCost,
     WeightedCostSum,
     aggregate_steps,
+    improves,
     select_best,
 )
 from dorp_rl.policies import VisualForesightPolicy
@@ -209,6 +211,71 @@ def test_first_arrival_judges_a_plan_where_it_first_reaches_its_target():
     assert torch.equal(FirstArrival("code", cost_key="total")(never)["total"], never["total"])
     with pytest.raises(MissingRolloutKeyError, match="'code'"):
         FirstArrival("code", cost_key="total")(never.exclude("code"))
+
+
+class FixedPlan(DiscreteMPCPlanner):
+    """One candidate per row: the given decisions."""
+
+    def __init__(self, *args, plan, **kwargs):
+        super().__init__(*args, num_candidates=1, **kwargs)
+        self.fixed = torch.tensor(plan)
+
+    def _optimize(self, td, previous_plan, shift, valid):
+        decisions = self.fixed.expand(td.shape[0], 1, -1).clone()
+        score, step = self._evaluate(td, decisions)
+        return decisions[:, 0], score[:, 0], step[:, 0]
+
+
+def test_pruning_drops_a_detour_and_draws_no_random_numbers():
+    # One block goes right, back left, then right twice: it reaches the goal (two cells
+    # right) at step 3. Dropping the detour reaches it at step 1.
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(1,), seed=0)
+    right, left = 3, 2
+    td = tasks(env, [[[6, 6]]], [[[6, 8]]])
+    plan = [right, left, right, right, left, left]
+    planners = {
+        prune: FixedPlan(
+            GroundTruthModelEnv(env),
+            PixelDistanceCost(),
+            planning_horizon=6,
+            execution="open_loop",
+            plan=plan,
+            prune=prune,
+            seed=0,
+        )
+        for prune in (False, True)
+    }
+    kept = planners[False](td.clone())
+    pruned = planners[True](td.clone())
+    assert kept["planner_plan"].tolist() == [plan] and kept["planner_length"].item() == 4
+    # drop 1 wins (drop 0 or 3 never reach the goal); the last action fills the horizon
+    assert pruned["planner_plan"].tolist() == [[right, right, right, left, left, left]]
+    assert pruned["planner_length"].item() == 2
+    assert pruned["planner_cost"].item() == kept["planner_cost"].item() == 0.0
+    # the pruned plan really arrives where it stops
+    state = env.transition(td["state"], torch.tensor([right]))
+    state = env.transition(state, torch.tensor([right]))
+    assert torch.equal(state, td["goal_state"])
+    generators = [p.generator.get_state() for p in planners.values()]
+    assert torch.equal(*generators)
+    # a best step at 0 has nothing to drop
+    first = FixedPlan(
+        GroundTruthModelEnv(env),
+        PixelDistanceCost(),
+        planning_horizon=6,
+        plan=[right] * 6,
+        prune=True,
+    )
+    one = tasks(env, [[[6, 6]]], [[[6, 7]]])
+    assert first(one)["planner_plan"].tolist() == [[right] * 6]
+    with pytest.raises(ValueError, match="prune must be True or False"):
+        FixedPlan(GroundTruthModelEnv(env), PixelDistanceCost(), plan=[0] * 14, prune=1)
+
+
+def test_improves_prefers_lower_then_earlier():
+    score, step = torch.tensor([1.0, 1.0, 2.0, 0.5]), torch.tensor([3, 1, 0, 9])
+    best_score, best_step = torch.tensor(1.0), torch.tensor(2)
+    assert improves(score, step, best_score, best_step).tolist() == [False, True, False, True]
 
 
 def test_code_match_cost_prefers_confident_matches():

@@ -18,6 +18,7 @@ from dorp_rl.planners.base import (
     DiscreteMPCPlanner,
     aggregate_steps,
     finished_rows,
+    improves,
     select_best,
 )
 from dorp_rl.planners.cem import CategoricalCEMPlanner
@@ -68,5 +69,6 @@ __all__ = [
     "materialize_lazy",
     "resolve_groups",
     "run_cost_lazy",
+    "improves",
     "select_best",
 ]

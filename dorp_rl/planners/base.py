@@ -44,6 +44,15 @@ Planning envs and costs: the fast-path contract
     stepped through its transforms), and both must compute what stepping and
     ``forward`` compute: the plans are the same either way.
 
+Pruning
+    With ``prune=True`` the best sequence of a call is shortened afterwards: each round
+    scores the ``H / r`` sequences that drop one decision up to the best step (the
+    rest moves up, the last decision is repeated to fill the horizon) and keeps the best
+    of them if it scores lower, or as low at an earlier step; rounds stop when no drop
+    helps. Random candidates carry detours (a move of another object, a move undone
+    later) that cost nothing when the score only looks at the best step; pruning takes
+    them out. It draws no random numbers, so the candidates of later calls are unchanged.
+
 Execution
     ``"receding"``: every call replans and returns the first action of the best
     sequence. ``"open_loop"``: a call that finds no stored plan left plans, returns the
@@ -105,7 +114,7 @@ from dorp_rl.planners.costs import (
     check_step_aggregation,
     run_cost_lazy,
 )
-from dorp_rl.validation import MissingKeyError, check_int, check_seed, check_task_frames
+from dorp_rl.validation import MissingKeyError, check_bool, check_int, check_seed, check_task_frames
 
 __all__ = [
     "EXECUTIONS",
@@ -113,6 +122,7 @@ __all__ = [
     "DiscreteMPCPlanner",
     "aggregate_steps",
     "check_step_aggregation",
+    "improves",
     "select_best",
 ]
 
@@ -145,6 +155,8 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             last ``out_keys`` entry (``"cost"`` if it has none).
         action_key: where the action is written.
         key_prefix: prefix of the state keys.
+        prune: shorten the best sequence by dropping decisions while that lowers its
+            score or reaches it earlier (see Pruning above).
         action_prior_key: a key of the acting tensordict holding, per row, a distribution
             over actions ``[*B, A]`` (non-negative, not all zero; normalised here) that
             the planner samples its candidates' actions from instead of uniformly
@@ -182,6 +194,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
         action_prior_key: NestedKey | None = None,
+        prune: bool = False,
     ) -> None:
         if not isinstance(env, EnvBase):
             raise ValueError(f"env must be a torchrl EnvBase, got {type(env).__name__}.")
@@ -233,6 +246,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         self.action_repeat = int(action_repeat)
         self.num_decisions = self.planning_horizon // self.action_repeat
         self.execution = execution
+        self.prune = check_bool("prune", prune)
         self.step_aggregation = check_step_aggregation(
             step_aggregation if step_aggregation is not None else _cost_aggregation(cost, cost_key)
         )
@@ -381,6 +395,8 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         """Plans rows ``td [b]``: (plan int64 ``[b, H]``, length ``[b]``, score ``[b]``)."""
         self._check_cost_keys(td)
         decisions, score, step = self._optimize(td, previous_plan, shift, valid)
+        if self.prune:
+            decisions, score, step = self._prune(td, decisions, score, step)
         plan = decisions.repeat_interleave(self.action_repeat, dim=-1)
         # Open loop stops at the best step for "min"; the whole sequence counts otherwise.
         if self.step_aggregation == "min":
@@ -429,6 +445,43 @@ class DiscreteMPCPlanner(MPCPlannerBase):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Best decisions int64 ``[b, H / r]``, their score ``[b]`` and best step ``[b]``."""
         raise NotImplementedError
+
+    def _prune(
+        self,
+        td: TensorDictBase,
+        decisions: torch.Tensor,
+        score: torch.Tensor,
+        step: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Drops decisions ``[b, D]`` one per round while that improves (score, step)."""
+        d = self.num_decisions
+        if d < 2:
+            return decisions, score, step
+        # variant j drops decision j and repeats the last decision at the end
+        order = torch.arange(d, device=decisions.device)
+        drop = torch.stack([torch.cat([order[:j], order[j + 1 :], order[-1:]]) for j in range(d)])
+        active = torch.ones(decisions.shape[0], dtype=torch.bool, device=decisions.device)
+        for _ in range(d - 1):
+            index = active.nonzero().squeeze(-1)
+            if not index.numel():
+                break
+            rows = td[index.to(td.device)] if index.numel() < td.batch_size[0] else td
+            current = decisions[index]
+            variants = current[:, drop]  # [b, D, D]
+            new_score, new_step = self._evaluate(rows, variants)
+            # only decisions up to the best step are dropped: the rest never runs
+            last = step[index].div(self.action_repeat, rounding_mode="floor").unsqueeze(-1)
+            new_score = torch.where(order <= last, new_score, torch.full_like(new_score, torch.inf))
+            best = select_best(new_score, new_step)
+            pick = torch.arange(index.numel(), device=best.device)
+            cand_score, cand_step = new_score[pick, best], new_step[pick, best]
+            better = improves(cand_score, cand_step, score[index], step[index])
+            kept = index[better]
+            decisions[kept] = variants[pick[better], best[better]]
+            score[kept] = cand_score[better]
+            step[kept] = cand_step[better]
+            active[index[~better]] = False
+        return decisions, score, step
 
     def _uniforms(self, rows: int, optim_steps: int) -> torch.Tensor:
         """Uniform numbers ``[rows, optim_steps, N, H / r]`` in one row-major draw."""
@@ -663,7 +716,8 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         return (
             f"planning_horizon={self.planning_horizon}, num_candidates={self.num_candidates}, "
             f"action_repeat={self.action_repeat}, execution={self.execution!r}, "
-            f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}"
+            f"step_aggregation={self.step_aggregation!r}, cost_key={self.cost_key!r}, "
+            f"prune={self.prune}"
         )
 
 
@@ -729,6 +783,13 @@ def aggregate_steps(
     if step_aggregation == "sum":
         return per_step.sum(-1), full
     return per_step[..., -1], full
+
+
+def improves(
+    score: torch.Tensor, step: torch.Tensor, best_score: torch.Tensor, best_step: torch.Tensor
+) -> torch.Tensor:
+    """Bool: a (score, step) beats the best so far: lower, or as low and earlier."""
+    return (score < best_score) | ((score == best_score) & (step < best_step))
 
 
 def select_best(score: torch.Tensor, step: torch.Tensor) -> torch.Tensor:

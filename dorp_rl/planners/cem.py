@@ -13,7 +13,7 @@ from tensordict import NestedKey, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from dorp_rl.planners.base import DiscreteMPCPlanner, select_best
+from dorp_rl.planners.base import DiscreteMPCPlanner, improves, select_best
 from dorp_rl.validation import check_bool, check_float, check_int
 
 __all__ = ["CategoricalCEMPlanner"]
@@ -93,6 +93,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
         action_prior_key: NestedKey | None = None,
+        prune: bool = False,
         optim_steps: int = 3,
         top_k: int = 20,
         warm_start: bool = True,
@@ -113,6 +114,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
             action_prior_key=action_prior_key,
+            prune=prune,
         )
         self.optim_steps = check_int("optim_steps", optim_steps, low=1)
         self.top_k = check_int("top_k", top_k, low=1, high=self.num_candidates)
@@ -194,9 +196,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
             if best_score is None:
                 best_decisions, best_score, best_step = cand_decisions, cand_score, cand_step
             else:
-                better = (cand_score < best_score) | (
-                    (cand_score == best_score) & (cand_step < best_step)
-                )
+                better = improves(cand_score, cand_step, best_score, best_step)
                 best_decisions = torch.where(better.unsqueeze(-1), cand_decisions, best_decisions)
                 best_score = torch.where(better, cand_score, best_score)
                 best_step = torch.where(better, cand_step, best_step)

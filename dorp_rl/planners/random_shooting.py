@@ -84,6 +84,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
         action_prior_key: NestedKey | None = None,
+        prune: bool = False,
     ) -> None:
         super().__init__(
             env,
@@ -98,6 +99,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
             action_prior_key=action_prior_key,
+            prune=prune,
         )
         # the probability that a decision repeats the one before it
         self.action_persistence = check_float(

@@ -191,7 +191,7 @@ def make_dorp_policy(
     # The planners' own keywords, less those set from the config.
     passed_on = (
         set(keyword_names(RandomShootingPlanner)) | set(keyword_names(CategoricalCEMPlanner))
-    ) - {"env", "cost", "execution", "key_prefix", "seed", *_CONFIG_FIELDS}
+    ) - {"env", "cost", "execution", "key_prefix", "seed", "prune", *_CONFIG_FIELDS}
     check_keywords(planner_kwargs, passed_on, "make_dorp_policy (for its planners)")
     if config is None:
         config = DORPConfig.for_env(env, **fields)
@@ -229,6 +229,7 @@ def make_dorp_policy(
         "num_candidates": config.num_candidates,
         "action_repeat": config.action_repeat,
         "execution": "open_loop",
+        "prune": config.prune_plans,
     }
     # Arguments only CEM has go to the CEM planners; anything else both planners take.
     cem_only = {k: v for k, v in planner_kwargs.items() if k in _CEM_ONLY}
