@@ -141,9 +141,10 @@ class DORPConfig(ConfigMixin):
     waypoint_first_arrival: bool = checked(True, Flag())
     """judge a waypoint plan at its first step that reaches the waypoint, where the policy
     stops following it (False: at its best step, which may come later and never run)"""
-    prune_plans: bool = checked(False, Flag())
+    prune_plans: bool = checked(True, Flag())
     """drop the decisions of each best plan whose removal lowers its cost or reaches it
-    earlier (detours random candidates carry; ``DiscreteMPCPlanner(prune=True)``)"""
+    earlier (detours random candidates carry; ``DiscreteMPCPlanner(prune=True)``; False:
+    the best sampled sequence as it is, as the paper)"""
     action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
     """share of the waypoint planner's actions drawn from those that changed the hop's
     one-hots in the play data (None: 0.8 when the graph has action counts, else 0)"""

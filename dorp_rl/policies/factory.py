@@ -34,7 +34,7 @@ __all__ = ["DEFAULT_ACTION_PRIOR_MIX", "DORP_RECIPE", "make_dorp_policy", "make_
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 5
+DORP_RECIPE = 6
 #: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: the random-shooting planners' ``action_persistence`` when the config leaves it ``None``
