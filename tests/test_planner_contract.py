@@ -293,6 +293,57 @@ def test_a_cost_overriding_per_step_cost_in_a_cost_sequence_gets_its_override():
     assert torch.equal(alone["planner_cost"], plain["planner_cost"] / 2)
 
 
+class CountingPixelCost(PixelDistanceCost):
+    """A pixel distance that counts the rollouts it scored."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.calls = 0
+
+    def per_step_cost(self, rollout):
+        self.calls += 1
+        return super().per_step_cost(rollout)
+
+
+@pytest.mark.parametrize("sequence", ["plain", "lazy"])
+def test_a_term_weighted_zero_in_every_row_is_not_computed(sequence):
+    env, td = rearrangement()
+    td["term_weight"] = torch.zeros(2, 1)
+    counted = CountingPixelCost(out_key="counted", blur_sigmas=(2.0,))
+    cost = CostSequence(
+        PixelDistanceCost(out_key="pixel"),
+        counted,
+        WeightedCostSum({"pixel": 1.0, "counted": "term_weight"}, step_aggregation="min"),
+    )
+    model = SteppedModel(env) if sequence == "plain" else GroundTruthModelEnv(env)
+    plain = plan_gt(model, PixelDistanceCost(), td)
+    out = plan_gt(model, cost, td)
+    assert counted.calls == 0
+    assert torch.equal(out["planner_cost"], plain["planner_cost"])
+    assert torch.equal(out["planner_plan"], plain["planner_plan"])
+    # One row weighing the term: it is computed for the call, and counts in that row.
+    td["term_weight"] = torch.tensor([[0.0], [5.0]])
+    out = plan_gt(model, cost, td)
+    assert counted.calls == 1
+    assert torch.equal(out["planner_cost"][0], plain["planner_cost"][0])
+    assert float(out["planner_cost"][1]) > float(plain["planner_cost"][1])
+
+
+def test_a_zero_weighted_term_another_cost_reads_is_still_computed():
+    env, td = rearrangement()
+    td["term_weight"] = torch.zeros(2, 1)
+    counted = CountingPixelCost(out_key="counted")
+    cost = CostSequence(
+        counted,
+        WeightedCostSum({"counted": 2.0}, out_key="doubled"),
+        WeightedCostSum({"counted": "term_weight", "doubled": 1.0}, step_aggregation="min"),
+    )
+    out = plan_gt(GroundTruthModelEnv(env), cost, td)
+    plain = plan_gt(GroundTruthModelEnv(env), PixelDistanceCost(), td)
+    assert counted.calls == 1
+    assert torch.equal(out["planner_cost"], 2 * plain["planner_cost"])
+
+
 def test_a_cost_overriding_forward_gets_its_override_on_drawn_frames():
     env, td = rearrangement()
     plain = plan_gt(GroundTruthModelEnv(env), PixelDistanceCost(), td)

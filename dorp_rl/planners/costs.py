@@ -1145,13 +1145,51 @@ class CostSequence(TensorDictSequential):
             )
         super().__init__(*costs)
 
+    def forward(self, rollout: TensorDictBase, *args: Any, **kwargs: Any) -> TensorDictBase:
+        if args or kwargs:
+            return super().forward(rollout, *args, **kwargs)
+        return self.forward_lazy(rollout, {})
+
     def forward_lazy(
         self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
     ) -> TensorDictBase:
-        """Runs the costs in order on ``rollout``, handing each the ``lazy`` values."""
+        """Runs the costs in order on ``rollout``, handing each the ``lazy`` values.
+
+        A term that only the last member (a :class:`WeightedCostSum`) reads, weighted by
+        a per-row weight that is 0 in every row, is not computed: it is written as zeros
+        (the goal phase's code term once every row dropped it).
+        """
+        unread = self._terms_read_by_sum_only()
         for index in range(len(self)):
-            rollout = run_cost_lazy(self[index], rollout, lazy)
+            member = self[index]
+            weight_key = unread.get(index)
+            if weight_key is not None:
+                weight = rollout.get(weight_key, None)
+                if weight is not None and not weight.any():
+                    shape = rollout.batch_size
+                    rollout.set(member.out_key, torch.zeros(shape, device=weight.device))
+                    continue
+            rollout = run_cost_lazy(member, rollout, lazy)
         return rollout
+
+    def _terms_read_by_sum_only(self) -> dict[int, NestedKey]:
+        """Index of each cost whose one output only a final :class:`WeightedCostSum`
+        reads, weighted by a per-row key -> that key."""
+        total = self[len(self) - 1]
+        if not isinstance(total, WeightedCostSum):
+            return {}
+        out: dict[int, NestedKey] = {}
+        for index in range(len(self) - 1):
+            member = self[index]
+            if not isinstance(member, RolloutCost) or len(member.out_keys) != 1:
+                continue
+            weight = total.weights.get(member.out_key)
+            if weight is None or isinstance(weight, float):
+                continue
+            readers = [m for m in list(self)[index + 1 : -1] if member.out_key in m.in_keys]
+            if not readers:
+                out[index] = weight
+        return out
 
 
 class WeightedCostSum(RolloutCost):
