@@ -19,7 +19,8 @@ Two ways in:
 
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
-Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 4]``.
+Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 4]
+[--size 5]``.
 """
 
 from __future__ import annotations
@@ -41,8 +42,10 @@ from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
 
 #: MiniGrid's action ids of turn left, turn right, forward, pickup and toggle
 ACTIONS = (0, 1, 2, 3, 5)
-#: pixels per grid cell of MiniGrid's renderer (frames are 5 x TILE_SIZE on a side)
+#: pixels per grid cell of MiniGrid's renderer (frames are SIZE x TILE_SIZE on a side)
 TILE_SIZE = 4
+#: grid cells on a side, walls included: MiniGrid's DoorKey-SIZExSIZE
+SIZE = 5
 
 
 class FixedLayout(gym.Wrapper):
@@ -67,7 +70,10 @@ def make_door_key_gym(tile_size: int | None = None, layout_seed: int = 0) -> Fix
     # highlight=False: MiniGrid otherwise lightens the agent's field of view, so a turn
     # changes large parts of the frame that are no object at all.
     env = gym.make(
-        "MiniGrid-DoorKey-5x5-v0", render_mode="rgb_array", tile_size=tile, highlight=False
+        f"MiniGrid-DoorKey-{SIZE}x{SIZE}-v0",
+        render_mode="rgb_array",
+        tile_size=tile,
+        highlight=False,
     )
     return FixedLayout(env, layout_seed)
 
@@ -249,6 +255,7 @@ def main() -> None:
     parser.add_argument("--tasks", type=int, default=50, help="seeded goal images")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tile", type=int, default=TILE_SIZE, help="pixels per grid cell")
+    parser.add_argument("--size", type=int, default=SIZE, help="DoorKey-NxN, walls included")
     parser.add_argument("--out", default="outputs/gymnasium_env")
     parser.add_argument(
         "--set",
@@ -260,6 +267,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     globals()["TILE_SIZE"] = args.tile
+    globals()["SIZE"] = args.size
     extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
 
     config = RepresentationConfig.for_env(

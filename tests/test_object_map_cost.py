@@ -171,3 +171,44 @@ def test_the_goal_phase_adds_the_object_maps_when_the_encoder_has_them():
         make_dorp_policy(env, oracle, oracle_graph, seed=0, goal_map_weight=2.0, **small)
     td = env.rollout(6, policy, break_when_any_done=False)
     assert td.batch_size == (2, 6)
+
+
+def test_the_goal_planner_draws_the_actions_of_the_objects_off_their_goal_place():
+    """``goal_action_prior_mix``: the goal planner samples from the play data's actions
+    of the one-hots whose object maps are still off the goal image's."""
+    env = ObjectRearrangementEnv(num_objects=2, batch_size=(2,), seed=0)
+    play = collect_play_data(env, 400, seed=0)
+    encoder = map_encoder((3, 16, 16), code_sizes=(8, 8))
+    graph = CodeGraph.from_play_data(play, encoder)
+    # One-hot k was changed by block k's four moves only (actions 4k .. 4k + 3).
+    graph.action_counts = torch.zeros(2, 8, dtype=torch.int64)
+    graph.action_counts[0, :4] = graph.action_counts[1, 4:] = 10
+
+    def block_maps(pixels):  # map k: where block k's colour is (yellow, cyan)
+        red, blue = pixels[..., 0, :, :] > 0, pixels[..., 2, :, :] > 0
+        return torch.stack([red & ~blue, blue & ~red], -3).float()
+
+    encoder.object_maps = block_maps
+    small = {"num_candidates": 16, "planning_horizon": 3}
+    policy = make_dorp_policy(env, encoder, graph, seed=0, goal_action_prior_mix=0.8, **small)
+    assert policy.goal_planner.action_prior_key == "goal_action_prior"
+    goal = torch.tensor([[[2, 2], [10, 8]]])
+    moved = torch.tensor([[[2, 2], [13, 2]], [[6, 9], [10, 8]]])  # block 1, then block 0 off
+    pixels, goal_pixels = env.render_state(moved), env.render_state(goal).expand(2, 3, 16, 16)
+    prior = policy._goal_action_prior(pixels, goal_pixels)
+    uniform = 0.2 / 8
+    expected = torch.full((2, 8), uniform)
+    expected[0, 4:] += 0.8 / 4
+    expected[1, :4] += 0.8 / 4
+    assert torch.allclose(prior, expected)
+    # Every object at its place: uniform draws.
+    assert torch.allclose(
+        policy._goal_action_prior(goal_pixels, goal_pixels), torch.full((2, 8), 1 / 8)
+    )
+    td = env.rollout(4, policy, break_when_any_done=False)
+    assert td.batch_size == (2, 4)
+    # Without object maps or action counts it is refused by name.
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    oracle_graph = CodeGraph.from_play_data(play, oracle)
+    with pytest.raises(ValueError, match="goal_action_prior_mix=0.5 needs"):
+        make_dorp_policy(env, oracle, oracle_graph, goal_action_prior_mix=0.5, **small)

@@ -77,7 +77,7 @@ from dorp_rl.validation import (
     derive_seed,
 )
 
-__all__ = ["ENDINGS", "LOOP_FIELDS", "MODES", "PRIOR_KEY", "AbstractGoalPolicy"]
+__all__ = ["ENDINGS", "LOOP_FIELDS", "MODES", "GOAL_PRIOR_KEY", "PRIOR_KEY", "AbstractGoalPolicy"]
 
 #: Values of ``dorp_mode``.
 MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
@@ -88,6 +88,8 @@ ENDINGS = {"running": 0, "no_path": 1, "goal_stalled": 2, "removal_limit": 3}
 _RUNNING, _NO_PATH, _GOAL_STALLED, _REMOVAL_LIMIT = range(4)
 #: Where the policy writes the waypoint planner's action distribution (``action_prior_mix``).
 PRIOR_KEY = "subgoal_action_prior"
+#: Where the policy writes the goal planner's action distribution (``goal_action_prior_mix``).
+GOAL_PRIOR_KEY = "goal_action_prior"
 #: The :class:`~dorp_rl.policies.DORPConfig` fields the policy itself reads (the others
 #: shape the planners :func:`~dorp_rl.policies.make_dorp_policy` gives it).
 LOOP_FIELDS = (
@@ -106,6 +108,7 @@ LOOP_FIELDS = (
     "goal_patience",
     "max_goal_returns",
     "action_prior_mix",
+    "goal_action_prior_mix",
 )
 #: State keys the planners of the policy may read.
 _PLANNER_INPUTS = ("code", "goal_code", "subgoal_code", "subgoal_mask", "goal_code_weight")
@@ -201,6 +204,20 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                     f"action_prior_mix={mix} needs a graph with the play data's action "
                     "counts (CodeGraph.from_play_data records them); this one has none: "
                     "rebuild it, or pass action_prior_mix=0."
+                )
+        goal_mix = config.goal_action_prior_mix
+        if goal_mix > 0:
+            if goal_planner.action_prior_key != GOAL_PRIOR_KEY:
+                raise ValueError(
+                    f"goal_action_prior_mix={goal_mix} needs a goal planner that samples from "
+                    f"{GOAL_PRIOR_KEY!r} (action_prior_key={GOAL_PRIOR_KEY!r}), got "
+                    f"action_prior_key={goal_planner.action_prior_key!r}."
+                )
+            if graph.action_counts is None or not callable(getattr(encoder, "object_maps", None)):
+                raise ValueError(
+                    f"goal_action_prior_mix={goal_mix} needs a graph with the play data's "
+                    "action counts and an encoder with object_maps (a DiscreteCodeEncoder); "
+                    "pass goal_action_prior_mix=0."
                 )
         self.config = config
         self.encoder = encoder
@@ -553,6 +570,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 sub.set(key, value[index].to(device))
             if planner is self.waypoint_planner and self.action_prior_mix > 0:
                 sub.set(PRIOR_KEY, self._action_prior(state, index).to(device))
+            if planner is self.goal_planner and self.config.goal_action_prior_mix > 0:
+                prior = self._goal_action_prior(frames[0][index], frames[1][index])
+                sub.set(GOAL_PRIOR_KEY, prior.to(device))
             planner(sub)
             action[index] = sub.get(planner.action_key).reshape(-1, 1).cpu()
             for key in planner.state_keys:
@@ -668,6 +688,28 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         actions = self.waypoint_planner.num_actions
         weights = self.graph.action_weights(hop, actions)
         return self.action_prior_mix * weights + (1.0 - self.action_prior_mix) / actions
+
+    @torch.no_grad()
+    def _goal_action_prior(self, pixels: torch.Tensor, goal_pixels: torch.Tensor) -> torch.Tensor:
+        """``[rows, A]``: shares of the actions that moved the objects still off their goal
+        place (object maps farther from the goal image's than a quarter of the farthest),
+        mixed with uniform draws."""
+        module = self.encoder
+        was_training = module.training
+        module.eval()
+        try:
+            device = module_device(module)
+            maps = module.object_maps(torch.cat([pixels, goal_pixels]).to(device)).float()
+        finally:
+            module.train(was_training)
+        current, goal = maps.split(pixels.shape[0])
+        distance = (current - goal).flatten(2).norm(dim=-1).cpu()  # [rows, K]
+        farthest = distance.max(-1, keepdim=True).values
+        off = (distance > 0.25 * farthest) & (farthest > 0)
+        actions = self.goal_planner.num_actions
+        weights = self.graph.action_weights(off, actions)
+        mix = self.config.goal_action_prior_mix
+        return mix * weights + (1.0 - mix) / actions
 
     def _encode(self, frames: torch.Tensor) -> torch.Tensor:
         module = self.encoder

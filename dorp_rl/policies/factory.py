@@ -24,7 +24,7 @@ from dorp_rl.planners.costs import (
     check_step_penalty,
 )
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
-from dorp_rl.policies.abstract_goal import PRIOR_KEY, AbstractGoalPolicy
+from dorp_rl.policies.abstract_goal import GOAL_PRIOR_KEY, PRIOR_KEY, AbstractGoalPolicy
 from dorp_rl.policies.config import DORPConfig
 from dorp_rl.policies.low_level import make_planning_env
 from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
@@ -276,6 +276,7 @@ def make_dorp_policy(
         **shape,
         seed=None if seed is None else derive_seed(seed, 1),
         key_prefix="goal_planner_",
+        action_prior_key=GOAL_PRIOR_KEY if config.goal_action_prior_mix > 0 else None,
         **shared,
         **(cem_only if goal_kind == "cem" else rs_only),
     )
