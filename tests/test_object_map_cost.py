@@ -212,3 +212,10 @@ def test_the_goal_planner_draws_the_actions_of_the_objects_off_their_goal_place(
     oracle_graph = CodeGraph.from_play_data(play, oracle)
     with pytest.raises(ValueError, match="goal_action_prior_mix=0.5 needs"):
         make_dorp_policy(env, oracle, oracle_graph, goal_action_prior_mix=0.5, **small)
+    # Left to the default: 0.5 with object maps and action counts, else off.
+    default = make_dorp_policy(env, encoder, graph, seed=0, **small)
+    assert default.config.goal_action_prior_mix == 0.5
+    assert default.goal_planner.action_prior_key == "goal_action_prior"
+    plain = make_dorp_policy(env, oracle, oracle_graph, seed=0, **small)
+    assert plain.config.goal_action_prior_mix == 0.0
+    assert plain.goal_planner.action_prior_key is None

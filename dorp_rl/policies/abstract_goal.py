@@ -205,7 +205,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                     "counts (CodeGraph.from_play_data records them); this one has none: "
                     "rebuild it, or pass action_prior_mix=0."
                 )
-        goal_mix = config.goal_action_prior_mix
+        goal_mix = config.goal_action_prior_mix or 0.0
         if goal_mix > 0:
             if goal_planner.action_prior_key != GOAL_PRIOR_KEY:
                 raise ValueError(
@@ -229,6 +229,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.max_removed_edges = config.max_removed_edges
         self.goal_budget = config.goal_budget
         self.action_prior_mix = float(mix)
+        self.goal_action_prior_mix = float(goal_mix)
         self.actions = actions
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
@@ -570,7 +571,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 sub.set(key, value[index].to(device))
             if planner is self.waypoint_planner and self.action_prior_mix > 0:
                 sub.set(PRIOR_KEY, self._action_prior(state, index).to(device))
-            if planner is self.goal_planner and self.config.goal_action_prior_mix > 0:
+            if planner is self.goal_planner and self.goal_action_prior_mix > 0:
                 prior = self._goal_action_prior(frames[0][index], frames[1][index])
                 sub.set(GOAL_PRIOR_KEY, prior.to(device))
             planner(sub)
@@ -708,7 +709,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         off = (distance > 0.25 * farthest) & (farthest > 0)
         actions = self.goal_planner.num_actions
         weights = self.graph.action_weights(off, actions)
-        mix = self.config.goal_action_prior_mix
+        mix = self.goal_action_prior_mix
         return mix * weights + (1.0 - mix) / actions
 
     def _encode(self, frames: torch.Tensor) -> torch.Tensor:

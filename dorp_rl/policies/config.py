@@ -148,10 +148,10 @@ class DORPConfig(ConfigMixin):
     action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
     """share of the waypoint planner's actions drawn from those that changed the hop's
     one-hots in the play data (None: 0.8 when the graph has action counts, else 0)"""
-    goal_action_prior_mix: float = checked(0.0, Float(low=0.0, high=1.0))
+    goal_action_prior_mix: float | None = checked(None, Float(low=0.0, high=1.0, optional=True))
     """share of the goal planner's actions drawn from those that changed, in the play
-    data, the one-hots whose object maps are still off the goal image's (needs an encoder
-    with object maps and a graph with action counts; 0: uniform draws)"""
+    data, the one-hots whose object maps are still off the goal image's (None: 0.5 when
+    the encoder has object maps and the graph action counts, else 0; 0: uniform draws)"""
 
     @classmethod
     def for_env(cls, env: Any, **overrides: Any) -> DORPConfig:

@@ -29,14 +29,23 @@ from dorp_rl.policies.config import DORPConfig
 from dorp_rl.policies.low_level import make_planning_env
 from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
 
-__all__ = ["DEFAULT_ACTION_PRIOR_MIX", "DORP_RECIPE", "make_dorp_policy", "make_waypoint_cost"]
+__all__ = [
+    "DEFAULT_ACTION_PRIOR_MIX",
+    "DEFAULT_GOAL_ACTION_PRIOR_MIX",
+    "DORP_RECIPE",
+    "make_dorp_policy",
+    "make_waypoint_cost",
+]
 
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 6
+DORP_RECIPE = 7
 #: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
+#: ``goal_action_prior_mix`` when the config leaves it ``None``, the encoder has object
+#: maps and the graph action counts.
+DEFAULT_GOAL_ACTION_PRIOR_MIX = 0.5
 #: the random-shooting planners' ``action_persistence`` when the config leaves it ``None``
 DEFAULT_ACTION_PERSISTENCE = 0.5
 #: goal_map_weight when the config leaves it None and the encoder has object maps.
@@ -242,9 +251,13 @@ def make_dorp_policy(
     if config.action_prior_mix is None:
         mix = DEFAULT_ACTION_PRIOR_MIX if graph.action_counts is not None else 0.0
         config = config.replace(action_prior_mix=mix)
+    has_maps = callable(getattr(encoder, "object_maps", None))
     if config.goal_map_weight is None:
-        has_maps = callable(getattr(encoder, "object_maps", None))
         config = config.replace(goal_map_weight=DEFAULT_GOAL_MAP_WEIGHT if has_maps else 0.0)
+    if config.goal_action_prior_mix is None:
+        suits = has_maps and graph.action_counts is not None
+        goal_mix = DEFAULT_GOAL_ACTION_PRIOR_MIX if suits else 0.0
+        config = config.replace(goal_action_prior_mix=goal_mix)
     waypoint_cost = make_waypoint_cost(
         encoder,
         waypoint_goal_weight=config.waypoint_goal_weight,
