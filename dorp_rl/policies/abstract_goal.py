@@ -114,6 +114,22 @@ LOOP_FIELDS = (
 _PLANNER_INPUTS = ("code", "goal_code", "subgoal_code", "subgoal_mask", "goal_code_weight")
 
 
+def _check_action_prior(
+    name: str, mix: float, planner: DiscreteMPCPlanner, key: str, missing: str | None
+) -> None:
+    """Refuses a prior share ``mix > 0`` whose planner does not sample from ``key``, or
+    (``missing``: what it lacks) whose parts cannot make the prior."""
+    if mix <= 0:
+        return
+    if planner.action_prior_key != key:
+        raise ValueError(
+            f"{name}={mix} needs a planner that samples from {key!r} "
+            f"(action_prior_key={key!r}), got action_prior_key={planner.action_prior_key!r}."
+        )
+    if missing is not None:
+        raise ValueError(f"{name}={mix} needs {missing} pass {name}=0.")
+
+
 class AbstractGoalPolicy(TensorDictModuleBase):
     """The DORP policy: code-graph waypoints for a low-level discrete MPC planner.
 
@@ -192,33 +208,28 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 "'goal_code_cost': 'goal_code_weight'}) or set goal_code_weight=0)."
             )
         mix = config.action_prior_mix or 0.0
-        if mix > 0:
-            if waypoint_planner.action_prior_key != PRIOR_KEY:
-                raise ValueError(
-                    f"action_prior_mix={mix} needs a waypoint planner that samples from "
-                    f"{PRIOR_KEY!r} (action_prior_key={PRIOR_KEY!r}), got "
-                    f"action_prior_key={waypoint_planner.action_prior_key!r}."
-                )
-            if graph.action_counts is None:
-                raise ValueError(
-                    f"action_prior_mix={mix} needs a graph with the play data's action "
-                    "counts (CodeGraph.from_play_data records them); this one has none: "
-                    "rebuild it, or pass action_prior_mix=0."
-                )
+        _check_action_prior(
+            "action_prior_mix",
+            mix,
+            waypoint_planner,
+            PRIOR_KEY,
+            None
+            if graph.action_counts is not None
+            else "a graph with the play data's action counts (CodeGraph.from_play_data "
+            "records them); this one has none: rebuild it, or",
+        )
         goal_mix = config.goal_action_prior_mix or 0.0
-        if goal_mix > 0:
-            if goal_planner.action_prior_key != GOAL_PRIOR_KEY:
-                raise ValueError(
-                    f"goal_action_prior_mix={goal_mix} needs a goal planner that samples from "
-                    f"{GOAL_PRIOR_KEY!r} (action_prior_key={GOAL_PRIOR_KEY!r}), got "
-                    f"action_prior_key={goal_planner.action_prior_key!r}."
-                )
-            if graph.action_counts is None or not callable(getattr(encoder, "object_maps", None)):
-                raise ValueError(
-                    f"goal_action_prior_mix={goal_mix} needs a graph with the play data's "
-                    "action counts and an encoder with object_maps (a DiscreteCodeEncoder); "
-                    "pass goal_action_prior_mix=0."
-                )
+        has_maps = callable(getattr(encoder, "object_maps", None))
+        _check_action_prior(
+            "goal_action_prior_mix",
+            goal_mix,
+            goal_planner,
+            GOAL_PRIOR_KEY,
+            None
+            if graph.action_counts is not None and has_maps
+            else "a graph with the play data's action counts and an encoder with "
+            "object_maps (a DiscreteCodeEncoder):",
+        )
         self.config = config
         self.encoder = encoder
         self.graph = graph
