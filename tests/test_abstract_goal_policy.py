@@ -776,6 +776,31 @@ def test_max_removed_edges_ends_a_task_after_that_many_removals(two_objects, max
     assert (td["dorp_replans"][1:] == 0).all() and not td["dorp_failed"][1:].any()
 
 
+def test_reaching_a_waypoint_renews_the_removals_a_task_may_make(two_objects):
+    """``max_removed_edges`` counts removals since the last waypoint reached: a task that
+    keeps reaching waypoints is not given up for the removals on its way."""
+    env, oracle, graph = two_objects
+    policy = make_dorp_policy(env, oracle, graph, seed=0, max_removed_edges=2, **SMALL)
+    td = policy(fresh_batch(env, make_task_set(env, 4, seed=2)))
+    for _ in range(2):
+        td["dorp_budget"][0] = 0
+        td = policy(td)
+    assert int(td["dorp_stale_removals"][0]) == 2 and not bool(td["dorp_failed"][0])
+    # Row 0 reaches its waypoint: its frames already have the waypoint's code.
+    td["subgoal_code"][0] = td["code"][0]
+    waypoints = int(td["dorp_waypoints"][0])
+    td = policy(td)
+    assert int(td["dorp_waypoints"][0]) == waypoints + 1
+    assert int(td["dorp_stale_removals"][0]) == 0 and int(td["dorp_replans"][0]) == 2
+    for failure in (3, 4):  # two more removals are allowed ...
+        td["dorp_budget"][0] = 0
+        td = policy(td)
+        assert int(td["dorp_replans"][0]) == failure and not bool(td["dorp_failed"][0])
+    td["dorp_budget"][0] = 0  # ... and the next failure ends the task
+    td = policy(td)
+    assert bool(td["dorp_failed"][0]) and int(td["dorp_replans"][0]) == 4
+
+
 @pytest.mark.parametrize("max_reentries", [0, 1, 8])
 def test_max_reentries_caps_the_reentries_of_a_task(max_reentries):
     """The bridge world of the re-entry test: the hop 1 -> 3 fails and (with a re-entry

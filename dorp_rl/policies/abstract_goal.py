@@ -39,6 +39,7 @@ key                        dtype / shape       meaning
 ``dorp_edge``              int64 ``[1]``       graph edge of the current hop (-1: none)
 ``dorp_removed``           int64 ``[R]``       edges removed for this task (-1: free slot)
 ``dorp_replans``           int64 ``[1]``       edges removed so far
+``dorp_stale_removals``    int64 ``[1]``       edges removed since a waypoint was last reached
 ``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
 ``dorp_plans``             int64 ``[1]``       waypoint plans made (fresh low-level plans)
 ``dorp_waypoint_steps``    int64 ``[1]``       steps spent moving to waypoints
@@ -319,6 +320,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             StateKey("dorp_edge", fill=-1),
             StateKey("dorp_removed", width=r, fill=-1),
             StateKey("dorp_replans"),
+            StateKey("dorp_stale_removals"),
             StateKey("dorp_waypoints"),
             StateKey("dorp_plans"),
             StateKey("dorp_waypoint_steps"),
@@ -487,6 +489,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         reached = in_waypoint & hop_reached
         out_of_budget = in_waypoint & ~reached & (state["dorp_budget"].squeeze(-1) <= 0)
         state["dorp_waypoints"][hop_reached] += 1
+        state["dorp_stale_removals"][hop_reached] = 0
         self._each("on_reached", state, hop_reached)
         for row in out_of_budget.nonzero().squeeze(-1).tolist():
             self._remove_edge(state, row)
@@ -593,19 +596,29 @@ class AbstractGoalPolicy(TensorDictModuleBase):
 
     def _remove_edge(self, state: dict[str, torch.Tensor], row: int) -> None:
         """The current waypoint was not reached in time: remove its edge for this task
-        (unless a rule handles the failed hop); past ``max_removed_edges``, give up."""
+        (unless a rule handles the failed hop); past ``max_removed_edges`` since the last
+        waypoint reached, give up."""
         edge = int(state["dorp_edge"][row])
         removed = state["dorp_removed"][row]
-        count = int(state["dorp_replans"][row])
-        if count >= self.max_removed_edges:
+        if self.removal_limit_reached(state, row):
             state["dorp_failed"][row] = True
             state["dorp_end"][row] = _REMOVAL_LIMIT
             state["dorp_end_group"][row] = state["dorp_group"][row]
             return
         if not self.ask("instead_of_removal", state, row, edge) and edge >= 0:
             free = (removed < 0).nonzero()
+            count = int(state["dorp_replans"][row])
             removed[int(free[0]) if free.numel() else count % removed.shape[0]] = edge
+        self.count_removal(state, row)
+
+    def removal_limit_reached(self, state: dict[str, torch.Tensor], row: int) -> bool:
+        """``row`` removed ``max_removed_edges`` edges since it last reached a waypoint."""
+        return int(state["dorp_stale_removals"][row]) >= self.max_removed_edges
+
+    def count_removal(self, state: dict[str, torch.Tensor], row: int) -> None:
+        """Counts one more removal (or re-entry) of ``row``, in all and since its last waypoint."""
         state["dorp_replans"][row] += 1
+        state["dorp_stale_removals"][row] += 1
 
     def _next_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
         """Sets the next waypoint of ``row``; marks the row failed when no group has a path."""

@@ -76,7 +76,8 @@ class DORPConfig(ConfigMixin):
     waypoint_budget: int = checked(28, Int(low=1))
     """env steps to reach one waypoint before its edge is removed for the task"""
     max_removed_edges: int = checked(128, Int(low=0))
-    """edges a task may remove (re-entries included); one more failure ends the task"""
+    """edges a task may remove (re-entries included) without reaching a waypoint in
+    between; one more failure ends the task"""
     goal_budget: int | None = checked(None, Int(low=1, optional=True))
     """steps the goal-image phase may take before the task is given up (twice that once
     relaxed); None: only the env's step limit"""

@@ -153,8 +153,8 @@ class ForgetBlocked(RecoveryRule):
     """A group that reaches a waypoint frees the edges removed for the other groups.
 
     Their hops may have failed only because an object stood in the way, which has now
-    moved. ``dorp_replans`` keeps counting, so ``max_removed_edges`` still ends a task
-    that keeps failing.
+    moved. The removals still count, so ``max_removed_edges`` still ends a task that
+    keeps failing without reaching a waypoint.
     """
 
     def on_reached(self, state: State, rows: torch.Tensor) -> None:
@@ -326,7 +326,7 @@ class Reentry(RecoveryRule):
             return False
         if not self._may_reenter(state, row, entry):
             return False
-        if int(state["dorp_replans"][row]) >= policy.max_removed_edges:
+        if policy.removal_limit_reached(state, row):
             return False
         node, source = int(graph.indices[entry]), int(graph.edge_source[entry])
         group = int(graph.group_of_edge(entry))
@@ -341,7 +341,7 @@ class Reentry(RecoveryRule):
         state["dorp_via_ban"][row] = entry
         state["dorp_via_left"][row] = False
         self._note(state, row, entry)
-        state["dorp_replans"][row] += 1
+        policy.count_removal(state, row)
         return True
 
 
