@@ -130,17 +130,12 @@ def _check(command: str, cmd: Any) -> None:
             "paper's Table 1 in each setting (choose among them with "
             "--paper-methods, and settings with --settings)."
         )
-    if paper and isinstance(cmd, EvaluationOptions) and cmd.low_level == "latent-model":
-        raise UsageError(
-            "--low-level latent-model is not yet an option of --paper: evaluate or reproduce "
-            "one setting with it (the latent model trains on that run's codes)."
-        )
     named = ("gt", "world-model", "latent-model")
     if isinstance(cmd, EvaluationOptions) and cmd.low_level not in named:
         if paper:
             raise UsageError(
-                "--paper runs several settings: --low-level must be 'gt' or "
-                f"'world-model' (one model per setting), not the checkpoint {cmd.low_level!r}."
+                "--paper runs several settings: --low-level must be 'gt', 'world-model' or "
+                f"'latent-model' (one model per setting), not the checkpoint {cmd.low_level!r}."
             )
         _check_world_model_file(cmd.low_level, cmd.setting)
 

@@ -9,6 +9,8 @@
 - :class:`DirectoryLock`: an OS lock on a file in a directory, so that two processes
   never write into one directory at once; the OS drops it when its process dies.
 - :func:`non_finite_entries`: the NaN / infinite tensors of a nested state dict.
+- :func:`state_digest`: a SHA-256 of a module's weights, so that what was built on one
+  module (a latent world model learning an encoder's codes) can tell it from another.
 
 Errors: :class:`IntegrityError` (a damaged, incomplete or non-finite file) and
 :class:`DirectoryLockedError`, both ``ValueError`` subclasses.
@@ -40,6 +42,7 @@ __all__ = [
     "file_manifest",
     "non_finite_entries",
     "sha256_file",
+    "state_digest",
     "verify_manifest",
 ]
 
@@ -150,6 +153,27 @@ def verify_manifest(
                 f"{what} is damaged: the content of {path} changed since it was written "
                 "(SHA-256 mismatch). Collect the data again into an empty directory."
             )
+
+
+def state_digest(module: torch.nn.Module) -> str:
+    """SHA-256 (hex) of ``module``'s state dict: names, dtypes, shapes and values.
+
+    Equal for two modules with the same weights, on any device; any changed value,
+    shape or name changes it.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.integrity import state_digest
+        >>> a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+        >>> state_digest(a) == state_digest(a), state_digest(a) == state_digest(b)
+        (True, False)
+    """
+    digest = hashlib.sha256()
+    for name, tensor in module.state_dict().items():
+        tensor = tensor.detach().to("cpu").contiguous()
+        digest.update(f"{name}:{tensor.dtype}:{tuple(tensor.shape)};".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 
 def non_finite_entries(state: Any, prefix: str = "") -> list[str]:

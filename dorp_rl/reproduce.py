@@ -270,16 +270,18 @@ def _setting_command(
     cmd: Reproduce, base: Reproduce, setting: str, run: Run, seed: int | None = None
 ) -> Reproduce:
     """The single-setting command of ``setting`` in ``--paper``: its presets with the
-    command line's ``--codes.*`` / ``--world-model.*`` changes, Table 1's methods, in the
-    sub-run ``<setting>`` (or ``<setting>-seed<seed>``, whose codes, world model and
-    planners use ``seed``)."""
+    command line's ``--codes.*`` / ``--world-model.*`` / ``--latent-model.*`` changes,
+    Table 1's methods, in the sub-run ``<setting>`` (or ``<setting>-seed<seed>``, whose
+    codes, world models and planners use ``seed``)."""
     preset = default_command("reproduce", setting)
     codes = _carry_changes(preset.codes, cmd.codes, base.codes)
     world_model = _carry_changes(preset.world_model, cmd.world_model, base.world_model)
+    latent_model = _carry_changes(preset.latent_model, cmd.latent_model, base.latent_model)
     seeds: dict[str, Any] = {}
     if seed is not None:
         codes = dataclasses.replace(codes, seed=seed)
         world_model = dataclasses.replace(world_model, seed=seed)
+        latent_model = dataclasses.replace(latent_model, seed=seed)
         seeds["seed"] = seed
     return dataclasses.replace(
         cmd,
@@ -288,6 +290,7 @@ def _setting_command(
         setting=setting,
         codes=codes,
         world_model=world_model,
+        latent_model=latent_model,
         methods=_chosen_methods(cmd, setting),
         paper=False,
         paper_methods=(),

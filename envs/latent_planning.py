@@ -18,6 +18,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.model_based import WorldModelEnv as TorchRLWorldModelEnv
 
+from dorp_rl.integrity import state_digest
 from dorp_rl.validation import check_device, frames_to_uint8
 
 __all__ = ["LatentModelEnv"]
@@ -180,6 +181,14 @@ class LatentModelEnv(TorchRLWorldModelEnv):
         if goal is not None:
             out.set("goal_pixels", goal)
         return out
+
+    def predicts_codes_of(self, encoder: torch.nn.Module) -> bool:
+        """Whether ``code`` may stand for ``encoder``'s codes of the imagined frames: False
+        when the model records the digest of the encoder it learned
+        (``config.encoder_digest``) and ``encoder``'s weights differ (an ablation's
+        encoder, say), so that costs encode decoded frames instead; True otherwise."""
+        learned = getattr(getattr(self.model, "config", None), "encoder_digest", None)
+        return learned is None or learned == state_digest(encoder)
 
     def without_frames(self) -> LatentModelEnv:
         """The same model as a planning env that decodes no frames (codes only)."""

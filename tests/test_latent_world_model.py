@@ -4,13 +4,17 @@ DORP policy and visual foresight planning through it."""
 
 from __future__ import annotations
 
+import csv
+import json
+
 import pytest
 import torch
 from push_blocks import PushBlocksEnv
 from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import LatentModelEnv
+from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
+from dorp_rl.integrity import state_digest
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, LatentModelConfig, LatentWorldModel
 from dorp_rl.objectives import LatentWorldModelLoss
 from dorp_rl.planners import CodeGraph
@@ -18,6 +22,7 @@ from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy, make_plann
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
     LatentWorldModelTrainer,
+    load_encoder,
     load_latent_world_model,
 )
 
@@ -118,8 +123,8 @@ def test_imagined_candidates_equal_stepping_the_latent_env():
     assert env.imagine_candidates(td, actions, [("next", "reward")]) is None
 
 
-def _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32)):
-    torch.manual_seed(0)
+def _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32), seed=0):
+    torch.manual_seed(seed)
     config = EncoderConfig.small(code_sizes, frame_shape=frame_shape)
     return DiscreteCodeEncoder(config.replace(channels=8, mlp_sizes=(32,)))
 
@@ -181,6 +186,10 @@ def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_p
     env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
     model = load_latent_world_model(path, env, encoder=encoder)
     assert model.code_sizes == (6, 6)
+    # The checkpoint knows whose codes it learned: this encoder's, not another's.
+    planning = LatentModelEnv(model)
+    assert planning.predicts_codes_of(encoder)
+    assert not planning.predicts_codes_of(_encoder(seed=1))
     with pytest.raises(ValueError, match="another|environment|env"):
         load_latent_world_model(path, PushBlocksEnv((1, 8, 8), batch_size=(4,), one_hot=True))
     with pytest.raises(ValueError, match="codes of sizes"):
@@ -215,6 +224,30 @@ def test_dorp_and_visual_foresight_plan_through_the_latent_model(tmp_path):
     assert rollout["action"].shape[:2] == (2, 4)
     vf = VisualForesightPolicy(planning, "rs", num_candidates=8, planning_horizon=3, seed=0)
     assert env.rollout(3, vf, break_when_any_done=False).shape == (2, 3)
+
+
+def test_a_policy_with_another_encoder_plans_through_decoded_frames():
+    """A latent model that learned one encoder's codes (an ablation's policy has another
+    encoder of the same code sizes): its codes are not read; the frames are encoded."""
+    env = PushBlocksEnv((3, 24, 32), batch_size=(2,))
+    learned, other = _encoder(), _encoder(seed=1)
+    config = LatentModelConfig(
+        frame_shape=(3, 24, 32), code_sizes=(6, 6), encoder_digest=state_digest(learned)
+    )
+    model = LatentWorldModel(8, config)
+    for encoder, reads_codes in ((learned, True), (other, False)):
+        graph = CodeGraph.from_play_data(
+            collect_play_data(env, 200, trajectory_length=10, seed=0), encoder
+        )
+        policy = make_dorp_policy(
+            env, encoder, graph, low_level=model, num_candidates=8, planning_horizon=3, seed=0
+        )
+        keys = policy.waypoint_planner.cost.in_keys
+        assert (("next", "code") in keys) is reads_codes
+        assert (("next", "pixels") in keys) is not reads_codes
+        assert policy.waypoint_planner.env.decode is not reads_codes
+        rollout = env.rollout(3, policy, break_when_any_done=False)
+        assert rollout["action"].shape[:2] == (2, 3)
 
 
 def test_code_match_cost_reads_predicted_codes_without_frames():
@@ -293,17 +326,32 @@ def test_the_command_trains_a_latent_model_of_the_runs_codes_and_plans_through_i
     assert (run / "latent_model" / "checkpoints" / "last.pt").is_file()
     rows = (run / "results.csv").read_text()
     assert "latent-model" in rows
-    import json
-
     stages = json.loads((run / "stages.json").read_text())
     assert "latent_model" in stages and "evaluate:dorp:latent-model" in stages
 
 
-def test_the_paper_run_refuses_the_latent_model_for_now(tmp_path, capsys):
-    from dorp_rl.cli import main
-
-    with pytest.raises(SystemExit) as stop:
-        main(["reproduce", "--paper", "--root", str(tmp_path), "--low-level", "latent-model"])
-    assert stop.value.code == 2
-    assert "--low-level latent-model is not yet an option of --paper" in capsys.readouterr().err
-    assert not any(tmp_path.iterdir())  # nothing was written
+def test_the_paper_run_trains_a_latent_model_per_setting_and_seed(tmp_path, dorp):
+    """``reproduce --paper --low-level latent-model``: each sub-run trains its own latent
+    model of its own codes (seeded like them), and every method, the ablations with
+    their other encoders included, plans through it."""
+    latent = ("--latent-model.num-frames", "320", "--latent-model.num-envs", "4",
+              "--latent-model.horizon", "3", "--latent-model.num-steps", "2",
+              "--latent-model.eval-frames", "160", "--latent-model.eval-sequences", "4",
+              "--latent-model.batch-size", "4")  # fmt: skip
+    dorp(tmp_path, "reproduce", "--paper", "--settings", "1obj", "--seeds", "3",
+         "--low-level", "latent-model", *dorp.CODES, *dorp.EVAL, *latent,
+         "--gifs", "0")  # fmt: skip
+    run = tmp_path / "run"
+    with (run / "results.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert {r["low_level"] for r in rows} == {"latent-model"}
+    assert {"dorp", "dorp-arbitrary", "vf-rs"} <= {r["method"] for r in rows}
+    sub = run / "1obj-seed3"
+    stages = json.loads((sub / "stages.json").read_text())
+    assert stages["latent_model"]["config"]["latent_model"]["seed"] == 3
+    assert stages["latent_model"]["config"]["latent_model"]["num_steps"] == 2
+    # The sub-run's model learned the sub-run's codes, and knows it.
+    env = ObjectRearrangementEnv(num_objects=1)
+    model = load_latent_world_model(sub / "latent_model" / "checkpoints" / "last.pt", env)
+    encoder = load_encoder(sub / "codes" / "checkpoints" / "last.pt", env)
+    assert model.config.encoder_digest == state_digest(encoder)

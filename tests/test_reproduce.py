@@ -250,7 +250,7 @@ def test_paper_methods_choose_among_table_1_and_leave_out_settings_without_them(
         (["demo", "--paper"], "--paper is an option of reproduce"),
         (["reproduce", "--seeds", "0", "1"], "--seeds is an option of reproduce --paper"),
         (["reproduce", "--paper", "--seeds", "1", "1"], "--seeds must be distinct"),
-        (["reproduce", "--paper", "--low-level", __file__], "must be 'gt' or"),
+        (["reproduce", "--paper", "--low-level", __file__], "must be 'gt', 'world-model' or"),
         (["evaluate", "--gifs", "-1"], "--gifs must be >= 0"),
     ],
 )

@@ -18,6 +18,7 @@ from dorp_rl.data import (
     play_segment_length,
 )
 from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.integrity import state_digest
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
 from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel, check_latent_model
 from dorp_rl.objectives.latent import LatentWorldModelLoss
@@ -166,7 +167,11 @@ class LatentWorldModelTrainer(WindowTrainer):
             encoder = load_encoder(config.encoder_checkpoint, env)
         frame_shape = frame_shape_of(env)
         config = config.replace(
-            model={"frame_shape": frame_shape, "code_sizes": tuple(encoder.code_sizes)}
+            model={
+                "frame_shape": frame_shape,
+                "code_sizes": tuple(encoder.code_sizes),
+                "encoder_digest": state_digest(encoder),
+            }
         )
         super().__init__(config, env, buffer, eval_buffer, logger)
         self.encoder = encoder.to(self.device).eval()

@@ -25,7 +25,7 @@ from torch import nn
 from torchrl.modules import WorldModel
 
 from dorp_rl.config import ConfigMixin, checked
-from dorp_rl.validation import Flag, Int, Ints, frames_to_unit_float
+from dorp_rl.validation import Flag, Int, Ints, Text, frames_to_unit_float
 
 __all__ = ["LatentModelConfig", "LatentWorldModel"]
 
@@ -62,6 +62,10 @@ class LatentModelConfig(ConfigMixin):
     """hidden layers of the dynamics MLP"""
     decoder: bool = checked(True, Flag())
     """whether the model decodes latents into frames (VF, the goal-image phase, pictures)"""
+    encoder_digest: str | None = checked(None, Text(optional=True))
+    """:func:`~dorp_rl.integrity.state_digest` of the DORP encoder whose codes the code
+    head learned (set by the trainer), so that a policy with another encoder of the same
+    code sizes encodes decoded frames instead of reading these codes; None: unknown"""
 
 
 def _downsampled(size: int) -> int:

@@ -306,11 +306,16 @@ def _predicted_codes(
     A planning env that predicts the encoder's codes declares a ``code`` observation (a
     latent world model): the costs read ``("next", "code")`` instead of encoding frames,
     and the waypoint planner, whose cost then needs no frames (without a goal-image term),
-    plans through its ``without_frames()`` variant if it has one.
+    plans through its ``without_frames()`` variant if it has one. An env whose
+    ``predicts_codes_of(encoder)`` says its codes are another encoder's is planned
+    through its frames, which the costs encode.
     """
     spec = planning_env.observation_spec
     if "code" not in spec.keys():
         return None, planning_env
+    learned_by = getattr(planning_env, "predicts_codes_of", None)
+    if callable(learned_by) and not learned_by(encoder):
+        return None, planning_env  # another encoder's codes: the costs encode frames
     predicted = int(spec["code"].shape[-1])
     if predicted != len(encoder.code_sizes):
         raise ValueError(
