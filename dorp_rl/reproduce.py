@@ -257,13 +257,10 @@ def _carry_changes(target: Any, given: Any, default: Any) -> Any:
 
 
 def _expected_cost(sub: Reproduce) -> float:
-    """A rough relative cost of a sub-run, to start the longest ones first (measured here
-    with all of Table 1's methods: 5 objects about 11x 1 object, 3 objects 5x, key rooms
-    about 1x)."""
+    """A rough relative cost of a sub-run, to start the longest ones first: growing with
+    the square of the objects and with the methods run, never below one setting's."""
     spec = SETTINGS[sub.setting]
-    if spec.env in ("key-wall", "key-corridor"):
-        return 1.0
-    return spec.num_objects**2 * len(sub.methods) / 6
+    return max(spec.num_objects**2 * len(sub.methods) / 6, 1.0)
 
 
 def _setting_command(
