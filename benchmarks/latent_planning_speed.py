@@ -1,19 +1,23 @@
 """One DORP waypoint planning call through a latent world model against the true dynamics.
 
-Both calls are a :class:`~dorp_rl.planners.RandomShootingPlanner` call of ``--candidates``
+Every call is a :class:`~dorp_rl.planners.RandomShootingPlanner` call of ``--candidates``
 sequences of ``--planning-horizon`` steps for ``--rows`` acting envs, with DORP's
-waypoint cost (:func:`~dorp_rl.policies.make_waypoint_cost`, the code term alone):
+waypoint cost (:func:`~dorp_rl.policies.make_waypoint_cost`), in two forms:
 
-- ``true dynamics``: :class:`~dorp_rl.envs.GroundTruthModelEnv` of rearrangement, the
-  cost encoding each distinct imagined frame with the representation preset's encoder
-  (codes of frames seen in earlier calls kept, as the policy keeps them);
-- ``latent model``: :class:`~dorp_rl.envs.LatentModelEnv` without frames, the cost
-  reading the code head's codes (``("next", "code")``).
+- ``code term``: the code term alone. Through the true dynamics
+  (:class:`~dorp_rl.envs.GroundTruthModelEnv` of rearrangement) the cost encodes each
+  distinct imagined frame with the representation preset's encoder (codes of frames seen
+  in earlier calls kept, as the policy keeps them); through the latent model
+  (:class:`~dorp_rl.envs.LatentModelEnv` without frames) it reads the code head's codes.
+- ``goal term``: as rearrangement's policy plans (its profile's DORP settings): the code
+  term plus the goal image's blurred pixel distance, judged at the first arrival. Through
+  the latent model every imagined frame is decoded, by the convolutional decoder and by
+  the MLP one (``decoder_kind``).
 
-Latency does not depend on the weights, so both use freshly initialised models at the
+Latency does not depend on the weights, so all use freshly initialised models at the
 given sizes (``--set FIELD=JSON`` for :class:`~dorp_rl.modules.LatentModelConfig`). Each
-number is the median of ``--repeats`` calls after a warm-up call, the two alternating in
-one process; the goal is a ratio of at most 5.
+number is the median of ``--repeats`` calls after a warm-up call, all alternating in one
+process; the goal is a ratio of at most 5 to the true dynamics with the same cost.
 
     python benchmarks/latent_planning_speed.py --objects 3 --threads 1
 """
@@ -30,7 +34,7 @@ import torch
 from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
 from dorp_rl.modules import DiscreteCodeEncoder, LatentModelConfig, LatentWorldModel
 from dorp_rl.planners import RandomShootingPlanner
-from dorp_rl.policies import make_planning_env, make_waypoint_cost
+from dorp_rl.policies import DORPConfig, make_planning_env, make_waypoint_cost
 from dorp_rl.trainers import RepresentationConfig
 
 
@@ -50,10 +54,11 @@ def main() -> None:
     env = ObjectRearrangementEnv(args.objects, batch_size=(args.rows,), seed=0)
     codes = RepresentationConfig.rearrangement(args.objects)
     encoder = DiscreteCodeEncoder(codes.encoder.replace(code_sizes=codes.code_sizes)).eval()
-    model = LatentWorldModel(
-        env.num_actions,
-        LatentModelConfig(code_sizes=tuple(encoder.code_sizes), decoder=False, **extra),
-    ).eval()
+
+    def model(**fields) -> LatentWorldModel:
+        config = LatentModelConfig(code_sizes=tuple(encoder.code_sizes), **{**extra, **fields})
+        return LatentWorldModel(env.num_actions, config).eval()
+
     td = env.reset()
     start = encoder(td["pixels"])[0]
     td.set("subgoal_code", start)
@@ -62,16 +67,34 @@ def main() -> None:
         torch.zeros_like(start, dtype=torch.bool).index_fill_(-1, torch.tensor([0]), True),
     )
     shape = {"planning_horizon": args.planning_horizon, "num_candidates": args.candidates}
+    dorp = DORPConfig.for_env("rearrangement")
+    goal_term = {
+        "waypoint_goal_weight": dorp.waypoint_goal_weight,
+        "step_penalty": dorp.waypoint_step_penalty,
+        "first_arrival": dorp.waypoint_first_arrival,
+        "goal_blur_sigmas": dorp.goal_blur_sigmas,
+    }
+    gt = make_planning_env(env, "gt")
+    predicted = {"code_key": ("next", "code")}
     planners = {
-        "true dynamics": RandomShootingPlanner(
-            make_planning_env(env, "gt"), make_waypoint_cost(encoder), seed=0, **shape
+        "code term, true dynamics": (gt, make_waypoint_cost(encoder)),
+        "code term, latent model": (
+            LatentModelEnv(model(decoder=False)),
+            make_waypoint_cost(encoder, **predicted),
         ),
-        "latent model": RandomShootingPlanner(
-            LatentModelEnv(model),
-            make_waypoint_cost(encoder, code_key=("next", "code")),
-            seed=0,
-            **shape,
+        "goal term, true dynamics": (gt, make_waypoint_cost(encoder, **goal_term)),
+        "goal term, latent model, conv decoder": (
+            LatentModelEnv(model(decoder_kind="conv"), decode=True),
+            make_waypoint_cost(encoder, **goal_term, **predicted),
         ),
+        "goal term, latent model, mlp decoder": (
+            LatentModelEnv(model(decoder_kind="mlp"), decode=True),
+            make_waypoint_cost(encoder, **goal_term, **predicted),
+        ),
+    }
+    planners = {
+        name: RandomShootingPlanner(planning_env, cost, seed=0, **shape)
+        for name, (planning_env, cost) in planners.items()
     }
     times: dict[str, list[float]] = {name: [] for name in planners}
     for repeat in range(args.repeats + 1):
@@ -81,15 +104,20 @@ def main() -> None:
             if repeat:  # the first call of each warms up
                 times[name].append(time.perf_counter() - begin)
     medians = {name: statistics.median(values) for name, values in times.items()}
+    reference = {"code term": "code term, true dynamics", "goal term": "goal term, true dynamics"}
     out = {
         "objects": args.objects,
         "rows": args.rows,
         "candidates": args.candidates,
         "planning_horizon": args.planning_horizon,
         "threads": args.threads,
-        "model": model.config.to_dict(),
+        "model": LatentModelConfig(code_sizes=tuple(encoder.code_sizes), **extra).to_dict(),
         "median_ms": {name: round(1000 * value, 1) for name, value in medians.items()},
-        "ratio": round(medians["latent model"] / medians["true dynamics"], 2),
+        "ratio": {
+            name: round(value / medians[reference[name.split(",")[0]]], 2)
+            for name, value in medians.items()
+            if "latent" in name
+        },
     }
     print(json.dumps(out))
 

@@ -29,9 +29,13 @@ from dorp_rl.trainers import (
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
+@pytest.mark.parametrize("decoder_kind", ["conv", "mlp"])
 @pytest.mark.parametrize("frame_shape", [(3, 24, 32), (1, 8, 8), (3, 10, 13)])
-def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape):
-    model = LatentWorldModel(5, LatentModelConfig(frame_shape=frame_shape, code_sizes=(6, 2)))
+def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape, decoder_kind):
+    config = LatentModelConfig(
+        frame_shape=frame_shape, code_sizes=(6, 2), decoder_kind=decoder_kind
+    )
+    model = LatentWorldModel(5, config)
     frames = torch.randint(0, 256, (4, *frame_shape), dtype=torch.uint8)
     latent = model.encode(frames)
     assert latent.shape == (4, 128)
@@ -43,6 +47,27 @@ def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape):
         LatentWorldModel(5, LatentModelConfig(frame_shape=frame_shape, decoder=False)).decode(
             latent
         )
+
+
+def test_the_mlp_decoder_learns_to_draw_frames():
+    """The fast decoder is trained by the loss's pixel term like the convolutional one."""
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    buffer = collect_play_data(env, 200, trajectory_length=10, seed=0)
+    config = LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6), decoder_kind="mlp")
+    model = LatentWorldModel(8, config)
+    loss = LatentWorldModelLoss(model, _encoder())
+    window = buffer[:200].reshape(20, 10)[:, :3]
+    window.set("action", window["action"].reshape(20, 3, 1).long())
+    first = float(loss(window)["loss_pixels"])
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for _ in range(40):
+        out = loss(window)
+        optimizer.zero_grad()
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        optimizer.step()
+    assert float(out["loss_pixels"].detach()) < 0.3 * first
+    with pytest.raises(ValueError, match="decoder_kind"):
+        LatentModelConfig(decoder_kind="deconv")
 
 
 def test_a_categorical_latent_stays_one_hot_through_imagination_and_trains():

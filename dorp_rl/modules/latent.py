@@ -25,7 +25,7 @@ from torch import nn
 from torchrl.modules import WorldModel
 
 from dorp_rl.config import ConfigMixin, checked
-from dorp_rl.validation import Flag, Int, Ints, Text, frames_to_unit_float
+from dorp_rl.validation import Choice, Flag, Int, Ints, Text, frames_to_unit_float
 
 __all__ = ["LatentModelConfig", "LatentWorldModel"]
 
@@ -62,6 +62,10 @@ class LatentModelConfig(ConfigMixin):
     """hidden layers of the dynamics MLP"""
     decoder: bool = checked(True, Flag())
     """whether the model decodes latents into frames (VF, the goal-image phase, pictures)"""
+    decoder_kind: str = checked("conv", Choice(("conv", "mlp")))
+    """'conv': transposed convolutions from a ``channels`` x H/4 x W/4 map; 'mlp': one
+    hidden layer of ``hidden`` units to every pixel, several times faster to run (a
+    planning call decodes every imagined frame its costs read)"""
     encoder_digest: str | None = checked(None, Text(optional=True))
     """:func:`~dorp_rl.integrity.state_digest` of the DORP encoder whose codes the code
     head learned (set by the trainer), so that a policy with another encoder of the same
@@ -136,7 +140,10 @@ class LatentWorldModel(nn.Module):
             nn.Linear(d, config.hidden), nn.ReLU(), nn.Linear(config.hidden, sum(self.code_sizes))
         )
         self.frame_decoder: nn.Module | None = None
-        if config.decoder:
+        if config.decoder and config.decoder_kind == "mlp":
+            self.decoder_input = nn.Linear(d, config.hidden)
+            self.frame_decoder = nn.Sequential(nn.ReLU(), nn.Linear(config.hidden, c * h * w))
+        elif config.decoder:
             self.decoder_input = nn.Linear(d, flat)
             self.frame_decoder = nn.Sequential(
                 nn.ReLU(),
@@ -206,8 +213,10 @@ class LatentWorldModel(nn.Module):
             )
         lead = latent.shape[:-1]
         x = self.decoder_input(latent.reshape(-1, latent.shape[-1]))
-        x = self.frame_decoder(x.reshape(-1, *self._feature_shape))
         c, h, w = self.frame_shape
+        if self.config.decoder_kind == "mlp":
+            return torch.sigmoid(self.frame_decoder(x)).reshape(*lead, c, h, w)
+        x = self.frame_decoder(x.reshape(-1, *self._feature_shape))
         if tuple(x.shape[-2:]) != (h, w):
             x = nn.functional.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
         return torch.sigmoid(x).reshape(*lead, c, h, w)
