@@ -13,6 +13,10 @@ waypoint cost (:func:`~dorp_rl.policies.make_waypoint_cost`), in two forms:
   term plus the goal image's blurred pixel distance, judged at the first arrival. Through
   the latent model every imagined frame is decoded, by the convolutional decoder and by
   the MLP one (``decoder_kind``).
+- ``goal phase``: the goal-image planner's cost (:func:`~dorp_rl.policies.make_goal_cost`
+  as the policy builds it: blurred pixel distance, the encoder's object maps, the
+  goal-code term), through the true dynamics and the latent model with the MLP decoder
+  (whose frames the object-map term encodes).
 
 Latency does not depend on the weights, so all use freshly initialised models at the
 given sizes (``--set FIELD=JSON`` for :class:`~dorp_rl.modules.LatentModelConfig`). Each
@@ -35,6 +39,7 @@ from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
 from dorp_rl.modules import DiscreteCodeEncoder, LatentModelConfig, LatentWorldModel
 from dorp_rl.planners import RandomShootingPlanner
 from dorp_rl.policies import DORPConfig, make_planning_env, make_waypoint_cost
+from dorp_rl.policies.factory import DEFAULT_GOAL_MAP_WEIGHT, make_goal_cost
 from dorp_rl.trainers import RepresentationConfig
 
 
@@ -92,6 +97,18 @@ def main() -> None:
             make_waypoint_cost(encoder, **goal_term, **predicted),
         ),
     }
+    goal_phase = {
+        "goal_code_weight": dorp.goal_code_weight,
+        "goal_blur_sigmas": dorp.goal_blur_sigmas,
+        "goal_map_weight": DEFAULT_GOAL_MAP_WEIGHT,
+    }
+    td.set("goal_code", start)
+    td.set("goal_code_weight", torch.full((args.rows, 1), dorp.goal_code_weight))
+    planners["goal phase, true dynamics"] = (gt, make_goal_cost(encoder, **goal_phase))
+    planners["goal phase, latent model, mlp decoder"] = (
+        LatentModelEnv(model(decoder_kind="mlp"), decode=True),
+        make_goal_cost(encoder, **goal_phase, **predicted),
+    )
     planners = {
         name: RandomShootingPlanner(planning_env, cost, seed=0, **shape)
         for name, (planning_env, cost) in planners.items()
@@ -104,7 +121,9 @@ def main() -> None:
             if repeat:  # the first call of each warms up
                 times[name].append(time.perf_counter() - begin)
     medians = {name: statistics.median(values) for name, values in times.items()}
-    reference = {"code term": "code term, true dynamics", "goal term": "goal term, true dynamics"}
+    reference = {
+        kind: f"{kind}, true dynamics" for kind in ("code term", "goal term", "goal phase")
+    }
     out = {
         "objects": args.objects,
         "rows": args.rows,
