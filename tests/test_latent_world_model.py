@@ -59,12 +59,7 @@ def test_the_mlp_decoder_learns_to_draw_frames():
     window = buffer[:200].reshape(20, 10)[:, :3]
     window.set("action", window["action"].reshape(20, 3, 1).long())
     first = float(loss(window)["loss_pixels"])
-    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for _ in range(40):
-        out = loss(window)
-        optimizer.zero_grad()
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        optimizer.step()
+    out = _train(loss, window, 40)
     assert float(out["loss_pixels"].detach()) < 0.3 * first
     with pytest.raises(ValueError, match="decoder_kind"):
         LatentModelConfig(decoder_kind="deconv")
@@ -148,6 +143,17 @@ def test_imagined_candidates_equal_stepping_the_latent_env():
     assert env.imagine_candidates(td, actions, [("next", "reward")]) is None
 
 
+def _train(loss, window, steps):
+    """``steps`` Adam steps of ``loss`` on one ``window``; the last step's losses."""
+    optimizer = torch.optim.Adam(loss.model.parameters(), lr=3e-3)
+    for _ in range(steps):
+        out = loss(window)
+        optimizer.zero_grad()
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        optimizer.step()
+    return out
+
+
 def _encoder(code_sizes=(6, 6), frame_shape=(3, 24, 32), seed=0):
     torch.manual_seed(seed)
     config = EncoderConfig.small(code_sizes, frame_shape=frame_shape)
@@ -182,12 +188,7 @@ def test_the_loss_learns_the_encoders_codes_on_frames_of_another_size():
     window = buffer[:400].reshape(40, 10)[:, :5]
     window.set("action", window["action"].reshape(40, 5, 1).long())
     first = loss(window)
-    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for _ in range(30):
-        out = loss(window)
-        optimizer.zero_grad()
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        optimizer.step()
+    out = _train(loss, window, 30)
     assert float(out["loss_code"].detach()) < 0.5 * float(first["loss_code"].detach())
     # Codes computed beforehand (as the trainer does) give the same loss.
     given = window.clone()
