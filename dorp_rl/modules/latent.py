@@ -64,8 +64,10 @@ class LatentModelConfig(ConfigMixin):
     """whether the model decodes latents into frames (VF, the goal-image phase, pictures)"""
     decoder_kind: str = checked("conv", Choice(("conv", "mlp")))
     """'conv': transposed convolutions from a ``channels`` x H/4 x W/4 map; 'mlp': one
-    hidden layer of ``hidden`` units to every pixel, several times faster to run (a
-    planning call decodes every imagined frame its costs read)"""
+    hidden layer of ``decoder_hidden`` units to every pixel, several times faster to run
+    (a planning call decodes every imagined frame its costs read)"""
+    decoder_hidden: int = checked(256, Int(low=1))
+    """hidden units of the MLP decoder (decoder_kind 'mlp')"""
     encoder_digest: str | None = checked(None, Text(optional=True))
     """:func:`~dorp_rl.integrity.state_digest` of the DORP encoder whose codes the code
     head learned (set by the trainer), so that a policy with another encoder of the same
@@ -141,8 +143,9 @@ class LatentWorldModel(nn.Module):
         )
         self.frame_decoder: nn.Module | None = None
         if config.decoder and config.decoder_kind == "mlp":
-            self.decoder_input = nn.Linear(d, config.hidden)
-            self.frame_decoder = nn.Sequential(nn.ReLU(), nn.Linear(config.hidden, c * h * w))
+            hidden = config.decoder_hidden
+            self.decoder_input = nn.Linear(d, hidden)
+            self.frame_decoder = nn.Sequential(nn.ReLU(), nn.Linear(hidden, c * h * w))
         elif config.decoder:
             self.decoder_input = nn.Linear(d, flat)
             self.frame_decoder = nn.Sequential(
