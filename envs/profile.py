@@ -102,6 +102,8 @@ class EnvProfile:
         codes: overrides of :class:`~dorp_rl.trainers.RepresentationConfig` that suit
             the env, a function of ``num_objects``.
         world_model: overrides of :class:`~dorp_rl.trainers.WorldModelConfig`, likewise.
+        latent_model: overrides of :class:`~dorp_rl.trainers.LatentWorldModelConfig`,
+            likewise (its play windows default to the world model's).
         groups: the code graph's groups (``"onehot"``, ``"full"`` or tuples of one-hot
             indices), a value or a function of ``num_objects``.
         graph_completion: whether the pipeline completes the code graphs of groups of
@@ -140,6 +142,7 @@ class EnvProfile:
     code_layout: Callable[[int, int], tuple[int, ...]] | None = None
     codes: Callable[[int], Mapping[str, Any]] | None = None
     world_model: Callable[[int], Mapping[str, Any]] | None = None
+    latent_model: Callable[[int], Mapping[str, Any]] | None = None
     groups: Any = "onehot"
     graph_completion: bool = False
     dorp: Mapping[str, Any] = field(default_factory=dict)
@@ -221,6 +224,11 @@ class EnvProfile:
         """World-model-config fields that suit the env (empty: the config's defaults)."""
         n = self.resolve_num_objects(num_objects)
         return dict(self.world_model(n)) if self.world_model is not None else {}
+
+    def latent_model_overrides(self, num_objects: int | None = None) -> dict[str, Any]:
+        """Latent-world-model-config fields that suit the env (empty: the config's defaults)."""
+        n = self.resolve_num_objects(num_objects)
+        return dict(self.latent_model(n)) if self.latent_model is not None else {}
 
     def tasks(self, env: EnvBase, num_tasks: int, seed: int) -> TensorDictBase:
         """``num_tasks`` tasks of ``env`` drawn with ``seed`` (:attr:`draw_tasks`), with

@@ -202,6 +202,24 @@ def test_the_loss_learns_the_encoders_codes_on_frames_of_another_size():
         LatentWorldModelLoss(model, _encoder(code_sizes=(4, 4)))
 
 
+def test_a_profiles_latent_preset_overrides_its_world_model_windows():
+    import dataclasses
+
+    from push_blocks import PUSH_BLOCKS
+
+    profile = dataclasses.replace(
+        PUSH_BLOCKS,
+        world_model=lambda _: {"horizon": 6, "num_frames": 999, "lr": 0.5},
+        latent_model=lambda _: {"num_frames": 1234, "model": {"decoder_kind": "mlp"}},
+    )
+    cfg = LatentWorldModelConfig.for_env(profile)
+    # Play windows from the world-model preset (not its other fields), the latent preset
+    # over them, the config's defaults for the rest.
+    assert (cfg.horizon, cfg.num_frames, cfg.lr) == (6, 1234, 1e-3)
+    assert cfg.model.decoder_kind == "mlp" and cfg.model.latent_dim == 128
+    assert LatentWorldModelConfig.for_env(PUSH_BLOCKS).model.decoder_kind == "conv"
+
+
 def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_path):
     encoder = _encoder()
     trainer = LatentWorldModelTrainer(_config(tmp_path), encoder=encoder)

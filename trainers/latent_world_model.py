@@ -93,10 +93,12 @@ class LatentWorldModelConfig(TrainerConfig):
 
     @classmethod
     def profile_overrides(cls, profile: Any, num_objects: int) -> dict[str, Any]:
-        """The play-window fields of the profile's world-model preset."""
+        """The profile's latent-model preset over the play-window fields of its
+        world-model preset."""
         preset = profile.world_model_overrides(num_objects)
         shared = ("trajectory_length", "event_share", "num_frames", "horizon")
-        return {k: v for k, v in preset.items() if k in shared}
+        windows = {k: v for k, v in preset.items() if k in shared}
+        return {**windows, **profile.latent_model_overrides(num_objects)}
 
     def check_relations(self) -> None:
         super().check_relations()
