@@ -10,7 +10,9 @@ bound; nothing inside the library is edited. The same env runs through the comma
 
     PYTHONPATH=examples dorp evaluate --env own_environment:PROFILE --tasks 20
 
-Run: ``python examples/own_environment.py [--frames 40000] [--steps 1500] [--tasks 20]``.
+Run: ``python examples/own_environment.py [--frames 40000] [--steps 1500] [--tasks 20]``;
+with ``--low-level latent`` DORP plans through a latent world model trained here on the
+env's play data and the codes (``--latent-steps``), instead of the env's own dynamics.
 """
 
 from __future__ import annotations
@@ -32,7 +34,12 @@ from dorp_rl.eval import (
 )
 from dorp_rl.planners import CodeGraph, encode_transitions
 from dorp_rl.policies import make_dorp_policy
-from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+from dorp_rl.trainers import (
+    LatentWorldModelConfig,
+    LatentWorldModelTrainer,
+    RepresentationConfig,
+    RepresentationTrainer,
+)
 
 HEIGHT, WIDTH = 24, 32
 MOVES = torch.tensor([[-1, 0], [1, 0], [0, -1], [0, 1]])  # up, down, left, right
@@ -174,6 +181,13 @@ def main() -> None:
     parser.add_argument("--tasks", type=int, default=20, help="seeded evaluation tasks")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="outputs/own_environment")
+    parser.add_argument(
+        "--low-level",
+        choices=["gt", "latent"],
+        default="gt",
+        help="plan through the env's own dynamics or a latent world model trained here",
+    )
+    parser.add_argument("--latent-steps", type=int, default=3000, help="latent model steps")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -205,9 +219,26 @@ def main() -> None:
         f"{labelled['onehot_object']})"
     )
 
-    # 3. DORP with the env's true dynamics: the env itself, unbatched, steps any shape.
+    # 3. DORP with the env's true dynamics (the env itself, unbatched, steps any shape),
+    # or with a latent world model of the codes learned from play data.
     env = make_env(batch_size=(10,), seed=args.seed)
-    model = SlideShapesEnv(batch_size=(), batch_locked=False)
+    if args.low_level == "latent":
+        latent_config = LatentWorldModelConfig.for_env(
+            PROFILE,
+            num_steps=args.latent_steps,
+            seed=args.seed,
+            out_dir=f"{args.out}/latent_model",
+            pixel_weight=10.0,
+            model={"decoder_kind": "mlp", "decoder_hidden": 1024},
+        )
+        latent = LatentWorldModelTrainer(latent_config, encoder=encoder)
+        accuracy = latent.train()["evaluation"]["code_accuracy"]
+        print(
+            f"latent model: codes right at open-loop steps 1 / last {accuracy[0]} / {accuracy[-1]}"
+        )
+        model = latent.model.eval()
+    else:
+        model = SlideShapesEnv(batch_size=(), batch_locked=False)
     policy = make_dorp_policy(env, encoder, graph, low_level=model, seed=args.seed)
     tasks = make_task_set(env, args.tasks, seed=args.seed, profile=PROFILE)
     out = evaluate_policy(env, policy, tasks, max_steps=300, tasks_per_rollout=10, seed=0)

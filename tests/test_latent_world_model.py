@@ -49,6 +49,33 @@ def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape, d
         )
 
 
+def test_slots_read_each_one_hots_codes_off_its_own_slot_and_plan():
+    config = LatentModelConfig(frame_shape=(3, 10, 13), code_sizes=(4, 6, 5), slot_dim=8, hidden=16)
+    model = LatentWorldModel(6, config)
+    frames = torch.randint(0, 256, (2, 3, 10, 13), dtype=torch.uint8)
+    latent = model.encode(frames)
+    assert latent.shape == (2, 24) and model.latent_width == 24
+    # Changing slot 1 changes one-hot 1's logits only.
+    changed = latent.clone()
+    changed[:, 8:16] += 1.0
+    before, after = model.code_logits(latent), model.code_logits(changed)
+    spans = [(0, 4), (4, 10), (10, 15)]
+    for k, (start, end) in enumerate(spans):
+        same = torch.equal(before[:, start:end], after[:, start:end])
+        assert same is (k != 1), k
+    # Each slot is normalised on its own; steps and a torchrl rollout keep the shapes.
+    nxt = model.step(latent, torch.tensor([0, 5]))
+    slots = nxt.reshape(2, 3, 8)
+    torch.testing.assert_close(slots.mean(-1), torch.zeros(2, 3), atol=1e-5, rtol=0)
+    env = LatentModelEnv(model, decode=True)
+    td = TensorDict(pixels=frames, batch_size=(2,))
+    rollout = env.rollout(3, auto_reset=False, tensordict=env.reset(td))
+    assert rollout["next", "code"].shape == (2, 3, 3)
+    assert rollout["next", "pixels"].shape == (2, 3, 3, 10, 13)
+    with pytest.raises(ValueError, match="slot_dim > 0 needs a continuous latent"):
+        LatentWorldModel(6, config.replace(latent_groups=4))
+
+
 def test_the_mlp_decoder_learns_to_draw_frames():
     """The fast decoder is trained by the loss's pixel term like the convolutional one."""
     env = PushBlocksEnv((3, 24, 32), batch_size=(4,))

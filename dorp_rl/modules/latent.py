@@ -54,6 +54,12 @@ class LatentModelConfig(ConfigMixin):
     small error is snapped away instead of carried into the next"""
     latent_classes: int = checked(16, Int(low=2))
     """values of each categorical latent variable (latent_groups > 0)"""
+    slot_dim: int = checked(0, Int(low=0))
+    """0: one latent vector stepped by one MLP; > 0: one slot of this width per one-hot
+    (the latent is their concatenation), each one-hot's codes read off its own slot only,
+    and each slot stepped by one shared update from its slot, the action and messages
+    from every other slot (objects that move alike wherever they are; collisions as
+    pairwise messages)"""
     channels: int = checked(32, Int(low=1))
     """width of the frame encoder's and decoder's convolutions"""
     hidden: int = checked(256, Int(low=1))
@@ -72,6 +78,60 @@ class LatentModelConfig(ConfigMixin):
     """:func:`~dorp_rl.integrity.state_digest` of the DORP encoder whose codes the code
     head learned (set by the trainer), so that a policy with another encoder of the same
     code sizes encodes decoded frames instead of reading these codes; None: unknown"""
+
+
+class _SlotNorm(nn.Module):
+    """A LayerNorm of each of ``slots`` slots of width ``width`` in a flat ``[*B, K * D]``."""
+
+    def __init__(self, slots: int, width: int) -> None:
+        super().__init__()
+        self.slots, self.width = slots, width
+        self.norm = nn.LayerNorm(width)
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        return self.norm(latent.unflatten(-1, (self.slots, self.width))).flatten(-2)
+
+
+class _SlotDynamics(nn.Module):
+    """The change of each of ``K`` slots ``[*B, K, D]`` after an action: a shared MLP of the
+    slot, its index, the action's one-hot and the sum of messages from the other slots
+    (a shared MLP of each ordered pair of slots)."""
+
+    def __init__(self, slots: int, width: int, num_actions: int, hidden: int) -> None:
+        super().__init__()
+        self.slots, self.num_actions = slots, num_actions
+        self.message = nn.Sequential(
+            nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+        )
+        self.update = nn.Sequential(
+            nn.Linear(width + hidden + num_actions + slots, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, width),
+        )
+        self.register_buffer("ids", torch.eye(slots), persistent=False)
+        self.register_buffer("others", 1.0 - torch.eye(slots), persistent=False)
+
+    def forward(self, slots: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        k = self.slots
+        pairs = torch.cat(
+            [
+                slots.unsqueeze(-2).expand(*slots.shape[:-2], k, k, slots.shape[-1]),
+                slots.unsqueeze(-3).expand(*slots.shape[:-2], k, k, slots.shape[-1]),
+            ],
+            -1,
+        )  # [*B, K (receiver), K (sender), 2D]
+        messages = (self.message(pairs) * self.others.unsqueeze(-1)).sum(-2)
+        one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(slots.dtype)
+        lead = slots.shape[:-2]
+        inputs = [
+            slots,
+            messages,
+            one_hot.unsqueeze(-2).expand(*lead, k, self.num_actions),
+            self.ids.expand(*lead, k, k),
+        ]
+        return self.update(torch.cat(inputs, -1))
 
 
 def _downsampled(size: int) -> int:
@@ -113,8 +173,17 @@ class LatentWorldModel(nn.Module):
         self.code_sizes = tuple(config.code_sizes)
         c, h, w = config.frame_shape
         self.discrete = config.latent_groups > 0
+        #: slots of the latent (one per one-hot), 0 for one latent vector
+        self.slots = len(self.code_sizes) if config.slot_dim > 0 else 0
+        if self.slots and self.discrete:
+            raise ValueError(
+                "slot_dim > 0 needs a continuous latent: set latent_groups=0 or slot_dim=0."
+            )
         ch = config.channels
-        d = config.latent_groups * config.latent_classes if self.discrete else config.latent_dim
+        if self.discrete:
+            d = config.latent_groups * config.latent_classes
+        else:
+            d = self.slots * config.slot_dim if self.slots else config.latent_dim
         #: size of the latent vector
         self.latent_width = d
         self._feature_shape = (ch, _downsampled(h), _downsampled(w))
@@ -129,18 +198,30 @@ class LatentWorldModel(nn.Module):
             nn.Flatten(),
             nn.Linear(flat, d),
         )
-        self.encoder_norm = nn.Identity() if self.discrete else nn.LayerNorm(d)
-        layers: list[nn.Module] = []
-        width = d + self.num_actions
-        for _ in range(config.dynamics_layers):
-            layers += [nn.Linear(width, config.hidden), nn.ReLU()]
-            width = config.hidden
-        layers.append(nn.Linear(width, d))
-        self.dynamics = nn.Sequential(*layers)
-        self.dynamics_norm = nn.LayerNorm(d)
-        self.code_head = nn.Sequential(
-            nn.Linear(d, config.hidden), nn.ReLU(), nn.Linear(config.hidden, sum(self.code_sizes))
-        )
+        if self.slots:
+            sd, hidden = config.slot_dim, config.hidden
+            self.encoder_norm: nn.Module = _SlotNorm(self.slots, sd)
+            self.dynamics: nn.Module = _SlotDynamics(self.slots, sd, self.num_actions, hidden)
+            self.dynamics_norm: nn.Module = _SlotNorm(self.slots, sd)
+            self.code_head: nn.Module = nn.ModuleList(
+                nn.Sequential(nn.Linear(sd, hidden), nn.ReLU(), nn.Linear(hidden, size))
+                for size in self.code_sizes
+            )
+        else:
+            self.encoder_norm = nn.Identity() if self.discrete else nn.LayerNorm(d)
+            layers: list[nn.Module] = []
+            width = d + self.num_actions
+            for _ in range(config.dynamics_layers):
+                layers += [nn.Linear(width, config.hidden), nn.ReLU()]
+                width = config.hidden
+            layers.append(nn.Linear(width, d))
+            self.dynamics = nn.Sequential(*layers)
+            self.dynamics_norm = nn.LayerNorm(d)
+            self.code_head = nn.Sequential(
+                nn.Linear(d, config.hidden),
+                nn.ReLU(),
+                nn.Linear(config.hidden, sum(self.code_sizes)),
+            )
         self.frame_decoder: nn.Module | None = None
         if config.decoder and config.decoder_kind == "mlp":
             hidden = config.decoder_hidden
@@ -189,6 +270,9 @@ class LatentWorldModel(nn.Module):
         before its normalisation."""
         if action.dim() == latent.dim():
             action = action.squeeze(-1)
+        if self.slots:
+            slots = latent.unflatten(-1, (self.slots, self.config.slot_dim))
+            return latent + self.dynamics(slots, action).flatten(-2)
         one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(latent.dtype)
         out = self.dynamics(torch.cat([latent, one_hot], -1))
         return out if self.discrete else latent + out
@@ -199,7 +283,12 @@ class LatentWorldModel(nn.Module):
         return self.quantize(out) if self.discrete else self.dynamics_norm(out)
 
     def code_logits(self, latent: torch.Tensor) -> torch.Tensor:
-        """Logits ``[*B, sum(code_sizes)]`` of each one-hot's code."""
+        """Logits ``[*B, sum(code_sizes)]`` of each one-hot's code (with slots, one-hot
+        ``k``'s from slot ``k`` alone)."""
+        if self.slots:
+            slots = latent.unflatten(-1, (self.slots, self.config.slot_dim)).unbind(-2)
+            heads = zip(self.code_head, slots, strict=True)
+            return torch.cat([head(slot) for head, slot in heads], -1)
         return self.code_head(latent)
 
     def codes(self, latent: torch.Tensor) -> torch.Tensor:
