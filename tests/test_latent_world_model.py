@@ -76,6 +76,30 @@ def test_slots_read_each_one_hots_codes_off_its_own_slot_and_plan():
         LatentWorldModel(6, config.replace(latent_groups=4))
 
 
+def test_soft_targets_score_the_code_head_against_the_encoders_probabilities():
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    window = collect_play_data(env, 80, trajectory_length=10, seed=0)[:80].reshape(8, 10)[:, :3]
+    window.set("action", window["action"].reshape(8, 3, 1).long())
+    encoder = _encoder()
+    model = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    soft = LatentWorldModelLoss(model, encoder, soft_targets=True)
+    hard = LatentWorldModelLoss(model, encoder)
+    frames = torch.cat([window["pixels"][:, :1], window["next", "pixels"]], 1)
+    probs = soft.target_probs(frames)
+    assert [p.shape for p in probs] == [(8, 4, 6), (8, 4, 6)]
+    # The soft loss is the cross-entropy against those probabilities, which the hard
+    # loss (against their argmax) is not, unless the encoder were certain.
+    latents = soft.rollout(frames, window["action"][..., 0])
+    logits = model.code_logits(latents).split((6, 6), -1)
+    expected = sum(
+        -(p * part.log_softmax(-1)).sum(-1).mean() for part, p in zip(logits, probs, strict=True)
+    )
+    torch.testing.assert_close(soft(window)["loss_code"], expected)
+    assert not torch.allclose(hard(window)["loss_code"], expected)
+    with pytest.raises(ValueError, match="soft_targets"):
+        LatentWorldModelLoss(model, encoder, soft_targets="yes")
+
+
 def test_the_mlp_decoder_learns_to_draw_frames():
     """The fast decoder is trained by the loss's pixel term like the convolutional one."""
     env = PushBlocksEnv((3, 24, 32), batch_size=(4,))

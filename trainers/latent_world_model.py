@@ -26,7 +26,7 @@ from dorp_rl.trainers.base import TrainerConfig
 from dorp_rl.trainers.representation import load_encoder
 from dorp_rl.trainers.windows import WindowTrainer
 from dorp_rl.trainers.world_model import WorldModelTrainer, load_video_model
-from dorp_rl.validation import Float, Int, Text, check_device, frame_shape_of
+from dorp_rl.validation import Flag, Float, Int, Text, check_device, frame_shape_of
 
 __all__ = [
     "LatentWorldModelConfig",
@@ -80,6 +80,9 @@ class LatentWorldModelConfig(TrainerConfig):
     """weight of the decoded frames' squared error"""
     latent_weight: float = checked(0.1, Float(low=0.0))
     """weight of the imagined latents' distance to the encoded true frames"""
+    soft_targets: bool = checked(False, Flag())
+    """train the code head on the encoder's code probabilities (the frames of each
+    window encoded at every step) instead of its codes"""
     batch_size: int = checked(32, Int(low=1))
     """windows per step"""
     lr: float = checked(1e-3, Float(low=0.0, low_open=True, hint="(0 would never change a weight)"))
@@ -186,6 +189,7 @@ class LatentWorldModelTrainer(WindowTrainer):
             open_loop_length=1,
             pixel_weight=config.pixel_weight,
             latent_weight=config.latent_weight,
+            soft_targets=config.soft_targets,
         )
         self.actions = DiscreteActions.of(self.env)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)

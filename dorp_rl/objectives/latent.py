@@ -13,7 +13,13 @@ from torchrl.objectives import LossModule
 
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.modules.latent import LatentWorldModel, check_latent_model
-from dorp_rl.validation import MissingKeyError, check_float, check_int, frames_to_unit_float
+from dorp_rl.validation import (
+    MissingKeyError,
+    check_bool,
+    check_float,
+    check_int,
+    frames_to_unit_float,
+)
 
 __all__ = ["LatentWorldModelLoss"]
 
@@ -26,7 +32,9 @@ class LatentWorldModelLoss(LossModule):
     steps (``None``: one open-loop rollout over the whole window). At every step, the
     code head's logits are scored against the codes the DORP ``code_encoder`` (frozen)
     gives the true frame, so that the imagined codes agree with the encoder on real
-    frames (``loss_code``: cross-entropy summed over one-hots); with a decoder, the
+    frames (``loss_code``: cross-entropy summed over one-hots; with ``soft_targets``
+    against the encoder's probabilities instead of its codes, so that the head learns
+    where the encoder is unsure, at the borders of its codes); with a decoder, the
     decoded frame against the true frame (``loss_pixels``: mean squared error on
     ``[0, 1]`` values, times ``pixel_weight``); and the imagined latent against the
     encoded true frame, without gradient into the target (``loss_latent``, times
@@ -86,6 +94,7 @@ class LatentWorldModelLoss(LossModule):
         open_loop_length: int | None = None,
         pixel_weight: float = 1.0,
         latent_weight: float = 0.1,
+        soft_targets: bool = False,
     ) -> None:
         super().__init__()
         if not isinstance(model, LatentWorldModel):
@@ -100,6 +109,7 @@ class LatentWorldModelLoss(LossModule):
         )
         self.pixel_weight = check_float("pixel_weight", pixel_weight, low=0.0)
         self.latent_weight = check_float("latent_weight", latent_weight, low=0.0)
+        self.soft_targets = check_bool("soft_targets", soft_targets)
 
     def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames ``[B, H + 1, C, H', W']`` (o_t .. o_{t+H}) and actions ``[B, H]``."""
@@ -140,6 +150,23 @@ class LatentWorldModelLoss(LossModule):
             encoder.train(was_training)
         return code.to(torch.int64).reshape(*lead, -1).to(frames.device)
 
+    @torch.no_grad()
+    def target_probs(self, frames: torch.Tensor) -> list[torch.Tensor]:
+        """The code encoder's code probabilities of frames ``[*B, C, H, W]``: one
+        ``[*B, code_sizes[k]]`` per one-hot."""
+        encoder = self.code_encoder
+        was_training = encoder.training
+        encoder.eval()
+        try:
+            lead = frames.shape[:-3]
+            flat = frames.reshape(-1, *frames.shape[-3:]).to(module_device(encoder))
+            probs = encoder(flat)[1].to(frames.device)
+        finally:
+            encoder.train(was_training)
+        return [
+            probs[:, k, :size].reshape(*lead, size) for k, size in enumerate(self.model.code_sizes)
+        ]
+
     def given_codes(self, td: TensorDictBase) -> torch.Tensor | None:
         """The windows' codes ``[B, H + 1, K]`` from ``code`` and ``("next", "code")``, or
         ``None`` when the tensordict lacks them."""
@@ -177,10 +204,17 @@ class LatentWorldModelLoss(LossModule):
         if targets is None:
             targets = self.target_codes(frames)  # [B, H + 1, K]
         logits = model.code_logits(latents).split(model.code_sizes, dim=-1)
-        loss_code = sum(
-            F.cross_entropy(part.reshape(-1, part.shape[-1]), targets[..., k].reshape(-1))
-            for k, part in enumerate(logits)
-        )
+        if self.soft_targets:
+            probs = self.target_probs(frames)
+            loss_code = sum(
+                -(target * F.log_softmax(part, -1)).sum(-1).mean()
+                for part, target in zip(logits, probs, strict=True)
+            )
+        else:
+            loss_code = sum(
+                F.cross_entropy(part.reshape(-1, part.shape[-1]), targets[..., k].reshape(-1))
+                for k, part in enumerate(logits)
+            )
         predicted = torch.stack([part.argmax(-1) for part in logits], -1)
         right = (predicted == targets).all(-1)[:, 1:].float()
         with torch.no_grad():
