@@ -393,6 +393,16 @@ REARRANGEMENT = register_env_profile(
         # Failed hops are removed at once (blocks stand in the way) and waypoint plans are
         # ranked by the goal image too (docs/NOTES.md has the measurements).
         dorp={"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003},
+        # The measured latent-model recipe: more play data and steps, a heavier pixel
+        # term, and the MLP decoder, whose codes were as right as the convolutional
+        # decoder's and whose waypoint calls that read pixels ran about 9x faster
+        # (docs/NOTES.md).
+        latent_model=lambda _: {
+            "num_frames": 200_000,
+            "num_steps": 6000,
+            "pixel_weight": 10.0,
+            "model": {"decoder_kind": "mlp", "decoder_hidden": 1024},
+        },
         # Blocks move one at a time: a block's move seen in one joint code of its group
         # is a move in the group's other joint codes too (CodeGraph.completed).
         graph_completion=True,
