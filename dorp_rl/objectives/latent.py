@@ -137,32 +137,29 @@ class LatentWorldModelLoss(LossModule):
         return frames, action
 
     @torch.no_grad()
-    def target_codes(self, frames: torch.Tensor) -> torch.Tensor:
-        """The code encoder's codes int64 ``[*B, K]`` of frames ``[*B, C, H, W]``."""
+    def _encoded(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The code encoder's codes ``[N, K]`` and probabilities ``[N, K, Z]`` of the
+        frames ``[*B, C, H, W]`` flattened, in eval mode (its mode restored after)."""
         encoder = self.code_encoder
         was_training = encoder.training
         encoder.eval()
         try:
-            lead = frames.shape[:-3]
             flat = frames.reshape(-1, *frames.shape[-3:]).to(module_device(encoder))
-            code = encoder(flat)[0]
+            code, probs = encoder(flat)
         finally:
             encoder.train(was_training)
-        return code.to(torch.int64).reshape(*lead, -1).to(frames.device)
+        return code.to(frames.device), probs.to(frames.device)
 
-    @torch.no_grad()
+    def target_codes(self, frames: torch.Tensor) -> torch.Tensor:
+        """The code encoder's codes int64 ``[*B, K]`` of frames ``[*B, C, H, W]``."""
+        code = self._encoded(frames)[0]
+        return code.to(torch.int64).reshape(*frames.shape[:-3], -1)
+
     def target_probs(self, frames: torch.Tensor) -> list[torch.Tensor]:
         """The code encoder's code probabilities of frames ``[*B, C, H, W]``: one
         ``[*B, code_sizes[k]]`` per one-hot."""
-        encoder = self.code_encoder
-        was_training = encoder.training
-        encoder.eval()
-        try:
-            lead = frames.shape[:-3]
-            flat = frames.reshape(-1, *frames.shape[-3:]).to(module_device(encoder))
-            probs = encoder(flat)[1].to(frames.device)
-        finally:
-            encoder.train(was_training)
+        probs = self._encoded(frames)[1]
+        lead = frames.shape[:-3]
         return [
             probs[:, k, :size].reshape(*lead, size) for k, size in enumerate(self.model.code_sizes)
         ]
