@@ -229,6 +229,7 @@ def main() -> None:
             seed=args.seed,
             out_dir=f"{args.out}/latent_model",
             pixel_weight=10.0,
+            soft_targets=True,
             model={"decoder_kind": "mlp", "decoder_hidden": 1024},
         )
         latent = LatentWorldModelTrainer(latent_config, encoder=encoder)
