@@ -47,7 +47,7 @@ class LatentModelConfig(ConfigMixin):
     code_sizes: tuple[int, ...] = checked((32,), Ints(low=2))
     """codes of each one-hot of the DORP encoder whose codes the code head predicts"""
     latent_dim: int = checked(128, Int(low=1))
-    """width of a continuous latent state (latent_groups=0)"""
+    """width of a continuous latent state (latent_groups=0, slot_dim=0)"""
     latent_groups: int = checked(0, Int(low=0))
     """0: a continuous latent; > 0: the latent is that many categorical variables of
     latent_classes values each (hard one-hots, trained straight through), so a step's
@@ -59,7 +59,7 @@ class LatentModelConfig(ConfigMixin):
     (the latent is their concatenation), each one-hot's codes read off its own slot only,
     and each slot stepped by one shared update from its slot, the action and messages
     from every other slot (objects that move alike wherever they are; collisions as
-    pairwise messages)"""
+    pairwise messages), MLPs of ``hidden`` units with two hidden layers each"""
     channels: int = checked(32, Int(low=1))
     """width of the frame encoder's and decoder's convolutions"""
     hidden: int = checked(256, Int(low=1))
