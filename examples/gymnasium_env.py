@@ -20,7 +20,8 @@ Two ways in:
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
 Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 4]
-[--size 5]``.
+[--size 5] [--low-level latent]``; with ``--low-level latent`` DORP plans through a latent
+world model trained here on the play data and the codes instead of MiniGrid itself.
 """
 
 from __future__ import annotations
@@ -38,7 +39,12 @@ from dorp_rl.envs import EnvProfile, GymGoalEnv, draw_reachable_tasks
 from dorp_rl.eval import evaluate_policy, make_task_set, play_object_diagnostics
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import make_dorp_policy
-from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+from dorp_rl.trainers import (
+    LatentWorldModelConfig,
+    LatentWorldModelTrainer,
+    RepresentationConfig,
+    RepresentationTrainer,
+)
 
 #: MiniGrid's action ids of turn left, turn right, forward, pickup and toggle
 ACTIONS = (0, 1, 2, 3, 5)
@@ -230,6 +236,12 @@ PROFILE = EnvProfile(
     # As in the key rooms: re-enter a code another way, replan after a miss, no pixel
     # term in the waypoint cost (it ignores the walls).
     dorp={"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0},
+    # The latent world model of ``--low-level latent``, as the example env's.
+    latent_model=lambda _: {
+        "pixel_weight": 10.0,
+        "soft_targets": True,
+        "model": {"decoder_kind": "mlp", "decoder_hidden": 1024},
+    },
     draw_tasks=draw_reachable_tasks,
     # objects: the agent's pose, and the key (carried or not) with the door's state.
     objects=lambda s: torch.stack([s[..., 0] * 100 + s[..., 1] * 10 + s[..., 2], s[..., 3]], -1),
@@ -257,6 +269,13 @@ def main() -> None:
     parser.add_argument("--tile", type=int, default=TILE_SIZE, help="pixels per grid cell")
     parser.add_argument("--size", type=int, default=SIZE, help="DoorKey-NxN, walls included")
     parser.add_argument("--out", default="outputs/gymnasium_env")
+    parser.add_argument(
+        "--low-level",
+        choices=["gt", "latent"],
+        default="gt",
+        help="plan through MiniGrid itself or a latent world model trained here",
+    )
+    parser.add_argument("--latent-steps", type=int, default=3000, help="latent model steps")
     parser.add_argument(
         "--set",
         nargs="*",
@@ -290,8 +309,22 @@ def main() -> None:
     graph = CodeGraph.from_play_data(trainer.buffer, encoder, PROFILE.groups)
     print(f"graph nodes: {graph.num_nodes(0)}")
 
+    # DORP through MiniGrid itself, or through a latent world model of the codes.
+    low_level = "gt"
+    if args.low_level == "latent":
+        latent_config = LatentWorldModelConfig.for_env(
+            PROFILE, num_steps=args.latent_steps, seed=args.seed, out_dir=f"{args.out}/latent_model"
+        )
+        latent = LatentWorldModelTrainer(latent_config, encoder=encoder)
+        accuracy = latent.train()["evaluation"]["code_accuracy"]
+        print(
+            f"latent model: codes right at open-loop steps 1 / last {accuracy[0]} / {accuracy[-1]}"
+        )
+        low_level = latent.model.eval()
     env = make_env(batch_size=(10,), seed=args.seed, key_start=0.0)
-    policy = make_dorp_policy(env, encoder, graph, low_level="gt", seed=args.seed, **PROFILE.dorp)
+    policy = make_dorp_policy(
+        env, encoder, graph, low_level=low_level, seed=args.seed, **PROFILE.dorp
+    )
     tasks = make_task_set(env, args.tasks, seed=0, profile=PROFILE)
     out = evaluate_policy(env, policy, tasks, max_steps=200, tasks_per_rollout=10, seed=0)
     print(

@@ -167,6 +167,13 @@ PROFILE = EnvProfile(
         "num_frames": 40_000,
         "num_steps": 1500,
     },
+    # The latent world model of ``--low-level latent``: the decoded frames weigh 10 times
+    # the default, the code head learns the encoder's probabilities, an MLP decoder.
+    latent_model=lambda _: {
+        "pixel_weight": 10.0,
+        "soft_targets": True,
+        "model": {"decoder_kind": "mlp", "decoder_hidden": 1024},
+    },
     lower_bound=lambda env, state, goal: (state - goal).abs().flatten(-2).sum(-1),
     # Each shape's place as one id: the labels of the purity diagnostics.
     objects=lambda state: state[..., 0] * WIDTH + state[..., 1],
@@ -224,13 +231,7 @@ def main() -> None:
     env = make_env(batch_size=(10,), seed=args.seed)
     if args.low_level == "latent":
         latent_config = LatentWorldModelConfig.for_env(
-            PROFILE,
-            num_steps=args.latent_steps,
-            seed=args.seed,
-            out_dir=f"{args.out}/latent_model",
-            pixel_weight=10.0,
-            soft_targets=True,
-            model={"decoder_kind": "mlp", "decoder_hidden": 1024},
+            PROFILE, num_steps=args.latent_steps, seed=args.seed, out_dir=f"{args.out}/latent_model"
         )
         latent = LatentWorldModelTrainer(latent_config, encoder=encoder)
         accuracy = latent.train()["evaluation"]["code_accuracy"]
