@@ -96,6 +96,12 @@ def test_soft_targets_score_the_code_head_against_the_encoders_probabilities():
     )
     torch.testing.assert_close(soft(window)["loss_code"], expected)
     assert not torch.allclose(hard(window)["loss_code"], expected)
+    # Probabilities computed beforehand (as the trainer does) give the same loss.
+    given = window.clone()
+    given.set("code_probs", soft.encode_targets(window["pixels"])[1].reshape(8, 3, 2, 6))
+    nxt = soft.encode_targets(window["next", "pixels"])[1].reshape(8, 3, 2, 6)
+    given.set(("next", "code_probs"), nxt)
+    torch.testing.assert_close(soft(given)["loss_code"], expected)
     with pytest.raises(ValueError, match="soft_targets"):
         LatentWorldModelLoss(model, encoder, soft_targets="yes")
 
@@ -251,6 +257,24 @@ def test_the_loss_learns_the_encoders_codes_on_frames_of_another_size():
         loss(window)
     with pytest.raises(ValueError, match="codes of sizes"):
         LatentWorldModelLoss(model, _encoder(code_sizes=(4, 4)))
+
+
+def test_the_trainer_looks_up_soft_targets_encoded_once(tmp_path):
+    encoder = _encoder()
+    trainer = LatentWorldModelTrainer(_config(tmp_path, soft_targets=True), encoder=encoder)
+    assert set(trainer.target_tables) == {
+        "code",
+        ("next", "code"),
+        "code_probs",
+        ("next", "code_probs"),
+    }
+    batch = trainer.training_batch()
+    codes, probs = trainer.loss.encode_targets(batch["next", "pixels"])
+    torch.testing.assert_close(batch["next", "code_probs"], probs.reshape(*batch.shape, 2, 6))
+    assert torch.equal(batch["next", "code"], codes.reshape(*batch.shape, 2))
+    # Hard targets keep only the codes.
+    hard = LatentWorldModelTrainer(_config(tmp_path / "hard"), encoder=encoder)
+    assert set(hard.target_tables) == {"code", ("next", "code")}
 
 
 def test_a_profiles_latent_preset_overrides_its_world_model_windows():

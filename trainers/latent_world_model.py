@@ -81,8 +81,7 @@ class LatentWorldModelConfig(TrainerConfig):
     latent_weight: float = checked(0.1, Float(low=0.0))
     """weight of the imagined latents' distance to the encoded true frames"""
     soft_targets: bool = checked(False, Flag())
-    """train the code head on the encoder's code probabilities (the frames of each
-    window encoded at every step) instead of its codes"""
+    """train the code head on the encoder's code probabilities instead of its codes"""
     batch_size: int = checked(32, Int(low=1))
     """windows per step"""
     lr: float = checked(1e-3, Float(low=0.0, low_open=True, hint="(0 would never change a weight)"))
@@ -193,20 +192,33 @@ class LatentWorldModelTrainer(WindowTrainer):
         )
         self.actions = DiscreteActions.of(self.env)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
-        # The encoder's codes of every stored frame, once: the targets of each batch are
-        # looked up by the sampled indices instead of encoding 2 x H frames per window.
-        self.code_table, self.next_code_table = self._encode_storage()
+        # The encoder's codes (and, for soft targets, probabilities) of every stored
+        # frame, once: each batch's targets are looked up by the sampled indices
+        # instead of encoding 2 x H frames per window.
+        self.target_tables = self._encode_storage()
 
-    def _encode_storage(self, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
-        """Codes int64 ``[len(buffer), K]`` of the stored ``pixels`` and ``("next", "pixels")``."""
-        tables = []
-        for key in ("pixels", ("next", "pixels")):
-            parts = []
+    def _encode_storage(self, chunk: int = 4096) -> dict[Any, torch.Tensor]:
+        """Targets of every stored transition, by the batch key they fill: codes int64
+        ``[len(buffer), K]`` of ``pixels`` and ``("next", "pixels")`` under ``code`` and
+        ``("next", "code")``, and with ``soft_targets`` their probabilities
+        ``[len(buffer), K, Z]`` under ``code_probs`` and ``("next", "code_probs")``."""
+        keys = self.loss.tensor_keys
+        tables: dict[Any, torch.Tensor] = {}
+        for frames_key, code_key, probs_key in (
+            ("pixels", keys.code, keys.code_probs),
+            (("next", "pixels"), keys.next_code, keys.next_code_probs),
+        ):
+            codes, probs = [], []
             for start in range(0, len(self.buffer), chunk):
-                frames = self.buffer[start : start + chunk].get(key).to(self.device)
-                parts.append(self.loss.target_codes(frames))
-            tables.append(torch.cat(parts))
-        return tables[0], tables[1]
+                frames = self.buffer[start : start + chunk].get(frames_key).to(self.device)
+                code, prob = self.loss.encode_targets(frames)
+                codes.append(code.to(torch.int64))
+                if self.config.soft_targets:
+                    probs.append(prob)
+            tables[code_key] = torch.cat(codes)
+            if probs:
+                tables[probs_key] = torch.cat(probs)
+        return tables
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_model = LatentWorldModelConfig.from_dict(stored).model
@@ -221,11 +233,10 @@ class LatentWorldModelTrainer(WindowTrainer):
         return batch.set("action", self.actions.index(batch.get("action")))
 
     def training_batch(self) -> TensorDictBase:
-        """Training windows with int64 action indices and the looked-up target codes."""
+        """Training windows with int64 action indices and the looked-up targets."""
         batch = self._index_actions(super().training_batch())
-        index = batch.get("index").to(self.code_table.device)
-        batch.set("code", self.code_table[index].to(self.device))
-        batch.set(("next", "code"), self.next_code_table[index].to(self.device))
+        for key, table in self.target_tables.items():
+            batch.set(key, table[batch.get("index").to(table.device)].to(self.device))
         return batch
 
     def train_step(self) -> dict[str, float]:

@@ -75,6 +75,10 @@ class LatentWorldModelLoss(LossModule):
                 if computed beforehand (a trainer encodes its play data once); the
                 frames are encoded when they are missing. Default ``"code"`` and
                 ``("next", "code")``.
+            code_probs, next_code_probs: the code encoder's probabilities of those
+                frames, float ``[B, H, K, Z]``, if computed beforehand (read with
+                ``soft_targets`` only). Default ``"code_probs"`` and
+                ``("next", "code_probs")``.
         """
 
         pixels: NestedKey = "pixels"
@@ -82,6 +86,8 @@ class LatentWorldModelLoss(LossModule):
         next_pixels: NestedKey = ("next", "pixels")
         code: NestedKey = "code"
         next_code: NestedKey = ("next", "code")
+        code_probs: NestedKey = "code_probs"
+        next_code_probs: NestedKey = ("next", "code_probs")
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
@@ -137,7 +143,7 @@ class LatentWorldModelLoss(LossModule):
         return frames, action
 
     @torch.no_grad()
-    def _encoded(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_targets(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The code encoder's codes ``[N, K]`` and probabilities ``[N, K, Z]`` of the
         frames ``[*B, C, H, W]`` flattened, in eval mode (its mode restored after)."""
         encoder = self.code_encoder
@@ -152,17 +158,28 @@ class LatentWorldModelLoss(LossModule):
 
     def target_codes(self, frames: torch.Tensor) -> torch.Tensor:
         """The code encoder's codes int64 ``[*B, K]`` of frames ``[*B, C, H, W]``."""
-        code = self._encoded(frames)[0]
+        code = self.encode_targets(frames)[0]
         return code.to(torch.int64).reshape(*frames.shape[:-3], -1)
 
     def target_probs(self, frames: torch.Tensor) -> list[torch.Tensor]:
         """The code encoder's code probabilities of frames ``[*B, C, H, W]``: one
         ``[*B, code_sizes[k]]`` per one-hot."""
-        probs = self._encoded(frames)[1]
-        lead = frames.shape[:-3]
-        return [
-            probs[:, k, :size].reshape(*lead, size) for k, size in enumerate(self.model.code_sizes)
-        ]
+        probs = self.encode_targets(frames)[1]
+        return self._per_onehot(probs.reshape(*frames.shape[:-3], *probs.shape[-2:]))
+
+    def _per_onehot(self, probs: torch.Tensor) -> list[torch.Tensor]:
+        """``[*B, K, Z]`` probabilities as one ``[*B, code_sizes[k]]`` per one-hot."""
+        return [probs[..., k, :size] for k, size in enumerate(self.model.code_sizes)]
+
+    def given_probs(self, td: TensorDictBase) -> list[torch.Tensor] | None:
+        """The windows' code probabilities (one ``[B, H + 1, code_sizes[k]]`` per
+        one-hot) from ``code_probs`` and ``("next", "code_probs")``, or ``None`` when the
+        tensordict lacks them."""
+        probs = td.get(self.tensor_keys.code_probs, None)
+        nxt = td.get(self.tensor_keys.next_code_probs, None)
+        if probs is None or nxt is None:
+            return None
+        return self._per_onehot(torch.cat([probs[:, :1], nxt], 1).float())
 
     def given_codes(self, td: TensorDictBase) -> torch.Tensor | None:
         """The windows' codes ``[B, H + 1, K]`` from ``code`` and ``("next", "code")``, or
@@ -202,7 +219,9 @@ class LatentWorldModelLoss(LossModule):
             targets = self.target_codes(frames)  # [B, H + 1, K]
         logits = model.code_logits(latents).split(model.code_sizes, dim=-1)
         if self.soft_targets:
-            probs = self.target_probs(frames)
+            probs = self.given_probs(tensordict)
+            if probs is None:
+                probs = self.target_probs(frames)
             loss_code = sum(
                 -(target * F.log_softmax(part, -1)).sum(-1).mean()
                 for part, target in zip(logits, probs, strict=True)
