@@ -32,6 +32,7 @@ from torchrl.envs import EnvBase
 
 from dorp_rl.envs.grid_base import CheckedRolloutLength
 from dorp_rl.envs.planning import distinct_rows
+from dorp_rl.envs.spec import qualified_name
 
 __all__ = ["GymGoalEnv", "draw_reachable_tasks"]
 
@@ -216,7 +217,7 @@ class GymGoalEnv(CheckedRolloutLength, EnvBase):
         factory = self.make_gym_env
         return {
             "env": type(self).__name__,
-            "gym_env": f"{getattr(factory, '__module__', '')}.{getattr(factory, '__qualname__', factory)}",
+            "gym_env": qualified_name(factory),
             "pixels": list(self.observation_spec["pixels"].shape[len(self.batch_size) :]),
             "state": list(self.observation_spec["state"].shape[len(self.batch_size) :]),
             "num_actions": self.num_actions,

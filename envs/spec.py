@@ -7,13 +7,15 @@ torchrl's ``GymEnv`` and the project's own envs are read the same way.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 from torchrl.data import Categorical, OneHot
 
-__all__ = ["DiscreteActions", "env_device", "env_identity"]
+__all__ = ["DiscreteActions", "env_device", "env_identity", "qualified_name"]
 
 
 @dataclass(frozen=True)
@@ -142,7 +144,33 @@ def env_identity(env: Any) -> dict:
 
     actions = DiscreteActions.of(env)
     return {
-        "env": f"{type(env).__module__}.{type(env).__qualname__}",
+        "env": qualified_name(type(env)),
         "observation": describe(env.full_observation_spec),
         "actions": {"num_actions": actions.num_actions, "one_hot": actions.one_hot},
     }
+
+
+def qualified_name(obj: Any) -> str:
+    """``module.qualname`` of a class or function, the same whether its module runs as a
+    script or is imported.
+
+    A script's definitions live in ``__main__``; that is replaced by the name the module
+    is imported under (``python -m pkg.mod``: ``pkg.mod``; ``python path/mod.py``:
+    ``mod``), so a checkpoint written by ``python examples/own_environment.py`` fits the
+    same env imported as ``own_environment`` (``--env own_environment:PROFILE``).
+
+    Examples:
+        >>> from dorp_rl.envs.spec import qualified_name
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> qualified_name(KeyWallEnv)
+        'dorp_rl.envs.key_rooms.KeyWallEnv'
+    """
+    module = getattr(obj, "__module__", None) or ""
+    if module == "__main__":
+        main = sys.modules.get("__main__")
+        spec = getattr(main, "__spec__", None)
+        if spec is not None and spec.name and spec.name != "__main__":
+            module = spec.name
+        elif getattr(main, "__file__", None):
+            module = Path(main.__file__).stem
+    return f"{module}.{getattr(obj, '__qualname__', repr(obj))}"

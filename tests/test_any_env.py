@@ -7,6 +7,10 @@ its actions ``Categorical`` or ``OneHot``: nothing in it is what the project's e
 
 from __future__ import annotations
 
+import importlib.machinery
+import sys
+import types
+
 import pytest
 import torch
 from push_blocks import MOVES, PushBlocksEnv  # noqa: F401  (MOVES for readers)
@@ -24,6 +28,7 @@ from dorp_rl.data import (
     play_env,
 )
 from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.envs.spec import qualified_name
 from dorp_rl.eval import play_code_dynamics
 from dorp_rl.modules import DDDPSimilarity, DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.objectives import CPCLoss
@@ -106,6 +111,24 @@ def test_another_envs_play_data_and_frames_are_refused(tmp_path):
     encoder = DiscreteCodeEncoder.for_env(other, EncoderConfig.small((4,)))
     with pytest.raises(ValueError, match=r"pixels must have shape \[\*B, 1, 8, 8\]"):
         encoder(buffer[:2]["pixels"])
+
+
+def test_an_env_run_as_a_script_has_the_identity_it_has_when_imported(monkeypatch):
+    # `python push_blocks.py` defines the env in `__main__`; its checkpoints must fit
+    # the same env imported as `push_blocks` (e.g. `dorp evaluate --env push_blocks:...`).
+    imported = env_identity(PushBlocksEnv((1, 8, 8), batch_size=(2,)))
+    assert imported["env"] == "push_blocks.PushBlocksEnv"
+
+    class AsScript(PushBlocksEnv):
+        pass
+
+    AsScript.__module__, AsScript.__qualname__ = "__main__", "PushBlocksEnv"
+    script = types.ModuleType("__main__")
+    script.__file__, script.__spec__ = "/somewhere/push_blocks.py", None
+    monkeypatch.setitem(sys.modules, "__main__", script)
+    assert env_identity(AsScript((1, 8, 8), batch_size=(2,))) == imported
+    script.__spec__ = importlib.machinery.ModuleSpec("tests.push_blocks", None)  # python -m
+    assert qualified_name(AsScript) == "tests.push_blocks.PushBlocksEnv"
 
 
 def test_play_needs_what_it_cannot_guess():
