@@ -182,6 +182,12 @@ class LatentModelEnv(TorchRLWorldModelEnv):
             out.set("goal_pixels", goal)
         return out
 
+    @property
+    def latent_model(self) -> Any:
+        """The model whose latents it writes under ``latent``: goal costs compare them with
+        ``latent_model.encode`` of the goal image (:class:`~dorp_rl.planners.LatentGoalCost`)."""
+        return self.model
+
     def predicts_codes_of(self, encoder: torch.nn.Module) -> bool:
         """Whether ``code`` may stand for ``encoder``'s codes of the imagined frames: False
         when the model records the digest of the encoder it learned

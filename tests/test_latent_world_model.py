@@ -17,7 +17,7 @@ from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
 from dorp_rl.integrity import state_digest
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, LatentModelConfig, LatentWorldModel
 from dorp_rl.objectives import LatentWorldModelLoss
-from dorp_rl.planners import CodeGraph
+from dorp_rl.planners import CodeGraph, LatentGoalCost
 from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy, make_planning_env
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
@@ -367,6 +367,51 @@ def test_a_policy_with_another_encoder_plans_through_decoded_frames():
         assert policy.waypoint_planner.env.decode is not reads_codes
         rollout = env.rollout(3, policy, break_when_any_done=False)
         assert rollout["action"].shape[:2] == (2, 3)
+
+
+def test_the_goal_phase_through_a_latent_model_is_judged_on_latents_not_frames():
+    env = PushBlocksEnv((3, 24, 32), batch_size=(2,))
+    encoder = _encoder()
+    graph = CodeGraph.from_play_data(
+        collect_play_data(env, 200, trajectory_length=10, seed=0), encoder
+    )
+    model = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    small = {"num_candidates": 8, "planning_horizon": 3, "seed": 0}
+    policy = make_dorp_policy(env, encoder, graph, low_level=model, **small)
+    assert policy.config.goal_latent_weight == 1.0
+    keys = policy.goal_planner.cost.in_keys
+    assert ("next", "latent") in keys and ("next", "pixels") not in keys
+    assert any(isinstance(m, LatentGoalCost) for m in policy.goal_planner.cost.modules())
+    rollout = env.rollout(3, policy, break_when_any_done=False)
+    assert rollout["action"].shape[:2] == (2, 3)
+    # 0 keeps the decoded frames' pixel and object-map terms; the true dynamics have no
+    # latents, so the term is off there and refused when asked for.
+    pixels = make_dorp_policy(env, encoder, graph, low_level=model, goal_latent_weight=0, **small)
+    assert ("next", "pixels") in pixels.goal_planner.cost.in_keys
+    truth = make_dorp_policy(env, encoder, graph, **small)
+    assert truth.config.goal_latent_weight == 0.0
+    with pytest.raises(ValueError, match="goal_latent_weight > 0 needs the latent model"):
+        make_dorp_policy(env, encoder, graph, goal_latent_weight=1.0, **small)
+
+
+def test_the_latent_goal_cost_is_lowest_at_the_goal_images_latent():
+    model = LatentWorldModel(4, LatentModelConfig(frame_shape=(1, 8, 8), code_sizes=(4,)))
+    frames = torch.randint(0, 256, (3, 1, 8, 8), dtype=torch.uint8)
+    with torch.no_grad():
+        latents = model.encode(frames)  # [3, D]: candidate k ends at frame k's latent
+    goal = frames[1].reshape(1, 1, 1, 1, 8, 8).expand(1, 3, 2, 1, 8, 8)
+    imagined = torch.stack([latents, latents], 1).unsqueeze(0)  # [1, 3 candidates, 2, D]
+    rollout = TensorDict({"goal_pixels": goal, ("next", "latent"): imagined}, batch_size=(1, 3, 2))
+    cost = LatentGoalCost(model)(rollout)["cost"][0, :, 0]
+    assert float(cost[1]) < 1e-5 and bool((cost[[0, 2]] > 1e-3).all())
+    with pytest.raises(ValueError, match=r"must be frames \[1, 8, 8\]"):
+        LatentGoalCost(model)(
+            TensorDict(
+                {"goal_pixels": goal[..., :4], ("next", "latent"): imagined}, batch_size=(1, 3, 2)
+            )
+        )
+    with pytest.raises(ValueError, match="has none"):
+        LatentGoalCost(torch.nn.Linear(2, 2))
 
 
 def test_code_match_cost_reads_predicted_codes_without_frames():

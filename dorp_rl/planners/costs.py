@@ -73,6 +73,7 @@ __all__ = [
     "CodeMatchCost",
     "CostSequence",
     "FirstArrival",
+    "LatentGoalCost",
     "MissingRolloutKeyError",
     "NegativeRewardCost",
     "ObjectMapCost",
@@ -537,6 +538,87 @@ class _GoalPairs:
             distinct, goal_index, inverse, _ = imagined.distinct(owner.unsqueeze(-1))
             return distinct, goal_index.squeeze(-1), inverse
         return imagined.pixels().reshape(-1, *self.frame_shape), owner, None
+
+
+class LatentGoalCost(RolloutCost):
+    """Distance of each imagined latent to the goal image's latent, in a latent world model.
+
+    For planning envs that imagine latent states (:class:`~dorp_rl.envs.LatentModelEnv`
+    writes ``("next", "latent")``): the goal image is encoded once per row by
+    ``model.encode`` (the latent a real frame gets, which the model's dynamics are
+    trained to reach) and each step costs the root mean square of the difference,
+    ``|| latent - goal_latent ||_2 / sqrt(D)``. So the goal-image phase is judged in the
+    model's own latent space, where a few pixels that matter (an agent's heading, say)
+    are as visible as they are to the model's encoder, and no frame is decoded.
+
+    Args:
+        model: anything with ``encode(pixels [*B, C, H, W]) -> [*B, D]`` (a
+            :class:`~dorp_rl.modules.LatentWorldModel`; a module is kept as a submodule).
+        goal_key: the goal image, uint8 ``[*B, C, H, W]`` in the acting tensordict.
+        latent_key: the imagined latents in the rollout, float ``[*B, N, H, D]``.
+        out_key: where the per-step cost ``[*B, N, H]`` is written.
+        step_aggregation: how planners fold the steps (``"min"``, ``"sum"`` or ``"final"``).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from dorp_rl.modules import LatentModelConfig, LatentWorldModel
+        >>> from dorp_rl.planners import LatentGoalCost
+        >>> model = LatentWorldModel(4, LatentModelConfig(frame_shape=(1, 8, 8), code_sizes=(4,)))
+        >>> goal = torch.zeros(2, 1, 1, 1, 8, 8, dtype=torch.uint8).expand(2, 5, 3, 1, 8, 8)
+        >>> latent = model.encode(torch.zeros(1, 8, 8, dtype=torch.uint8)).detach().expand(2, 5, 3, -1)
+        >>> rollout = TensorDict({"goal_pixels": goal, ("next", "latent"): latent}, batch_size=(2, 5, 3))
+        >>> cost = LatentGoalCost(model)(rollout)["cost"]
+        >>> cost.shape, float(cost.abs().max()) < 1e-5  # every step is at the goal's latent
+        (torch.Size([2, 5, 3]), True)
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        goal_key: NestedKey = "goal_pixels",
+        latent_key: NestedKey = ("next", "latent"),
+        *,
+        out_key: NestedKey = "cost",
+        step_aggregation: str = "min",
+    ) -> None:
+        super().__init__(out_key=out_key, step_aggregation=step_aggregation)
+        if not callable(getattr(model, "encode", None)):
+            raise ValueError(
+                f"model must have encode(pixels) -> latents (a LatentWorldModel); "
+                f"{type(model).__name__} has none."
+            )
+        self.model = model
+        self.goal_key = unravel_key(goal_key)
+        self.latent_key = unravel_key(latent_key)
+        self.in_keys = [self.latent_key, self.goal_key]
+        self.root_frame_keys = [self.goal_key]
+
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        name = type(self).__name__
+        latent = get_rollout_key(rollout, self.latent_key, name)
+        lead = latent.shape[:-1]
+        goal = get_rollout_key(rollout, self.goal_key, name)
+        frame = tuple(getattr(self.model, "frame_shape", goal.shape[-3:]))
+        if goal.dim() != len(lead) + 3 or tuple(goal.shape[-3:]) != frame:
+            raise ValueError(
+                f"{self.goal_key!r} must be frames {list(frame)} over the rollout's "
+                f"{list(lead)}, got {list(goal.shape)}."
+            )
+        # The goal is a broadcast view: encode each distinct row's goal once.
+        goal = compact_broadcast(goal.expand(*lead, *frame), keep_last=3)
+        with torch.no_grad():
+            target = self.model.encode(goal)  # [*compact lead, D]
+        if target.shape[-1] != latent.shape[-1]:
+            raise ValueError(
+                f"the goal's latent has width {target.shape[-1]} but {self.latent_key!r} has "
+                f"{latent.shape[-1]}: the model is not the planning env's."
+            )
+        diff = latent.to(torch.float32) - target.to(torch.float32)
+        return diff.square().mean(-1).sqrt()
+
+    def extra_repr(self) -> str:
+        return f"goal_key={self.goal_key!r}, latent_key={self.latent_key!r}, {super().extra_repr()}"
 
 
 class ObjectMapCost(_GoalFrameCost):

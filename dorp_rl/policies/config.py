@@ -109,6 +109,13 @@ class DORPConfig(ConfigMixin):
     image's (:class:`~dorp_rl.planners.ObjectMapCost`), added to the pixel distance:
     each object is pulled to its own place (None: 4 when the encoder has
     ``object_maps``, else 0)"""
+    goal_latent_weight: float | None = checked(None, Float(low=0.0, optional=True))
+    """goal phase, when the planning env imagines latent states (it names its model as
+    ``latent_model``, as :class:`~dorp_rl.envs.LatentModelEnv` does): weight of the
+    distance of each imagined latent to the goal image's
+    (:class:`~dorp_rl.planners.LatentGoalCost`). Above 0 it replaces the pixel and
+    object-map terms, so the goal phase decodes no frames (None: 1 with such an env,
+    else 0)"""
     goal_patience: int | None = checked(14, Int(low=1, optional=True))
     """goal-phase steps without a lower plan cost after which the goal-code term is
     dropped (None: never)"""

@@ -18,6 +18,7 @@ from dorp_rl.planners.costs import (
     CodeMatchCost,
     CostSequence,
     FirstArrival,
+    LatentGoalCost,
     ObjectMapCost,
     PixelDistanceCost,
     WeightedCostSum,
@@ -50,6 +51,8 @@ DEFAULT_GOAL_ACTION_PRIOR_MIX = 0.5
 DEFAULT_ACTION_PERSISTENCE = 0.5
 #: goal_map_weight when the config leaves it None and the encoder has object maps.
 DEFAULT_GOAL_MAP_WEIGHT = 4.0
+#: ``goal_latent_weight`` when the planning env imagines latents (DORPConfig's None)
+DEFAULT_GOAL_LATENT_WEIGHT = 1.0
 _CEM_ONLY = frozenset(
     ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
 )
@@ -121,6 +124,8 @@ def make_goal_cost(
     goal_blur_sigmas: Sequence[float],
     goal_map_weight: float = 0.0,
     code_key: NestedKey | None = None,
+    latent_model: Any = None,
+    goal_latent_weight: float = 0.0,
 ) -> nn.Module:
     """The goal-image phase's cost: the goal's blurred pixel distance, plus (with
     ``goal_map_weight > 0``) the blurred distance of the encoder's object maps to the
@@ -128,15 +133,31 @@ def make_goal_cost(
     ``goal_code_weight`` (reading predicted codes under ``code_key`` when the planning
     env writes them).
 
+    With ``goal_latent_weight > 0`` the distance of the imagined latents of
+    ``latent_model`` to the goal image's (:class:`~dorp_rl.planners.LatentGoalCost`)
+    takes the place of the pixel and object-map terms.
+
     The goal-image phase starts with every code at the goal's: frames that leave them
     cost more than any pixel distance, so the pixel cost cannot undo the plan.
     """
-    pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
     goal_map_weight = check_float("goal_map_weight", goal_map_weight, low=0.0)
-    if goal_code_weight == 0 and goal_map_weight == 0:
-        return pixel_cost
-    terms: list[nn.Module] = [pixel_cost]
-    weights: dict[str, float | str] = {"pixel_cost": 1.0}
+    goal_latent_weight = check_float("goal_latent_weight", goal_latent_weight, low=0.0)
+    terms: list[nn.Module]
+    weights: dict[str, float | str]
+    if goal_latent_weight > 0:
+        if latent_model is None:
+            raise ValueError(
+                "goal_latent_weight > 0 needs the latent model of a planning env that "
+                "imagines latents (latent_model); pass goal_latent_weight=0."
+            )
+        terms = [LatentGoalCost(latent_model, out_key="goal_latent_cost")]
+        weights = {"goal_latent_cost": goal_latent_weight}
+        goal_map_weight = 0.0
+    else:
+        pixel_cost = PixelDistanceCost(out_key="pixel_cost", blur_sigmas=goal_blur_sigmas)
+        if goal_code_weight == 0 and goal_map_weight == 0:
+            return pixel_cost
+        terms, weights = [pixel_cost], {"pixel_cost": 1.0}
     if goal_map_weight > 0:
         terms.append(ObjectMapCost(encoder, out_key="goal_map_cost", blur_sigmas=goal_blur_sigmas))
         weights["goal_map_cost"] = goal_map_weight
@@ -276,12 +297,18 @@ def make_dorp_policy(
         **shared,
         **(cem_only if config.planner == "cem" else rs_only),
     )
+    latent_model = getattr(planning_env, "latent_model", None)
+    if config.goal_latent_weight is None:
+        latent_weight = DEFAULT_GOAL_LATENT_WEIGHT if latent_model is not None else 0.0
+        config = config.replace(goal_latent_weight=latent_weight)
     goal_cost = make_goal_cost(
         encoder,
         goal_code_weight=config.goal_code_weight,
         goal_blur_sigmas=config.goal_blur_sigmas,
         goal_map_weight=config.goal_map_weight,
         code_key=code_key,
+        latent_model=latent_model,
+        goal_latent_weight=config.goal_latent_weight,
     )
     goal = kinds[goal_kind](
         planning_env,
