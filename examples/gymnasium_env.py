@@ -299,6 +299,10 @@ def main() -> None:
     )
     trainer = RepresentationTrainer(config)
     trainer.train()
+    for reorder in trainer.hooks["widths"].reorders:
+        print(
+            f"one-hot widths at step {reorder['step']}: change rates {reorder['change_rate']}, order {reorder['order']}"
+        )
     encoder = trainer.encoder.eval()
     diagnostics = trainer.evaluate()
     print(f"frames {encoder.frame_shape}, codes used {diagnostics['code_dynamics']['codes_used']}")

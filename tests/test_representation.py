@@ -692,3 +692,68 @@ def test_code_information_separates_factorized_from_redundant_codes():
 def test_code_information_rejects_bad_codes(codes, match):
     with pytest.raises(ValueError, match=match):
         code_information(codes)
+
+
+# ---------------------------------------------------------------- one-hot widths
+def test_width_order_gives_the_widest_slots_the_most_changing_onehots():
+    from dorp_rl.trainers.representation import width_order
+
+    assert width_order((16, 4), (0.016, 0.054)) == [1, 0]  # swapped: the 4-code one moves more
+    assert width_order((16, 4), (0.093, 0.012)) == [0, 1]
+    assert width_order((4, 16, 2), (0.5, 0.1, 0.01)) == [1, 0, 2]
+    # equal sizes never move among themselves, whatever their rates
+    assert width_order((8, 8, 2), (0.01, 0.3, 0.002)) == [0, 1, 2]
+    assert width_order((8, 8, 2), (0.01, 0.3, 0.2)) == [1, 2, 0]
+    assert width_order((8, 8, 2), (0.01, 0.002, 0.3)) == [0, 2, 1]
+    with pytest.raises(ValueError, match="one change rate per one-hot"):
+        width_order((8, 2), (0.1,))
+
+
+def test_permuting_onehots_moves_their_maps_and_similarity_positions(tmp_path):
+    cfg = _tiny_config(tmp_path, env="key-wall", trajectory_length=16, num_steps=2)
+    trainer = RepresentationTrainer(cfg)
+    trainer.train()
+    encoder = trainer.encoder.eval()
+    pixels = trainer.buffer.storage[torch.arange(8)]["pixels"]
+    maps = encoder.object_maps(pixels)
+    matrix = trainer.similarity.matrix().detach().clone()
+    last = encoder.extractor[-1]
+    assert last.weight in trainer.optimizer.state  # moments from the training steps
+    trainer.permute_onehots([1, 0])
+    moved = encoder.object_maps(pixels)
+    assert torch.allclose(moved[:, 0], maps[:, 1]) and torch.allclose(moved[:, 1], maps[:, 0])
+    z = encoder.max_codes
+    blocks = matrix.reshape(2, z, 2, z)[[1, 0]][:, :, [1, 0]].reshape(2 * z, 2 * z)
+    assert torch.equal(trainer.similarity.matrix().detach(), blocks)
+    assert last.weight not in trainer.optimizer.state  # its moments restart
+    assert encoder.code_sizes == (8, 2)  # the sizes stay with the slots
+    with pytest.raises(ValueError, match="permutation of range"):
+        encoder.permute_onehots_([0, 0])
+
+
+def test_the_width_hook_reorders_once_per_attempt_and_resumes_with_its_record(tmp_path):
+    overrides = dict(env="key-wall", trajectory_length=16, num_steps=10, order_widths_at=4)
+    trainer = RepresentationTrainer(_tiny_config(tmp_path, **overrides))
+    rates = [0.01, 0.3]  # the 2-code one-hot changes more: its map goes to the 8-code slot
+    with (
+        mock.patch.object(trainer, "play_change_rates", return_value=rates) as measure,
+        mock.patch.object(trainer, "permute_onehots", wraps=trainer.permute_onehots) as permute,
+    ):
+        trainer.train()
+    assert measure.call_count == 1 and permute.call_args.args == ([1, 0],)
+    record = trainer.hooks["widths"].reorders
+    assert record == [{"step": 4, "attempt": 0, "change_rate": rates, "order": [1, 0]}]
+    resumed = RepresentationTrainer(_tiny_config(tmp_path, **{**overrides, "num_steps": 12}))
+    resumed.train(resume=True)
+    assert resumed.hooks["widths"].reorders == record  # not measured again after step 4
+    # in order already: measured, recorded, nothing moved; 0 turns the hook off
+    for at, expected_calls in ((4, 1), (0, 0)):
+        trainer = RepresentationTrainer(
+            _tiny_config(tmp_path / f"at{at}", **{**overrides, "order_widths_at": at})
+        )
+        with (
+            mock.patch.object(trainer, "play_change_rates", return_value=[0.3, 0.01]) as measure,
+            mock.patch.object(trainer, "permute_onehots") as permute,
+        ):
+            trainer.train()
+        assert measure.call_count == expected_calls and permute.call_count == 0

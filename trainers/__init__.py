@@ -29,6 +29,7 @@ from dorp_rl.trainers.representation import (
     RepresentationConfig,
     RepresentationTrainer,
     RestartHook,
+    WidthOrder,
     diagnose,
     load_encoder,
 )
@@ -50,6 +51,7 @@ __all__ = [
     "TrainerConfig",
     "TrainerHook",
     "TrainingDivergedError",
+    "WidthOrder",
     "WorldModelConfig",
     "WorldModelTrainer",
     "diagnose",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,11 @@ from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
 from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
 from dorp_rl.envs import env_identity
-from dorp_rl.metrics.code_information import code_information, play_code_dynamics
+from dorp_rl.metrics.code_information import (
+    code_dynamics,
+    code_information,
+    play_code_dynamics,
+)
 from dorp_rl.metrics.diagnostics import ground_truth_diagnostics, play_object_diagnostics
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
 from dorp_rl.modules.similarity import SIMILARITIES
@@ -114,6 +119,10 @@ class RepresentationConfig(TrainerConfig):
     check)"""
     max_restarts: int = checked(3, Int(low=0))
     """restarts after a collapse, entanglement or dead one-hot"""
+    # one-hot widths
+    order_widths_at: int = checked(0, Int(low=0))
+    """steps into each attempt after which the object maps are given to the one-hots by
+    how often their codes change along play, the most changing to the widest (0: never)"""
     # initialisation screening
     num_candidates: int = checked(1, Int(low=1))
     """initialisations screened before training (1: no screening)"""
@@ -370,6 +379,80 @@ class DeadOneHotRestart(RestartHook):
         )
 
 
+class WidthOrder(TrainerHook):
+    """Gives the widest one-hots the object maps whose codes change most often along play.
+
+    Which object a map takes is settled early, by the initialisation. With one-hots of
+    different sizes (a 16-code one for an agent, a 4-code one for a key and door) a map
+    can take the object meant for another size: a rarely changing key then holds 16
+    codes and the agent 4. Once per attempt, ``order_widths_at`` steps in, this hook
+    encodes ``screening_frames`` stored play transitions, ranks the one-hots by the
+    share of transitions that change their code (no labels), and permutes the maps
+    (:meth:`~dorp_rl.modules.DiscreteCodeEncoder.permute_onehots_`) and the
+    similarity's code positions so that the ranks follow the code sizes; the moved
+    parameters' optimiser moments restart. One-hots of equal size are never moved. It
+    assumes what the sizes say: an object with more states changes its code more often.
+    The state is the reorderings made (step, attempt, change rates, order).
+    """
+
+    default_name = "widths"
+
+    def __init__(self) -> None:
+        self.reorders: list[dict[str, Any]] = []
+
+    def after_step(self, metrics: dict[str, float], logged: bool) -> bool:
+        trainer = self.trainer
+        at = trainer.config.order_widths_at
+        if at <= 0 or trainer.step - trainer.attempt_start != at:
+            return False
+        sizes = trainer.encoder.code_sizes
+        if len(set(sizes)) < 2:
+            return False
+        rates = trainer.play_change_rates(trainer.config.screening_frames)
+        order = width_order(sizes, rates)
+        if order != list(range(len(sizes))):
+            trainer.permute_onehots(order)
+        self.reorders.append(
+            {"step": trainer.step, "attempt": trainer.attempt, "change_rate": rates, "order": order}
+        )
+        return False
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"reorders": list(self.reorders)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.reorders = list(state.get("reorders", []))
+
+
+def width_order(code_sizes: Sequence[int], change_rates: Sequence[float]) -> list[int]:
+    """Which one-hot each slot should take so that wider slots hold more often changing codes.
+
+    ``order[i]`` is the one-hot whose map slot ``i`` (of size ``code_sizes[i]``) takes;
+    ties keep their order, so equal sizes and equal rates never move.
+
+    Examples:
+        >>> width_order((16, 4), (0.016, 0.054))
+        [1, 0]
+        >>> width_order((16, 4), (0.09, 0.01))
+        [0, 1]
+    """
+    if len(code_sizes) != len(change_rates):
+        raise ValueError(
+            f"need one change rate per one-hot: {len(code_sizes)} sizes, {len(change_rates)} rates."
+        )
+    slots = sorted(range(len(code_sizes)), key=lambda i: -code_sizes[i])
+    ranked = sorted(range(len(change_rates)), key=lambda i: -change_rates[i])
+    order = [0] * len(code_sizes)
+    for slot, onehot in zip(slots, ranked, strict=True):
+        order[slot] = onehot
+    # within a group of equal sizes keep the one-hots' own order
+    for size in set(code_sizes):
+        group = [i for i in range(len(code_sizes)) if code_sizes[i] == size]
+        for slot, onehot in zip(group, sorted(order[i] for i in group), strict=True):
+            order[slot] = onehot
+    return order
+
+
 class CandidateScreening(TrainerHook):
     """Trains ``num_candidates`` initialisations for ``candidate_steps`` each, then continues the best.
 
@@ -463,9 +546,11 @@ class RepresentationTrainer(OfflineTrainer):
     weights, optimiser, step, RNG states, hook states) every ``checkpoint_every`` steps
     and at the end; ``train(resume=True)`` ends exactly where an uninterrupted run would.
 
-    Four hooks (:attr:`~dorp_rl.trainers.OfflineTrainer.hooks`), called in this order
+    Five hooks (:attr:`~dorp_rl.trainers.OfflineTrainer.hooks`), called in this order
     after every step, each with its own checkpointed state:
 
+    - ``"widths"`` (:class:`WidthOrder`, ``order_widths_at > 0``): once per attempt,
+      gives the widest one-hots the object maps whose codes change most often along play.
     - ``"screening"`` (:class:`CandidateScreening`, ``num_candidates > 1``): some
       initialisations end in a poor local optimum that longer training does not leave,
       with no higher contrastive loss to show it. The trainer first trains
@@ -501,13 +586,13 @@ class RepresentationTrainer(OfflineTrainer):
         ...     progress=False, out_dir="/tmp/dorp_doc_repr", diagnostics_every=10**9)
         >>> result = RepresentationTrainer(cfg).train()
         >>> result["step"], list(RepresentationTrainer.hook_names)
-        (20, ['screening', 'collapse', 'entanglement', 'dead'])
+        (20, ['widths', 'screening', 'collapse', 'entanglement', 'dead'])
     """
 
     kind = "representation"
     progress_metric = "loss_cpc"
     state_keys = ("encoder", "similarity", "optimizer")
-    hook_names = ("screening", "collapse", "entanglement", "dead")
+    hook_names = ("widths", "screening", "collapse", "entanglement", "dead")
 
     def __init__(
         self,
@@ -544,13 +629,20 @@ class RepresentationTrainer(OfflineTrainer):
         self.inits = 1
         self.attempt_start = 0
         self.history_start = 0
+        self.widths_hook = WidthOrder()
         self.screening_hook = CandidateScreening()
         self.collapse_hook = CollapseRestart()
         self.entanglement_hook = EntanglementRestart()
         self.dead_hook = DeadOneHotRestart()
-        hooks = (self.screening_hook, self.collapse_hook, self.entanglement_hook, self.dead_hook)
+        hooks = (
+            self.widths_hook,
+            self.screening_hook,
+            self.collapse_hook,
+            self.entanglement_hook,
+            self.dead_hook,
+        )
         for hook in hooks:
-            hook.register(self)  # in this order: screening claims its steps first
+            hook.register(self)  # in this order: screening claims its steps before restarts
         self._build(seed=config.seed)
 
     # ------------------------------------------------------------------ #
@@ -689,6 +781,27 @@ class RepresentationTrainer(OfflineTrainer):
         index = torch.linspace(0, stored - 1, count).round().long()
         pixels = self.buffer.storage[index]["pixels"]
         return self.encoder.encode(pixels.reshape(-1, *pixels.shape[-3:]))
+
+    def play_change_rates(self, count: int) -> list[float]:
+        """Per one-hot, the share of the first ``count`` stored play transitions that
+        change its code (:func:`~dorp_rl.metrics.code_information.code_dynamics`)."""
+        sample = self.buffer[: min(len(self.buffer), count)]
+        was_training = self.encoder.training
+        codes, next_codes = encode_transitions(sample, self.encoder.eval())
+        self.encoder.train(was_training)
+        return [float(r) for r in code_dynamics(codes, next_codes)["change_rate"]]
+
+    def permute_onehots(self, order: Sequence[int]) -> None:
+        """One-hot ``i`` takes the object map (and the similarity's code positions) that
+        ``order[i]`` had; the optimiser moments of the moved parameters restart."""
+        encoder = self.encoder
+        encoder.permute_onehots_(order)
+        z = encoder.max_codes
+        index = torch.tensor([o * z + k for o in order for k in range(z)])
+        self.similarity.permute_(index)
+        last = encoder.extractor[-1]
+        for parameter in (last.weight, last.bias, *self.similarity.parameters()):
+            self.optimizer.state.pop(parameter, None)
 
     def recent_loss(self, metrics: dict[str, float], window: int = 5) -> float:
         """Mean ``loss_cpc`` of this attempt's last ``window`` logged steps (else this step's).

@@ -285,6 +285,25 @@ class DiscreteCodeEncoder(nn.Module):
         state.pop("_inference_extractor", None)  # rebuilt on first use
         return state
 
+    @torch.no_grad()
+    def permute_onehots_(self, order: Sequence[int]) -> None:
+        """Gives one-hot ``i`` the object map one-hot ``order[i]`` had; code sizes stay put.
+
+        Permutes the output channels of the extractor's last convolution (a softmax
+        background channel stays last), so one-hot ``i`` now codes what ``order[i]``
+        coded, within its own code size.
+        """
+        order = [int(i) for i in order]
+        if sorted(order) != list(range(self.num_onehots)):
+            raise ValueError(
+                f"order must be a permutation of range({self.num_onehots}), got {order}."
+            )
+        last = self.extractor[-1]
+        index = torch.tensor(order + list(range(self.num_onehots, last.out_channels)))
+        index = index.to(last.weight.device)
+        last.weight.copy_(last.weight[index])
+        last.bias.copy_(last.bias[index])
+
     def logits_and_maps(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, H, W]``."""
         maps = self.object_maps(pixels)

@@ -25,6 +25,20 @@ class _Similarity(nn.Module):
     def matrix(self) -> torch.Tensor:
         raise NotImplementedError
 
+    @torch.no_grad()
+    def permute_(self, index: torch.Tensor) -> None:
+        """Reorders the code positions of every ``[L, L]`` parameter, rows and columns alike:
+        position ``i`` takes what position ``index[i]`` had (``index`` int ``[L]``)."""
+        index = torch.as_tensor(index, dtype=torch.long)
+        if sorted(index.tolist()) != list(range(self.dim)):
+            raise ValueError(
+                f"index must be a permutation of range({self.dim}), got {index.tolist()}."
+            )
+        for parameter in self.parameters():
+            if parameter.shape == (self.dim, self.dim):
+                index = index.to(parameter.device)
+                parameter.copy_(parameter[index][:, index])
+
     def forward(self, anchor: torch.Tensor, positive: torch.Tensor) -> torch.Tensor:
         """Scores ``[B, B']`` of every anchor ``[B, L]`` against every candidate ``[B', L]``."""
         for name, value in (("anchor", anchor), ("positive", positive)):
