@@ -1,8 +1,8 @@
 """A gymnasium env, MiniGrid DoorKey, through play data, codes, code graph and DORP.
 
-MiniGrid's DoorKey 5x5 with one fixed layout (every reset uses the same layout seed),
-drawn by its own renderer (``render_mode="rgb_array"``, 4-pixel tiles by default: 3 x 20
-x 20 frames) and played with its own actions, less the two that do nothing here: turn left,
+MiniGrid's DoorKey 6x6 with one fixed layout (every reset uses the same layout seed),
+drawn by its own renderer (``render_mode="rgb_array"``, 4-pixel tiles by default: 3 x 24
+x 24 frames) and played with its own actions, less the two that do nothing here: turn left,
 turn right, forward, pickup, toggle.
 
 Two ways in:
@@ -20,7 +20,7 @@ Two ways in:
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
 Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 4]
-[--size 5] [--low-level latent]``; with ``--low-level latent`` DORP plans through a latent
+[--size 6] [--low-level latent]``; with ``--low-level latent`` DORP plans through a latent
 world model trained here on the play data and the codes instead of MiniGrid itself.
 """
 
@@ -51,7 +51,7 @@ ACTIONS = (0, 1, 2, 3, 5)
 #: pixels per grid cell of MiniGrid's renderer (frames are SIZE x TILE_SIZE on a side)
 TILE_SIZE = 4
 #: grid cells on a side, walls included: MiniGrid's DoorKey-SIZExSIZE
-SIZE = 5
+SIZE = 6
 
 
 class FixedLayout(gym.Wrapper):
@@ -70,7 +70,7 @@ class FixedLayout(gym.Wrapper):
 
 
 def make_door_key_gym(tile_size: int | None = None, layout_seed: int = 0) -> FixedLayout:
-    """The gymnasium env: DoorKey 5x5, one layout, 5 actions, frames ``[5 * tile]^2 x 3``
+    """The gymnasium env: DoorKey SIZExSIZE, one layout, 5 actions, frames ``[SIZE * tile]^2 x 3``
     (``tile_size`` default :data:`TILE_SIZE`)."""
     tile = TILE_SIZE if tile_size is None else tile_size
     # highlight=False: MiniGrid otherwise lightens the agent's field of view, so a turn
@@ -140,7 +140,7 @@ class DoorKeyEnv(GymGoalEnv):
     """:class:`~dorp_rl.envs.GymGoalEnv` of DoorKey whose free resets (the play data's
     starts) have the key still lying on the floor ``key_start`` of the time.
 
-    Of the layout's 68 states reachable from its reset only 4 have the key lying (the
+    Of the 5x5 layout's 68 states reachable from its reset only 4 have the key lying (the
     agent in its start cell, the key in front of it, in any direction): uniform starts
     take the key about once per 17 trajectories, and only from one pose. A key start
     puts the agent in either free cell of the key's room, (1, 1) or (1, 3), in any
@@ -197,12 +197,16 @@ def make_env(
 #: and exclusive map changes. The key object has 4 codes, one per key and door situation
 #: (lying and locked, carried and locked, closed, open): a 2-code bit is not a wide
 #: one-hot, so the motion term put the key's pixels under the agent's map instead.
+#: Which map takes which colour is up to the initialisation: 200 steps in, the map whose
+#: codes change more often along play goes to the 16-code one-hot (``order_widths_at``),
+#: and a heavier code-usage term spreads the agent over its codes.
 CODES = {
     "encoder": {"code_sizes": (16, 4), "kernel_size": 1, "map_competition": "softmax"},
     "max_offset": 4,
     "motion_weight": 1.0,
     "sparsity_weight": 5.0,
-    "usage_weight": 1.0,
+    "usage_weight": 4.0,
+    "order_widths_at": 200,
     "exclusivity_weight": 1.0,
     "collapse_check_after": 500,
     # a 4-code key one-hot counts among the wide ones: a collapse is 2 codes or fewer
@@ -215,17 +219,17 @@ CODES = {
 
 #: DoorKey through GymWrapper: play data, codes and graph only.
 GYM_PROFILE = EnvProfile(
-    name="minigrid-doorkey-5x5-gym",
+    name="minigrid-doorkey-gym",
     make_env=make_gym_wrapper_env,
     play_trajectory_length=100,
     codes=lambda _: CODES,
     groups=((0, 1),),
-    description="MiniGrid DoorKey 5x5 through torchrl's GymWrapper",
+    description="MiniGrid DoorKey (SIZE x SIZE cells) through torchrl's GymWrapper",
 )
 
 #: DoorKey as a goal-conditioned env: every stage, DORP with MiniGrid as true dynamics.
 PROFILE = EnvProfile(
-    name="minigrid-doorkey-5x5",
+    name="minigrid-doorkey",
     make_env=make_env,
     # short walks from starts half of which have the key lying (DoorKeyEnv): a pickup
     # every ~65 play transitions instead of ~1,600 with 100-step walks from uniform starts
@@ -245,7 +249,7 @@ PROFILE = EnvProfile(
     draw_tasks=draw_reachable_tasks,
     # objects: the agent's pose, and the key (carried or not) with the door's state.
     objects=lambda s: torch.stack([s[..., 0] * 100 + s[..., 1] * 10 + s[..., 2], s[..., 3]], -1),
-    description="MiniGrid DoorKey 5x5, one layout, its renderer and 5 of its actions",
+    description="MiniGrid DoorKey (SIZE x SIZE cells), one layout, its renderer and 5 of its actions",
 )
 
 

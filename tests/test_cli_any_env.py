@@ -164,7 +164,7 @@ def test_the_dead_two_code_onehot_is_reported(tmp_path):
 
 
 def test_a_minigrid_env_through_torchrl_gym_wrapper_to_codes_and_graph(tmp_path, monkeypatch):
-    """MiniGrid DoorKey (examples/gymnasium_env.py): its renderer's 3 x 20 x 20 frames and
+    """MiniGrid DoorKey (examples/gymnasium_env.py): its renderer's 3 x 24 x 24 frames and
     5 of its actions through torchrl's GymWrapper and SerialEnv, by the command."""
     pytest.importorskip("minigrid")
     from pathlib import Path
@@ -189,13 +189,14 @@ def test_a_minigrid_env_through_torchrl_gym_wrapper_to_codes_and_graph(tmp_path,
 
     # The example's code recipe: its one-hots, the agent's 16 codes first.
     wanted = tuple(gymnasium_env.CODES["encoder"]["code_sizes"])
-    assert encoder.frame_shape == (3, 20, 20) and tuple(encoder.code_sizes) == wanted
+    side = gymnasium_env.SIZE * gymnasium_env.TILE_SIZE
+    assert encoder.frame_shape == (3, side, side) and tuple(encoder.code_sizes) == wanted
     assert wanted[0] == 16
     from dorp_rl.data import load_play_data
 
     play = load_play_data(tmp_path / "mg" / "play")[:400]
     assert play["action"].shape == (400, 5)  # GymWrapper's one-hot actions, 5 of them
-    assert play["pixels"].dtype == torch.uint8 and play["pixels"].shape[1:] == (3, 20, 20)
+    assert play["pixels"].dtype == torch.uint8 and play["pixels"].shape[1:] == (3, side, side)
 
 
 def _door_key(monkeypatch):
