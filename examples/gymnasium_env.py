@@ -36,7 +36,7 @@ from minigrid.core.world_object import Door, Key
 from torchrl.envs import GymWrapper, PermuteTransform, SerialEnv, TransformedEnv
 
 from dorp_rl.envs import EnvProfile, GymGoalEnv, draw_reachable_tasks
-from dorp_rl.eval import evaluate_policy, make_task_set, play_object_diagnostics
+from dorp_rl.eval import evaluate_policy, format_failures, make_task_set, play_object_diagnostics
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import make_dorp_policy
 from dorp_rl.trainers import (
@@ -340,6 +340,7 @@ def main() -> None:
         f"{out['mean_steps']:.1f} steps (lower bound {out['mean_lower_bound']:.1f}); MiniGrid "
         f"stepped or drawn {env.dynamics.gym_calls} times"
     )
+    print(format_failures(out["records"]))
 
 
 if __name__ == "__main__":
