@@ -223,7 +223,7 @@ def test_hooks_are_torchrl_hooks_registered_the_torchrl_way(tmp_path, tiny_confi
     with pytest.raises(TypeError, match="TrainerHook instances, got object"):
         trainer.register_hook("other", object())
     representation = RepresentationTrainer(tiny_configs.representation(tmp_path / "codes"))
-    assert list(representation.hooks) == ["screening", "collapse", "entanglement", "dead"]
+    assert list(representation.hooks) == ["widths", "screening", "collapse", "entanglement", "dead"]
     assert all(isinstance(h, TrainerHookBase) for h in representation.hooks.values())
 
 
@@ -280,7 +280,7 @@ def test_restart_hooks_keep_their_restarts_across_a_resume(tmp_path, tiny_config
     # lr 1e-12 never leaves the initial codes: every attempt is flat at log B and restarts.
     overrides = dict(lr=1e-12, collapse_check_after=3, max_restarts=2, checkpoint_every=1)
     trainer = RepresentationTrainer(tiny_configs.representation(tmp_path / "r", **overrides))
-    assert list(trainer.hooks) == ["screening", "collapse", "entanglement", "dead"]
+    assert list(trainer.hooks) == ["widths", "screening", "collapse", "entanglement", "dead"]
     with pytest.warns(RuntimeWarning):
         trainer.train()
     restarts = trainer.collapse_hook.restarts
