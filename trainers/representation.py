@@ -785,11 +785,17 @@ class RepresentationTrainer(OfflineTrainer):
     def play_change_rates(self, count: int) -> list[float]:
         """Per one-hot, the share of the first ``count`` stored play transitions that
         change its code (:func:`~dorp_rl.metrics.code_information.code_dynamics`)."""
+        codes, next_codes = self.encode_play_transitions(count)[1]
+        return [float(r) for r in code_dynamics(codes, next_codes)["change_rate"]]
+
+    def encode_play_transitions(self, count: int) -> tuple[Any, tuple[torch.Tensor, torch.Tensor]]:
+        """The first ``count`` stored play transitions and their codes (both frames, in
+        eval mode; the encoder's mode is restored)."""
         sample = self.buffer[: min(len(self.buffer), count)]
         was_training = self.encoder.training
-        codes, next_codes = encode_transitions(sample, self.encoder.eval())
+        transitions = encode_transitions(sample, self.encoder.eval())
         self.encoder.train(was_training)
-        return [float(r) for r in code_dynamics(codes, next_codes)["change_rate"]]
+        return sample, transitions
 
     def permute_onehots(self, order: Sequence[int]) -> None:
         """One-hot ``i`` takes the object map (and the similarity's code positions) that
@@ -912,10 +918,8 @@ class RepresentationTrainer(OfflineTrainer):
                 num_samples=self.config.diagnostics_samples,
                 seed=self.config.seed,
             )
-        sample = self.buffer[: min(len(self.buffer), self.config.diagnostics_samples)]
-        was_training = self.encoder.training
-        transitions = encode_transitions(sample, self.encoder.eval())  # once, for both
-        self.encoder.train(was_training)
+        # encoded once, for both
+        sample, transitions = self.encode_play_transitions(self.config.diagnostics_samples)
         dynamics = play_code_dynamics(sample, self.encoder, transitions=transitions)
         result["code_dynamics"] = dynamics
         result["dead_onehots"] = [i for i, dead in enumerate(dynamics["dead"]) if dead]
