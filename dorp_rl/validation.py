@@ -323,6 +323,30 @@ class Ints:
 
 
 @dataclass(frozen=True)
+class Floats:
+    """Rule of a tuple-of-floats field (e.g. per-one-hot weights), each finite and ``>= low``;
+    with ``allow_scalar`` one number is also taken (and kept as a float)."""
+
+    low: float | None = None
+    allow_scalar: bool = False
+
+    def __call__(self, name: str, value: Any) -> float | tuple[float, ...]:
+        if self.allow_scalar and not isinstance(value, (str, bytes, Iterable)):
+            return check_float(name, value, low=self.low)
+        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+            what = (
+                "a number or a sequence of numbers"
+                if self.allow_scalar
+                else "a sequence of numbers"
+            )
+            raise ValueError(f"{name} must be {what}, got {value!r}.")
+        items = tuple(check_float(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(value))
+        if not items:
+            raise ValueError(f"{name} must hold at least one number, got {value!r}.")
+        return items
+
+
+@dataclass(frozen=True)
 class Float:
     """Rule of a float config field (finite unless ``allow_inf``)."""
 

@@ -26,7 +26,7 @@ from dorp_rl.trainers import (
     WorldModelTrainer,
 )
 from dorp_rl.trainers.base import EnvName
-from dorp_rl.validation import Choice, Device, Flag, Float, Int, Ints, Seed, Text
+from dorp_rl.validation import Choice, Device, Flag, Float, Floats, Int, Ints, Seed, Text
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -67,6 +67,10 @@ def bad_values(rule) -> list:
         low = 1 if rule.low is None else rule.low
         out = [((low, low - 1), f">= {low}"), ((low, 2.5), "integer")]
         return out + ([((), "at least")] if rule.min_length > 0 else [])
+    if isinstance(rule, Floats):
+        low = 0.0 if rule.low is None else rule.low
+        out = [((low, low - 1.0), f">= {low:g}"), ((low, math.nan), "number"), ((), "at least")]
+        return out + [("0.1", "number")]
     if isinstance(rule, EnvName):
         return [
             ("no-such-env", "neither a registered profile"),
@@ -197,6 +201,8 @@ PINNED = [
     (R, "alpha", 0.999, "alpha must be >= 1", [1.0]),
     # weights of loss terms are not negative
     (R, "usage_weight", -1e-9, "usage_weight must be >= 0", [0.0]),
+    (R, "usage_weight", (1.0, -1e-9), "usage_weight[1] must be >= 0", [(4.0, 0.0)]),
+    (R, "usage_weight", "4", "usage_weight must be a number or a sequence of numbers", [4]),
     (R, "exclusivity_weight", -1e-9, "exclusivity_weight must be >= 0", [0.0]),
     (R, "sparsity_weight", -1e-9, "sparsity_weight must be >= 0", [0.0]),
     (R, "motion_weight", -1e-9, "motion_weight must be >= 0", [0.0]),

@@ -278,6 +278,29 @@ def test_loss_optional_terms_and_keys():
     assert float(expected) > 1e-4
 
 
+def test_usage_weight_per_one_hot_weighs_each_one_hot_on_its_own():
+    """One weight per one-hot: the term is the mean over one-hots of weight x entropy
+    deficit, so a 0 leaves that one-hot out (a key one-hot whose states are not equally
+    frequent is not pushed to split them evenly)."""
+    td = TensorDict(pixels=_pixels(6), future_pixels=_pixels(6, 1), batch_size=[6])
+    loss = _loss(usage_weight=(0.3, 0.0))
+    seen = _capture(loss)
+    out = loss(td)
+    mean_probs = seen["logits"][:6].softmax(-1).mean(0)  # [2, 8]
+    deficit = math.log(8) + (mean_probs * mean_probs.log()).sum(-1)  # [2]
+    assert float(deficit[1]) > 1e-4  # the second one-hot has a deficit that is not counted
+    expected = (0.3 * deficit[0] + 0.0 * deficit[1]) / 2
+    assert float(out["loss_usage"].detach()) == pytest.approx(float(expected), rel=1e-5)
+    # one number is the same weight for every one-hot
+    same = _loss(usage_weight=0.3)(td)["loss_usage"]
+    both = _loss(usage_weight=(0.3, 0.3))(td)["loss_usage"]
+    assert float(same.detach()) == pytest.approx(float(both.detach()), rel=1e-6)
+    with pytest.raises(ValueError, match="usage_weight has 3 weights, the encoder has 2 one-hots"):
+        _loss(usage_weight=(1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match=r"usage_weight\[1\] must be >= 0"):
+        _loss(usage_weight=(1.0, -1.0))
+
+
 def test_sparsity_term_shrinks_the_object_maps():
     torch.manual_seed(0)
     loss = _loss(sparsity_weight=1.0)

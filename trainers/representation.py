@@ -29,7 +29,16 @@ from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.code_graph import encode_transitions
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
-from dorp_rl.validation import Choice, Float, Int, Text, check_device, derive_seed, frame_shape_of
+from dorp_rl.validation import (
+    Choice,
+    Float,
+    Floats,
+    Int,
+    Text,
+    check_device,
+    derive_seed,
+    frame_shape_of,
+)
 
 #: Flat fields of older representation configs that now live in ``encoder``.
 _FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extractor_kernel_size")
@@ -81,8 +90,9 @@ class RepresentationConfig(TrainerConfig):
     """steps of the Gumbel temperature annealing"""
     ce_temperature: float = checked(0.1, Float(low=0.0, low_open=True))
     """temperature of the contrastive cross-entropy"""
-    usage_weight: float = checked(0.0, Float(low=0.0))
-    """weight of the code-usage term"""
+    usage_weight: float | tuple[float, ...] = checked(0.0, Floats(low=0.0, allow_scalar=True))
+    """weight of the code-usage term: one number, or one per one-hot in the encoder's
+    code_sizes order (0 leaves that one-hot's code usage to the contrastive loss alone)"""
     exclusivity_weight: float = checked(0.0, Float(low=0.0))
     """weight of the map-exclusivity term (objects on separate maps)"""
     sparsity_weight: float = checked(0.0, Float(low=0.0))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -13,7 +14,7 @@ from torchrl.objectives import LossModule
 
 from dorp_rl.modules.encoder import DiscreteCodeEncoder
 from dorp_rl.modules.similarity import _Similarity
-from dorp_rl.validation import check_choice, check_float
+from dorp_rl.validation import Floats, check_choice, check_float
 
 
 def standardize_codes(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -120,7 +121,10 @@ class CPCLoss(LossModule):
             map is left following nothing while another follows two objects.
         usage_weight: weight of an optional code-usage term,
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
-            collapse onto a few codes (0 disables it).
+            collapse onto a few codes (0 disables it). One number weighs every one-hot;
+            a sequence gives one weight per one-hot position (a one-hot whose objects are
+            not equally frequent in play, e.g. a key lying half the time, is pulled by
+            the term to split its frequent state and merge rare ones: give it 0).
         sparsity_weight: weight of an optional term, the mean value of the object maps,
             that drives each map to zero away from its object. In key rooms it shrinks
             what the key and the door leave in the agent's map, which otherwise flips the
@@ -177,7 +181,7 @@ class CPCLoss(LossModule):
         gumbel_side: str = "positive",
         gumbel_temperature: float = 0.1,
         ce_temperature: float = 0.1,
-        usage_weight: float = 0.0,
+        usage_weight: float | Sequence[float] = 0.0,
         exclusivity_weight: float = 0.0,
         sparsity_weight: float = 0.0,
         motion_weight: float = 0.0,
@@ -196,7 +200,15 @@ class CPCLoss(LossModule):
         positive = {"low": 0.0, "low_open": True}
         self.gumbel_temperature = check_float("gumbel_temperature", gumbel_temperature, **positive)
         self.ce_temperature = check_float("ce_temperature", ce_temperature, **positive)
-        self.usage_weight = check_float("usage_weight", usage_weight, low=0.0)
+        self.usage_weight = Floats(low=0.0, allow_scalar=True)("usage_weight", usage_weight)
+        weights = torch.as_tensor(self.usage_weight, dtype=torch.float32)
+        if weights.dim() and weights.numel() != encoder.num_onehots:
+            raise ValueError(
+                f"usage_weight has {weights.numel()} weights, the encoder has "
+                f"{encoder.num_onehots} one-hots (give one number or one per one-hot)."
+            )
+        # a plain tensor, not a buffer: the weights are settings, not state to checkpoint
+        self._usage_weights = weights.expand(encoder.num_onehots).clone()
         self.exclusivity_weight = check_float("exclusivity_weight", exclusivity_weight, low=0.0)
         self.sparsity_weight = check_float("sparsity_weight", sparsity_weight, low=0.0)
         self.motion_weight = check_float("motion_weight", motion_weight, low=0.0)
@@ -257,15 +269,14 @@ class CPCLoss(LossModule):
             similarity_scale=self.similarity.matrix().diagonal().mean().detach(),
             batch_size=[],
         )
-        if self.usage_weight > 0:
+        if bool((self._usage_weights > 0).any()):
             mean_probs = probs.mean(0).clamp_min(1e-12)  # [C, Z]
             entropy = (
                 -(mean_probs * mean_probs.log()).masked_fill(self.encoder.code_mask, 0).sum(-1)
             )
             max_entropy = torch.tensor(self.encoder.code_sizes, dtype=entropy.dtype).log()
-            out.set(
-                "loss_usage", self.usage_weight * (max_entropy.to(entropy.device) - entropy).mean()
-            )
+            deficit = max_entropy.to(entropy.device) - entropy
+            out.set("loss_usage", (self._usage_weights.to(deficit) * deficit).mean())
         if self.sparsity_weight > 0:
             out.set("loss_sparsity", self.sparsity_weight * maps.mean())
         if self.motion_weight > 0:
