@@ -248,19 +248,32 @@ PROFILE = EnvProfile(
     },
     draw_tasks=draw_reachable_tasks,
     # objects: the agent's pose, and the key (carried or not) with the door's state.
-    objects=lambda s: torch.stack([s[..., 0] * 100 + s[..., 1] * 10 + s[..., 2], s[..., 3]], -1),
+    objects=lambda s: torch.stack(
+        [s[..., 0] * 100 + s[..., 1] * 10 + s[..., 2], s[..., 3] * 3 + s[..., 4]], -1
+    ),
     description="MiniGrid DoorKey (SIZE x SIZE cells), one layout, its renderer and 5 of its actions",
 )
 
 
+def door_key_events(state: torch.Tensor) -> torch.Tensor:
+    """The agent's pose, the key carried and the door state as three objects, so that
+    pickups (key events) and toggles (door events) are counted apart."""
+    return torch.stack(
+        [state[..., 0] * 100 + state[..., 1] * 10 + state[..., 2], state[..., 3], state[..., 4]], -1
+    )
+
+
 def key_gates(labelled: dict) -> dict:
-    """The key-room gates from object diagnostics (object 0 the agent, 1 the key)."""
-    events = labelled["moves_per_object"][1]
-    changes = labelled["change_matrix"][1]  # one-hot changes on key events
+    """The key-room gates from :func:`door_key_events` diagnostics (one-hot 0 the agent's,
+    1 the key's): how often each one-hot changed on key events, and on door events."""
+    keys, doors = labelled["moves_per_object"][1:3]
+    on_keys, on_doors = labelled["change_matrix"][1], labelled["change_matrix"][2]
     return {
-        "key_events": events,
-        "key_bit_on_key_events": changes[1] / events if events else float("nan"),
-        "agent_onehot_on_key_events": changes[0] / events if events else float("nan"),
+        "key_events": keys,
+        "key_bit_on_key_events": on_keys[1] / keys if keys else float("nan"),
+        "agent_onehot_on_key_events": on_keys[0] / keys if keys else float("nan"),
+        "door_events": doors,
+        "key_onehot_on_door_events": on_doors[1] / doors if doors else float("nan"),
     }
 
 
@@ -310,7 +323,9 @@ def main() -> None:
     encoder = trainer.encoder.eval()
     diagnostics = trainer.evaluate()
     print(f"frames {encoder.frame_shape}, codes used {diagnostics['code_dynamics']['codes_used']}")
-    labelled = play_object_diagnostics(trainer.buffer, encoder, PROFILE.objects)
+    purity = play_object_diagnostics(trainer.buffer, encoder, PROFILE.objects)["purity"]
+    print(f"purity (agent pose, key and door): {[round(p, 3) for p in purity]}")
+    labelled = play_object_diagnostics(trainer.buffer, encoder, door_key_events)
     print(
         f"key gates: {key_gates(labelled)}; agent codes: {diagnostics['code_dynamics']['codes_used'][0]}"
     )

@@ -254,3 +254,28 @@ def test_dorp_on_minigrid_through_the_command(tmp_path, monkeypatch):
     # Exact lower bounds by breadth-first search over MiniGrid's own dynamics.
     assert row["tasks"] == 3 and all(b >= 1 for b in row["per_task"]["lower_bound"])
     assert len(stages["codes"]["summary"]["purity"]) == 2  # from the profile's objects
+
+
+def test_minigrid_key_gates_count_pickups_and_toggles_apart(monkeypatch):
+    """The example's gates: a pickup is a key event, a toggle a door event; each reports
+    the share of its events that changed the key one-hot (and, for pickups, the agent's)."""
+    from dorp_rl.metrics.diagnostics import object_diagnostics
+
+    door_key = _door_key(monkeypatch)
+    # states: agent x, y, direction, key carried, door (0 locked, 1 closed, 2 open)
+    state = torch.tensor([[1, 1, 0, 0, 0], [1, 1, 0, 1, 0], [2, 2, 0, 1, 1], [2, 2, 0, 1, 2]])
+    nxt = torch.tensor([[1, 1, 0, 1, 0], [1, 1, 0, 1, 0], [2, 2, 0, 1, 2], [2, 2, 0, 1, 1]])
+    # codes (agent, key): the pickup changes both one-hots; the first toggle changes the
+    # key one-hot, the second (open -> closed) changes nothing
+    codes = torch.tensor([[0, 0], [0, 1], [3, 2], [3, 3]])
+    next_codes = torch.tensor([[1, 1], [0, 1], [3, 3], [3, 3]])
+    labelled = object_diagnostics(
+        codes, next_codes, door_key.door_key_events(state), door_key.door_key_events(nxt)
+    )
+    gates = door_key.key_gates(labelled)
+    assert gates["key_events"] == 1 and gates["door_events"] == 2
+    assert gates["key_bit_on_key_events"] == 1.0 and gates["agent_onehot_on_key_events"] == 1.0
+    assert gates["key_onehot_on_door_events"] == 0.5
+    # The profile's objects put the key and the door on one object of 4 situations.
+    situations = door_key.PROFILE.objects(torch.cat([state, nxt]))[:, 1]
+    assert sorted(set(situations.tolist())) == [0, 3, 4, 5]
