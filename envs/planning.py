@@ -435,6 +435,13 @@ def distinct_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None
     return representatives, inverse
 
 
+def int64_columns(columns: torch.Tensor) -> torch.Tensor:
+    """int64 ``[n, k]`` of uint8 columns ``[n, 8k]`` cut from byte rows (the inverse of
+    appending ``values.view(torch.uint8)``). A fresh copy is viewed, so any row width
+    works: a slice of 75-byte rows, or of a lone row, cannot be viewed as int64 itself."""
+    return columns.reshape(-1).clone().view(torch.int64).reshape(columns.shape[0], -1)
+
+
 def _distinct_pairs(
     pixels: torch.Tensor, action: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -445,7 +452,7 @@ def _distinct_pairs(
     if inverse is None:
         return pixels, action, None
     frames = unique[:, :-8].reshape(-1, *pixels.shape[1:])
-    actions = unique[:, -8:].contiguous().view(torch.int64).to(action.dtype)
+    actions = int64_columns(unique[:, -8:]).to(action.dtype)
     return frames, actions.reshape(-1, *action.shape[1:]), inverse
 
 
@@ -624,7 +631,7 @@ class ImaginedFrames:
             torch.cat([flat.reshape(n, -1), extra.contiguous().view(torch.uint8)], -1)
         )
         frames = rows[:, :_FRAME_BYTES].reshape(-1, *_FRAME)
-        return frames, rows[:, _FRAME_BYTES:].contiguous().view(torch.int64), inverse, None
+        return frames, int64_columns(rows[:, _FRAME_BYTES:]), inverse, None
 
     def squared_distances(self, goals: torch.Tensor, owner: torch.Tensor) -> torch.Tensor | None:
         """Exact squared L2 distances int64 ``[n]`` of the frames to their goal images.

@@ -1,9 +1,10 @@
 """A gymnasium env, MiniGrid DoorKey, through play data, codes, code graph and DORP.
 
 MiniGrid's DoorKey 6x6 with one fixed layout (every reset uses the same layout seed),
-drawn by its own renderer (``render_mode="rgb_array"``, 4-pixel tiles by default: 3 x 24
-x 24 frames) and played with its own actions, less the two that do nothing here: turn left,
-turn right, forward, pickup, toggle.
+drawn by its own renderer (``render_mode="rgb_array"``, 5-pixel tiles by default: 3 x 30
+x 30 frames; at 4-pixel tiles a closed and an open door differ in only 4 faint pixels)
+and played with its own actions, less the two that do nothing here: turn left, turn
+right, forward, pickup, toggle.
 
 Two ways in:
 
@@ -19,7 +20,7 @@ Two ways in:
 
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
-Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 4]
+Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 5]
 [--size 6] [--low-level latent]``; with ``--low-level latent`` DORP plans through a latent
 world model trained here on the play data and the codes instead of MiniGrid itself.
 """
@@ -49,7 +50,7 @@ from dorp_rl.trainers import (
 #: MiniGrid's action ids of turn left, turn right, forward, pickup and toggle
 ACTIONS = (0, 1, 2, 3, 5)
 #: pixels per grid cell of MiniGrid's renderer (frames are SIZE x TILE_SIZE on a side)
-TILE_SIZE = 4
+TILE_SIZE = 5
 #: grid cells on a side, walls included: MiniGrid's DoorKey-SIZExSIZE
 SIZE = 6
 
@@ -85,7 +86,7 @@ def make_door_key_gym(tile_size: int | None = None, layout_seed: int = 0) -> Fix
 
 
 def make_door_key(tile_size: int | None = None, layout_seed: int = 0) -> TransformedEnv:
-    """One DoorKey env through ``GymWrapper``, frames ``[3, 5 * tile, 5 * tile]`` uint8."""
+    """One DoorKey env through ``GymWrapper``, frames ``[3, SIZE * tile, SIZE * tile]`` uint8."""
     env = GymWrapper(make_door_key_gym(tile_size, layout_seed), from_pixels=True, pixels_only=True)
     return TransformedEnv(env, PermuteTransform((-1, -3, -2), in_keys=["pixels"]))
 

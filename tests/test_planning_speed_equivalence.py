@@ -419,3 +419,25 @@ def test_code_match_cost_refuses_out_of_range_codes_on_both_paths():
     rollout, lazy = planner.imagine_lazy(td, decisions)
     with pytest.raises(RuntimeError, match="out of bounds"):
         run_cost_lazy(planner.cost, rollout, lazy)
+
+
+@pytest.mark.parametrize("distinct", [1, 3])
+def test_deduplication_takes_frames_whose_byte_size_is_not_a_multiple_of_8(distinct):
+    """3 x 5 x 5 frames (75 bytes): the goal index and the action read back from the
+    byte rows are right, also when all steps share one frame (a lone row's slice)."""
+    gen = torch.Generator().manual_seed(0)
+    palette = torch.randint(0, 256, (distinct, 3, 5, 5), generator=gen, dtype=torch.uint8)
+    which = torch.arange(12) % distinct
+    frames = palette[which].reshape(1, 3, 4, 3, 5, 5)
+    goal = torch.randint(0, 256, (1, 1, 1, 3, 5, 5), generator=gen, dtype=torch.uint8)
+    rollout = TensorDict(
+        {"goal_pixels": goal.expand(1, 3, 4, 3, 5, 5), ("next", "pixels"): frames},
+        batch_size=(1, 3, 4),
+    )
+    cost = PixelDistanceCost(step_aggregation="sum")(rollout)["cost"]
+    expected = (frames.float() / 255 - goal.float() / 255).flatten(-3).norm(dim=-1)
+    torch.testing.assert_close(cost, expected)
+    actions = torch.zeros(12, dtype=torch.int64) + 3
+    out_frames, out_actions, inverse = planning._distinct_pairs(palette[which], actions)
+    assert out_frames.shape[0] == distinct and torch.equal(out_actions[inverse], actions)
+    assert torch.equal(out_frames[inverse], palette[which])

@@ -65,7 +65,7 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 
-from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
+from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, int64_columns, row_hashes
 from dorp_rl.validation import check_float, check_int
 
 __all__ = [
@@ -530,7 +530,7 @@ class _GoalPairs:
                     frames = pairs[:, :width].reshape(-1, *self.frame_shape)
                     return (
                         frames,
-                        pairs[:, width:].contiguous().view(torch.int64).squeeze(-1),
+                        int64_columns(pairs[:, width:]).squeeze(-1),
                         inverse,
                     )
             return frames, owner, None
