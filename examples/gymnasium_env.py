@@ -21,7 +21,7 @@ Two ways in:
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
 Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 5]
-[--size 6] [--low-level latent]``; with ``--low-level latent`` DORP plans through a latent
+[--size 6] [--low-level latent] [--resume]``; with ``--low-level latent`` DORP plans through a latent
 world model trained here on the play data and the codes instead of MiniGrid itself.
 """
 
@@ -295,6 +295,12 @@ def main() -> None:
     )
     parser.add_argument("--latent-steps", type=int, default=3000, help="latent model steps")
     parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the codes (and latent model) from their last checkpoints in --out; "
+        "a finished run is not trained again",
+    )
+    parser.add_argument(
         "--set",
         nargs="*",
         default=(),
@@ -316,7 +322,7 @@ def main() -> None:
         **extra,
     )
     trainer = RepresentationTrainer(config)
-    trainer.train()
+    trainer.train(resume=args.resume)
     for reorder in trainer.hooks["widths"].reorders:
         print(
             f"one-hot widths at step {reorder['step']}: change rates {reorder['change_rate']}, order {reorder['order']}"
@@ -340,7 +346,7 @@ def main() -> None:
             PROFILE, num_steps=args.latent_steps, seed=args.seed, out_dir=f"{args.out}/latent_model"
         )
         latent = LatentWorldModelTrainer(latent_config, encoder=encoder)
-        accuracy = latent.train()["evaluation"]["code_accuracy"]
+        accuracy = latent.train(resume=args.resume)["evaluation"]["code_accuracy"]
         print(
             f"latent model: codes right at open-loop steps 1 / last {accuracy[0]} / {accuracy[-1]}"
         )
