@@ -122,9 +122,10 @@ class CPCLoss(LossModule):
         usage_weight: weight of an optional code-usage term,
             ``log Z - H(mean anchor probabilities)`` per one-hot, which discourages
             collapse onto a few codes (0 disables it). One number weighs every one-hot;
-            a sequence gives one weight per one-hot position (a one-hot whose objects are
-            not equally frequent in play, e.g. a key lying half the time, is pulled by
-            the term to split its frequent state and merge rare ones: give it 0).
+            a sequence gives one weight per one-hot. The term pulls a one-hot whose
+            states are not equally frequent in play (a key lying half the time) to split
+            its frequent state and merge rare ones; a weight of 0 leaves that one-hot's
+            code usage to the contrastive loss.
         sparsity_weight: weight of an optional term, the mean value of the object maps,
             that drives each map to zero away from its object. In key rooms it shrinks
             what the key and the door leave in the agent's map, which otherwise flips the
