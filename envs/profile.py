@@ -280,7 +280,9 @@ def _import(path: str) -> Any:
     if not module_name or not attribute:
         raise ValueError(
             f"env {path!r} is neither a registered profile ({', '.join(_REGISTRY)}) nor an "
-            "import path 'package.module:attribute'."
+            "import path 'package.module:attribute'. A profile made in code is known by its "
+            "name once registered: call register_env_profile(profile) (or build a config "
+            "with the profile) before loading a checkpoint trained on it."
         )
     try:
         module = importlib.import_module(module_name)

@@ -368,6 +368,10 @@ def test_a_profile_is_found_by_name_import_path_or_env(tmp_path):
         from dorp_rl.envs import profile as profiles
 
         del profiles._REGISTRY["test-mine"]
+    # Once unknown again (a fresh process loading a checkpoint trained on it), the error
+    # says how to make a profile made in code known by its name.
+    with pytest.raises(ValueError, match=r"call register_env_profile\(profile\)"):
+        env_profile("test-mine")
     with pytest.raises(ValueError, match="must return a TorchRL EnvBase"):
         EnvProfile(name="bad", make_env=lambda **_: 3).build()
 
