@@ -38,7 +38,7 @@ from torchrl.envs import GymWrapper, PermuteTransform, SerialEnv, TransformedEnv
 
 from dorp_rl.envs import EnvProfile, GymGoalEnv, draw_reachable_tasks
 from dorp_rl.eval import evaluate_policy, format_failures, make_task_set, play_object_diagnostics
-from dorp_rl.planners import CodeGraph
+from dorp_rl.planners import CodeGraph, encode_transitions
 from dorp_rl.policies import make_dorp_policy
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
@@ -218,6 +218,12 @@ CODES = {
     "num_steps": 3000,
 }
 
+
+def agent_pose(state: torch.Tensor) -> torch.Tensor:
+    """One id per agent cell and direction of :func:`door_key_state` states ``[..., 5]``."""
+    return state[..., 0] * 100 + state[..., 1] * 10 + state[..., 2]
+
+
 #: DoorKey through GymWrapper: play data, codes and graph only.
 GYM_PROFILE = EnvProfile(
     name="minigrid-doorkey-gym",
@@ -249,9 +255,7 @@ PROFILE = EnvProfile(
     },
     draw_tasks=draw_reachable_tasks,
     # objects: the agent's pose, and the key (carried or not) with the door's state.
-    objects=lambda s: torch.stack(
-        [s[..., 0] * 100 + s[..., 1] * 10 + s[..., 2], s[..., 3] * 3 + s[..., 4]], -1
-    ),
+    objects=lambda s: torch.stack([agent_pose(s), s[..., 3] * 3 + s[..., 4]], -1),
     description="MiniGrid DoorKey (SIZE x SIZE cells), one layout, its renderer and 5 of its actions",
 )
 
@@ -259,9 +263,7 @@ PROFILE = EnvProfile(
 def door_key_events(state: torch.Tensor) -> torch.Tensor:
     """The agent's pose, the key carried and the door state as three objects, so that
     pickups (key events) and toggles (door events) are counted apart."""
-    return torch.stack(
-        [state[..., 0] * 100 + state[..., 1] * 10 + state[..., 2], state[..., 3], state[..., 4]], -1
-    )
+    return torch.stack([agent_pose(state), state[..., 3], state[..., 4]], -1)
 
 
 def key_gates(labelled: dict) -> dict:
@@ -330,9 +332,15 @@ def main() -> None:
     encoder = trainer.encoder.eval()
     diagnostics = trainer.evaluate()
     print(f"frames {encoder.frame_shape}, codes used {diagnostics['code_dynamics']['codes_used']}")
-    purity = play_object_diagnostics(trainer.buffer, encoder, PROFILE.objects)["purity"]
+    # the play data's codes, encoded once for both labellings
+    transitions = encode_transitions(trainer.buffer, encoder)
+    purity = play_object_diagnostics(
+        trainer.buffer, encoder, PROFILE.objects, transitions=transitions
+    )["purity"]
     print(f"purity (agent pose, key and door): {[round(p, 3) for p in purity]}")
-    labelled = play_object_diagnostics(trainer.buffer, encoder, door_key_events)
+    labelled = play_object_diagnostics(
+        trainer.buffer, encoder, door_key_events, transitions=transitions
+    )
     print(
         f"key gates: {key_gates(labelled)}; agent codes: {diagnostics['code_dynamics']['codes_used'][0]}"
     )
