@@ -30,6 +30,7 @@ from dorp_rl.data import (
     future_pairs,
     load_play_data,
     play_env,
+    rare_code_changes,
 )
 from dorp_rl.envs import GridWorldEnv, KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv
 
@@ -802,6 +803,42 @@ def test_event_window_sampler_without_events_is_uniform_and_says_so():
     buffer = rebuffer(data, EventWindowSampler(4, event_share=0.5), 32)
     with pytest.warns(UserWarning, match="none of the 47 windows holds an event"):
         assert buffer.sample().shape == (32, 4)
+
+
+def test_event_window_sampler_takes_its_events_from_a_function():
+    horizon, data = 4, walk_with_events(400, [])
+    marked = torch.zeros(400, dtype=torch.bool)
+    marked[[50, 250]] = True
+    sampler = EventWindowSampler(horizon, 0.5, events=lambda storage: marked[: len(storage)])
+    buffer = rebuffer(data, sampler, 4000, generator=torch.Generator().manual_seed(0))
+    starts, has_event = sampler.window_events(buffer.storage)
+    assert set(starts[has_event].tolist()) == set(range(47, 51)) | set(range(247, 251))
+    first = buffer.sample()["index"][:, 0]
+    assert (
+        0.45
+        < ((first >= 47) & (first <= 50) | (first >= 247) & (first <= 250)).float().mean()
+        < 0.55
+    )
+    wrong = rebuffer(data, EventWindowSampler(horizon, 0.5, events=lambda s: marked[:10]), 8)
+    with pytest.raises(ValueError, match=r"bool \[400\] \(one flag per stored transition\)"):
+        wrong.sample()
+    with pytest.raises(ValueError, match="not both"):
+        EventWindowSampler(horizon, 0.5, min_changed=3, events=lambda s: marked)
+    with pytest.raises(ValueError, match="function of the storage"):
+        EventWindowSampler(horizon, 0.5, events=marked)
+
+
+def test_rare_code_changes_are_changes_of_rarely_changing_one_hots():
+    codes = torch.zeros(100, 3, dtype=torch.int64)
+    nxt = codes.clone()
+    nxt[::2, 0] = 1  # one-hot 0 changes on half the transitions
+    nxt[[3, 7], 1] = 1  # one-hot 1 on 2%: rare
+    nxt[1::4, 2] = 1  # one-hot 2 on a quarter: not rare at ratio 0.1
+    events = rare_code_changes(codes, nxt)
+    assert events.nonzero().flatten().tolist() == [3, 7]
+    assert rare_code_changes(codes, nxt, ratio=0.5).sum() == 2 + 25
+    with pytest.raises(ValueError, match=r"\[N, K\]"):
+        rare_code_changes(codes, nxt[:, :2])
 
 
 @pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])

@@ -12,7 +12,7 @@ import torch
 from push_blocks import PushBlocksEnv
 from tensordict import TensorDict
 
-from dorp_rl.data import collect_play_data
+from dorp_rl.data import EventWindowSampler, collect_play_data, rare_code_changes
 from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
 from dorp_rl.integrity import state_digest
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, LatentModelConfig, LatentWorldModel
@@ -47,6 +47,44 @@ def test_any_frame_size_round_trips_through_latent_code_and_frame(frame_shape, d
         LatentWorldModel(5, LatentModelConfig(frame_shape=frame_shape, decoder=False)).decode(
             latent
         )
+
+
+@pytest.mark.parametrize("stride", [1, 2, 4])
+@pytest.mark.parametrize("frame_shape", [(3, 10, 13), (1, 16, 16)])
+def test_a_convolutional_latent_is_a_map_stepped_alike_everywhere(frame_shape, stride):
+    config = LatentModelConfig(
+        frame_shape=frame_shape,
+        code_sizes=(6, 2),
+        dynamics_kind="conv",
+        latent_channels=4,
+        latent_stride=stride,
+        hidden=8,
+        decoder_kind="mlp",
+    )
+    model = LatentWorldModel(5, config)
+    c, h, w = frame_shape
+    side = lambda n: -(-n // stride)  # noqa: E731 (stride-2 convolutions round up)
+    assert model.latent_map == (4, side(h), side(w))
+    frames = torch.randint(0, 256, (2, 3, *frame_shape), dtype=torch.uint8)
+    latent = model.encode(frames)
+    assert latent.shape == (2, 3, 4 * side(h) * side(w)) == (2, 3, model.latent_width)
+    actions = torch.tensor([[0, 1, 4], [2, 3, 0]])
+    nxt = model.step(latent, actions)
+    assert model.codes(nxt).shape == (2, 3, 2) and model.decode(nxt).shape == (2, 3, *frame_shape)
+    # Rows are stepped independently: one row alone gives the same next latent.
+    torch.testing.assert_close(model.step(latent[1, 2], actions[1, 2]), nxt[1, 2])
+    # The same convolution at every cell: with the map's mean held fixed, a map shifted
+    # by one cell (away from the borders) steps to the shifted next map.
+    grid = torch.zeros(1, 4, 11, 11)
+    grid[0, :, 5, 5] = torch.tensor([1.0, -2.0, 0.5, 3.0])
+    moved = torch.roll(grid, 1, -1)
+    dynamics = model.dynamics
+    torch.testing.assert_close(
+        torch.roll(dynamics(grid, torch.tensor([2])), 1, -1)[..., 3:-3, 3:-3],
+        dynamics(moved, torch.tensor([2]))[..., 3:-3, 3:-3],
+    )
+    with pytest.raises(ValueError, match="continuous latent map"):
+        LatentWorldModel(5, config.replace(slot_dim=8))
 
 
 def test_slots_read_each_one_hots_codes_off_its_own_slot_and_plan():
@@ -519,3 +557,42 @@ def test_the_paper_run_trains_a_latent_model_per_setting_and_seed(tmp_path, dorp
     model = load_latent_world_model(sub / "latent_model" / "checkpoints" / "last.pt", env)
     encoder = load_encoder(sub / "codes" / "checkpoints" / "last.pt", env)
     assert model.config.encoder_digest == state_digest(encoder)
+
+
+class _ShadeCodes(torch.nn.Module):
+    """Codes read off PushBlocksEnv frames: one-hot 0 the column of block 0 (mod 8, it
+    changes on most of block 0's sideways moves), one-hot 1 whether block 1 is in the
+    canvas' lower half (it changes only when block 1 crosses the middle row: rarely)."""
+
+    code_sizes = (8, 2)
+    frame_shape = (3, 24, 32)
+
+    def forward(self, frames):
+        first = frames[..., 0, :, :]
+        column = (first == 250).any(-2).float().argmax(-1) % 8
+        lower = ((first == 60).any(-1).float().argmax(-1) >= 12).long()
+        codes = torch.stack([column, lower], -1)
+        return codes, torch.nn.functional.one_hot(codes, 8).float()
+
+
+def test_event_windows_of_the_latent_trainer_are_rare_code_changes(tmp_path):
+    encoder = _ShadeCodes()
+    cfg = _config(tmp_path, num_frames=4000, eval_frames=2000, event_share=0.5, batch_size=64)
+    trainer = LatentWorldModelTrainer(cfg, encoder=encoder)
+    data = trainer.buffer[: len(trainer.buffer)]
+    codes, nxt = encoder(data["pixels"])[0], encoder(data["next", "pixels"])[0]
+    events = trainer.transition_events(trainer.buffer.storage)
+    # The rare one-hot's changes are the events, the frequent one's are not.
+    assert torch.equal(events, codes[:, 1] != nxt[:, 1])
+    assert torch.equal(events, rare_code_changes(codes, nxt))
+    assert 0 < events.float().mean() < 0.05 < (codes[:, 0] != nxt[:, 0]).float().mean()
+    # Counting changed cells finds none of them: every action moves one block one cell.
+    assert not EventWindowSampler(4, 0.5).transition_events(trainer.buffer.storage).any()
+    batch = trainer.training_batch()
+    held = (batch["code"][..., 1] != batch["next", "code"][..., 1]).any(-1)
+    assert held.float().mean() >= 0.3  # about 0.5; uniform windows: about 4 x 0.01
+    windows = trainer.eval_event_windows
+    assert windows is not None and len(windows) > 0
+    first, after = encoder(windows["pixels"])[0], encoder(windows["next", "pixels"])[0]
+    assert (first[..., 1] != after[..., 1]).any(-1).all()
+    assert trainer.evaluate()["event_num_sequences"] == len(windows)

@@ -14,9 +14,7 @@ from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
-from dorp_rl.data import (
-    play_segment_length,
-)
+from dorp_rl.data import play_segment_length, rare_code_changes
 from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.integrity import state_digest
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
@@ -65,7 +63,9 @@ class LatentWorldModelConfig(TrainerConfig):
     horizon: int = checked(14, Int(low=1))
     """steps per training window"""
     event_share: float = checked(0.0, Float(low=0.0, high=1.0, high_open=True))
-    """least share of training windows holding a rare event, e.g. the key taken"""
+    """least share of training windows holding a rare event: a change of the code of a
+    one-hot whose code changes at most a quarter as often as the most changing one-hot's
+    (the key taken, a door toggled)"""
     eval_frames: int = checked(8_000, Int(low=1))
     """held-out play transitions for evaluation"""
     eval_sequences: int = checked(512, Int(low=1))
@@ -219,6 +219,29 @@ class LatentWorldModelTrainer(WindowTrainer):
             if probs:
                 tables[probs_key] = torch.cat(probs)
         return tables
+
+    def transition_events(self, storage: Any) -> torch.Tensor:
+        """The transitions changing the code of a one-hot whose code rarely changes
+        (:func:`~dorp_rl.data.rare_code_changes`), by the encoder's codes: the events a
+        code head must learn (a door toggled in MiniGrid changes fewer cells than an
+        agent's move, so counting cells misses it)."""
+        keys = self.loss.tensor_keys
+        if storage is self.buffer.storage:
+            codes, nxt = self.target_tables[keys.code], self.target_tables[keys.next_code]
+        else:
+            codes, nxt = self._encode_codes(storage)
+        return rare_code_changes(codes.cpu(), nxt.cpu())
+
+    def _encode_codes(self, storage: Any, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoder's codes ``[N, K]`` of a storage's ``pixels`` and ``("next", "pixels")``."""
+        out = []
+        for key in ("pixels", ("next", "pixels")):
+            codes = []
+            for start in range(0, len(storage), chunk):
+                rows = storage[start : min(len(storage), start + chunk)]
+                codes.append(self.loss.encode_targets(rows.get(key).to(self.device))[0].long())
+            out.append(torch.cat(codes))
+        return out[0], out[1]
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_model = LatentWorldModelConfig.from_dict(stored).model

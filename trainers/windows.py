@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -11,7 +12,14 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_module_state
-from dorp_rl.data import EventWindowSampler, SequenceSampler, check_play_buffer, collect_play_data
+from dorp_rl.data import (
+    EventWindowSampler,
+    SequenceSampler,
+    changed_pixels,
+    check_play_buffer,
+    collect_play_data,
+    event_transitions,
+)
 from dorp_rl.trainers.base import OfflineTrainer
 from dorp_rl.validation import derive_seed
 
@@ -77,21 +85,42 @@ class WindowTrainer(OfflineTrainer):
         eval_generator = torch.Generator().manual_seed(config.seed)
         eval_buffer.set_rng(eval_generator)
         self.eval_windows: TensorDictBase = eval_buffer.sample(config.eval_sequences)
-        #: held-out windows holding an event (``event_share > 0`` only; ``None`` if none)
-        self.eval_event_windows: TensorDictBase | None = None
-        if config.event_share > 0:
-            self.eval_event_windows = event_windows(
-                eval_buffer, config.horizon, config.eval_sequences, eval_generator
-            )
+        self._eval_buffer = eval_buffer
+        self._eval_event_windows: TensorDictBase | None | bool = False  # False: not yet
         torch.manual_seed(config.seed)
         self.data_generator.manual_seed(derive_seed(config.seed, 1))
 
     def training_sampler(self) -> SequenceSampler:
-        """Training windows: uniform, or with ``event_share`` of them holding an event."""
+        """Training windows: uniform, or with ``event_share`` of them holding an event
+        (:meth:`transition_events`)."""
         cfg = self.config
         if cfg.event_share > 0:
-            return EventWindowSampler(cfg.horizon, cfg.event_share)
+            return EventWindowSampler(cfg.horizon, cfg.event_share, events=self.transition_events)
         return SequenceSampler(cfg.horizon)
+
+    def transition_events(self, storage: Any) -> torch.Tensor:
+        """bool ``[len(storage)]``: the stored play transitions that are events, here the
+        ones changing more cells than an ordinary step (a subclass may find them another
+        way). Called when windows are first drawn, after the subclass is built."""
+        return event_transitions(changed_pixels(storage))
+
+    @property
+    def eval_event_windows(self) -> TensorDictBase | None:
+        """Held-out windows holding an event (``event_share > 0`` only; ``None`` if none),
+        found on first use by :meth:`transition_events`."""
+        if self._eval_event_windows is False:
+            windows = None
+            if self.config.event_share > 0:
+                generator = torch.Generator().manual_seed(self.config.seed)
+                windows = event_windows(
+                    self._eval_buffer,
+                    self.config.horizon,
+                    self.config.eval_sequences,
+                    generator,
+                    events=self.transition_events,
+                )
+            self._eval_event_windows = windows
+        return self._eval_event_windows
 
     # ------------------------------------------------------------------ schedules
     def open_loop_length_at(self, step: int) -> int:
@@ -159,15 +188,18 @@ def event_windows(
     horizon: int,
     max_windows: int,
     generator: torch.Generator | None = None,
+    events: Callable[[Any], torch.Tensor] | None = None,
 ) -> TensorDictBase | None:
     """Up to ``max_windows`` distinct ``[N, horizon]`` windows of ``buffer`` holding an event.
 
-    Events as in :class:`~dorp_rl.data.EventWindowSampler`; a random subset (from
-    ``generator``) when there are more. ``None`` when no window holds one. Used to
+    Events as in :class:`~dorp_rl.data.EventWindowSampler` (``events``: its function
+    of the storage giving the event transitions; default: changed cells); a random
+    subset (from ``generator``) when there are more. ``None`` when no window holds one. Used to
     measure how a world model predicts the rare events (the door opening) that uniform
     held-out windows hardly contain.
     """
-    starts, has_event = EventWindowSampler(horizon, 1.0).window_events(buffer.storage)
+    sampler = EventWindowSampler(horizon, 1.0, events=events)
+    starts, has_event = sampler.window_events(buffer.storage)
     starts = starts[has_event]
     if len(starts) == 0:
         return None

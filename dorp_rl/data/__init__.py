@@ -19,6 +19,7 @@ from dorp_rl.data.samplers import (
     changed_pixels,
     event_transitions,
     future_pairs,
+    rare_code_changes,
 )
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "changed_pixels",
     "event_transitions",
     "future_pairs",
+    "rare_code_changes",
     "MATCH_FIELDS",
     "PLAY_KEYS",
     "UniformRandomPolicy",

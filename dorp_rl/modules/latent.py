@@ -60,6 +60,16 @@ class LatentModelConfig(ConfigMixin):
     and each slot stepped by one shared update from its slot, the action and messages
     from every other slot (objects that move alike wherever they are; collisions as
     pairwise messages), MLPs of ``hidden`` units with two hidden layers each"""
+    dynamics_kind: str = checked("mlp", Choice(("mlp", "conv")))
+    """'mlp': the latent is one vector stepped by an MLP; 'conv': the latent is a map of
+    ``latent_channels`` x H/s x W/s (s = ``latent_stride``) stepped by convolutions
+    that see the action at every cell and the map's mean (effects far away, a door
+    opened by a key), so what an object does somewhere it does anywhere"""
+    latent_channels: int = checked(32, Int(low=1))
+    """channels of the latent map and of the convolutions stepping it (dynamics_kind
+    'conv'; their cost grows with its square, so keep it small)"""
+    latent_stride: int = checked(4, Choice((1, 2, 4)))
+    """downsampling of the latent map against the frame (dynamics_kind 'conv')"""
     channels: int = checked(32, Int(low=1))
     """width of the frame encoder's and decoder's convolutions"""
     hidden: int = checked(256, Int(low=1))
@@ -134,11 +144,33 @@ class _SlotDynamics(nn.Module):
         return self.update(torch.cat(inputs, -1))
 
 
-def _downsampled(size: int) -> int:
-    """Side of a feature map after two stride-2 convolutions (kernel 3, padding 1)."""
-    for _ in range(2):
+def _downsampled(size: int, halvings: int = 2) -> int:
+    """Side of a feature map after ``halvings`` stride-2 convolutions (kernel 3, padding 1)."""
+    for _ in range(halvings):
         size = (size + 1) // 2
     return size
+
+
+class _ConvDynamics(nn.Module):
+    """The change of a latent map ``[*B, S, h, w]`` after an action: two 3x3 convolutions
+    of the map, the action's one-hot at every cell and the map's mean (through a linear
+    layer, added to every cell), then a 1x1 convolution back to ``S`` channels."""
+
+    def __init__(self, channels: int, num_actions: int, hidden: int) -> None:
+        super().__init__()
+        self.num_actions = num_actions
+        self.first = nn.Conv2d(channels + num_actions, hidden, 3, padding=1)
+        self.mean = nn.Linear(channels, hidden)
+        self.second = nn.Conv2d(hidden, hidden, 3, padding=1)
+        self.out = nn.Conv2d(hidden, channels, 1)
+
+    def forward(self, latent: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(latent.dtype)
+        planes = one_hot[..., None, None].expand(*one_hot.shape, *latent.shape[-2:])
+        x = self.first(torch.cat([latent, planes], -3))
+        x = x + self.mean(latent.mean((-2, -1)))[..., None, None]
+        x = self.second(torch.relu(x))
+        return self.out(torch.relu(x))
 
 
 class LatentWorldModel(nn.Module):
@@ -180,7 +212,22 @@ class LatentWorldModel(nn.Module):
                 "slot_dim > 0 needs a continuous latent: set latent_groups=0 or slot_dim=0."
             )
         ch = config.channels
-        if self.discrete:
+        #: the latent map's shape (S, h, w) of a convolutional latent, else None
+        self.latent_map: tuple[int, int, int] | None = None
+        if config.dynamics_kind == "conv":
+            if self.slots or self.discrete:
+                raise ValueError(
+                    "dynamics_kind='conv' steps a continuous latent map: set slot_dim=0 "
+                    "and latent_groups=0."
+                )
+            halvings = {1: 0, 2: 1, 4: 2}[config.latent_stride]
+            self.latent_map = (
+                config.latent_channels,
+                _downsampled(h, halvings),
+                _downsampled(w, halvings),
+            )
+            d = self.latent_map[0] * self.latent_map[1] * self.latent_map[2]
+        elif self.discrete:
             d = config.latent_groups * config.latent_classes
         else:
             d = self.slots * config.slot_dim if self.slots else config.latent_dim
@@ -188,17 +235,35 @@ class LatentWorldModel(nn.Module):
         self.latent_width = d
         self._feature_shape = (ch, _downsampled(h), _downsampled(w))
         flat = ch * self._feature_shape[1] * self._feature_shape[2]
-        self.frame_encoder = nn.Sequential(
-            nn.Conv2d(c, ch, 3, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(ch, ch, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(ch, ch, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Flatten(),
-            nn.Linear(flat, d),
-        )
-        if self.slots:
+        if self.latent_map is not None:
+            trunk: list[nn.Module] = [nn.Conv2d(c, ch, 3, padding=1), nn.ReLU()]
+            for _ in range({1: 0, 2: 1, 4: 2}[config.latent_stride]):
+                trunk += [nn.Conv2d(ch, ch, 3, stride=2, padding=1), nn.ReLU()]
+            trunk += [nn.Conv2d(ch, config.latent_channels, 1), nn.Flatten()]
+            self.frame_encoder = nn.Sequential(*trunk)
+        else:
+            self.frame_encoder = nn.Sequential(
+                nn.Conv2d(c, ch, 3, padding=1),
+                nn.ReLU(),
+                nn.Conv2d(ch, ch, 3, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Conv2d(ch, ch, 3, stride=2, padding=1),
+                nn.ReLU(),
+                nn.Flatten(),
+                nn.Linear(flat, d),
+            )
+        if self.latent_map is not None:
+            self.encoder_norm = nn.LayerNorm(d)
+            self.dynamics = _ConvDynamics(
+                config.latent_channels, self.num_actions, config.latent_channels
+            )
+            self.dynamics_norm = nn.LayerNorm(d)
+            self.code_head = nn.Sequential(
+                nn.Linear(d, config.hidden),
+                nn.ReLU(),
+                nn.Linear(config.hidden, sum(self.code_sizes)),
+            )
+        elif self.slots:
             sd, hidden = config.slot_dim, config.hidden
             self.encoder_norm: nn.Module = _SlotNorm(self.slots, sd)
             self.dynamics: nn.Module = _SlotDynamics(self.slots, sd, self.num_actions, hidden)
@@ -270,6 +335,11 @@ class LatentWorldModel(nn.Module):
         before its normalisation."""
         if action.dim() == latent.dim():
             action = action.squeeze(-1)
+        if self.latent_map is not None:
+            lead = latent.shape[:-1]
+            grid = latent.reshape(-1, *self.latent_map)
+            change = self.dynamics(grid, action.reshape(-1))
+            return latent + change.reshape(*lead, -1)
         if self.slots:
             slots = latent.unflatten(-1, (self.slots, self.config.slot_dim))
             return latent + self.dynamics(slots, action).flatten(-2)
