@@ -247,8 +247,12 @@ PROFILE = EnvProfile(
     # As in the key rooms: re-enter a code another way, replan after a miss, no pixel
     # term in the waypoint cost (it ignores the walls).
     dorp={"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0},
-    # The latent world model of ``--low-level latent``, as the example env's.
+    # The latent world model of ``--low-level latent``, as the example env's, with half
+    # of its windows holding a key or door event (1.4% of play transitions) and 20-step
+    # play walks (7 windows of 14 steps each instead of 3 in 16-step walks).
     latent_model=lambda _: {
+        "event_share": 0.5,
+        "trajectory_length": 20,
         "pixel_weight": 10.0,
         "soft_targets": True,
         "model": {"decoder_kind": "mlp", "decoder_hidden": 1024},
