@@ -212,6 +212,7 @@ class LatentWorldModel(nn.Module):
                 "slot_dim > 0 needs a continuous latent: set latent_groups=0 or slot_dim=0."
             )
         ch = config.channels
+        halvings = {1: 0, 2: 1, 4: 2}[config.latent_stride]  # stride-2 convolutions
         #: the latent map's shape (S, h, w) of a convolutional latent, else None
         self.latent_map: tuple[int, int, int] | None = None
         if config.dynamics_kind == "conv":
@@ -220,7 +221,6 @@ class LatentWorldModel(nn.Module):
                     "dynamics_kind='conv' steps a continuous latent map: set slot_dim=0 "
                     "and latent_groups=0."
                 )
-            halvings = {1: 0, 2: 1, 4: 2}[config.latent_stride]
             self.latent_map = (
                 config.latent_channels,
                 _downsampled(h, halvings),
@@ -237,7 +237,7 @@ class LatentWorldModel(nn.Module):
         flat = ch * self._feature_shape[1] * self._feature_shape[2]
         if self.latent_map is not None:
             trunk: list[nn.Module] = [nn.Conv2d(c, ch, 3, padding=1), nn.ReLU()]
-            for _ in range({1: 0, 2: 1, 4: 2}[config.latent_stride]):
+            for _ in range(halvings):
                 trunk += [nn.Conv2d(ch, ch, 3, stride=2, padding=1), nn.ReLU()]
             trunk += [nn.Conv2d(ch, config.latent_channels, 1), nn.Flatten()]
             self.frame_encoder = nn.Sequential(*trunk)
