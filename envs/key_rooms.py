@@ -6,6 +6,7 @@ import torch
 
 from dorp_rl.envs.grid_base import (
     DIRECTIONS,
+    GRID_LATENT_MODEL,
     GRID_SIZE,
     GridWorldEnv,
     colour_codes,
@@ -389,22 +390,9 @@ def _key_room_profile(
             **KEY_ROOM_RECIPE,
         },
         world_model=lambda _: {"trajectory_length": env_type.PLAY_TRAJECTORY_LENGTH, **world_model},
-        # The latent model measured in both rooms (codes right on 0.96-0.99 of 14
-        # open-loop steps in 3000 steps; docs/RESULTS.md): a latent map stepped by
-        # convolutions, the MLP decoder, the encoder's probabilities as targets.
-        latent_model=lambda _: {
-            "num_frames": 100_000,
-            "num_steps": 3000,
-            "pixel_weight": 10.0,
-            "soft_targets": True,
-            "model": {
-                "decoder_kind": "mlp",
-                "decoder_hidden": 1024,
-                "dynamics_kind": "conv",
-                "latent_stride": 4,
-                "latent_channels": 32,
-            },
-        },
+        # The grid envs' latent model, measured in both rooms (codes right on 0.96-0.99
+        # of 14 open-loop steps after 3000 steps; docs/RESULTS.md).
+        latent_model=lambda _: {"num_frames": 100_000, "num_steps": 3000, **GRID_LATENT_MODEL},
         groups=((0, 1),),
         # Re-enter a code another way, replan after a miss, no goal-image term in the
         # waypoint cost (pixel distance ignores the walls; docs/NOTES.md has the figures).

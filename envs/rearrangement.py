@@ -8,6 +8,7 @@ import torch
 
 from dorp_rl.envs.grid_base import (
     DIRECTIONS,
+    GRID_LATENT_MODEL,
     GRID_SIZE,
     GridWorldEnv,
     colour_codes,
@@ -393,25 +394,11 @@ REARRANGEMENT = register_env_profile(
         # Failed hops are removed at once (blocks stand in the way) and waypoint plans are
         # ranked by the goal image too (docs/NOTES.md has the measurements).
         dorp={"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003},
-        # The measured latent-model recipe: more play data and steps, a heavier pixel
-        # term, the encoder's probabilities as the code head's targets, the MLP decoder,
-        # whose codes were as right as the convolutional decoder's and whose waypoint
-        # calls that read pixels ran about 9x faster, and a latent map stepped by
-        # convolutions, whose codes were right on more open-loop steps than the MLP
-        # latent's in less training time (docs/NOTES.md).
-        latent_model=lambda _: {
-            "num_frames": 200_000,
-            "num_steps": 6000,
-            "pixel_weight": 10.0,
-            "soft_targets": True,
-            "model": {
-                "decoder_kind": "mlp",
-                "decoder_hidden": 1024,
-                "dynamics_kind": "conv",
-                "latent_stride": 4,
-                "latent_channels": 32,
-            },
-        },
+        # The grid envs' latent model with more play data and steps: the latent map's
+        # codes were right on more open-loop steps than an MLP latent's in less
+        # training time, and the MLP decoder's as often as transposed convolutions'
+        # (docs/NOTES.md).
+        latent_model=lambda _: {"num_frames": 200_000, "num_steps": 6000, **GRID_LATENT_MODEL},
         # Blocks move one at a time: a block's move seen in one joint code of its group
         # is a move in the group's other joint codes too (CodeGraph.completed).
         graph_completion=True,
