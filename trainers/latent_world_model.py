@@ -197,27 +197,32 @@ class LatentWorldModelTrainer(WindowTrainer):
         # instead of encoding 2 x H frames per window.
         self.target_tables = self._encode_storage()
 
-    def _encode_storage(self, chunk: int = 4096) -> dict[Any, torch.Tensor]:
-        """Targets of every stored transition, by the batch key they fill: codes int64
-        ``[len(buffer), K]`` of ``pixels`` and ``("next", "pixels")`` under ``code`` and
-        ``("next", "code")``, and with ``soft_targets`` their probabilities
-        ``[len(buffer), K, Z]`` under ``code_probs`` and ``("next", "code_probs")``."""
+    def _encode_storage(
+        self, storage: Any = None, *, probs: bool | None = None, chunk: int = 4096
+    ) -> dict[Any, torch.Tensor]:
+        """Targets of every transition of ``storage`` (default: the training buffer's), by
+        the batch key they fill: codes int64 ``[N, K]`` of ``pixels`` and ``("next",
+        "pixels")`` under ``code`` and ``("next", "code")``, and with ``probs`` (default:
+        ``soft_targets``) their probabilities ``[N, K, Z]`` under ``code_probs`` and
+        ``("next", "code_probs")``."""
+        storage = self.buffer.storage if storage is None else storage
+        probs = self.config.soft_targets if probs is None else probs
         keys = self.loss.tensor_keys
         tables: dict[Any, torch.Tensor] = {}
         for frames_key, code_key, probs_key in (
             ("pixels", keys.code, keys.code_probs),
             (("next", "pixels"), keys.next_code, keys.next_code_probs),
         ):
-            codes, probs = [], []
-            for start in range(0, len(self.buffer), chunk):
-                frames = self.buffer[start : start + chunk].get(frames_key).to(self.device)
-                code, prob = self.loss.encode_targets(frames)
+            codes, probabilities = [], []
+            for start in range(0, len(storage), chunk):
+                rows = storage[start : min(len(storage), start + chunk)]
+                code, prob = self.loss.encode_targets(rows.get(frames_key).to(self.device))
                 codes.append(code.to(torch.int64))
-                if self.config.soft_targets:
-                    probs.append(prob)
+                if probs:
+                    probabilities.append(prob)
             tables[code_key] = torch.cat(codes)
-            if probs:
-                tables[probs_key] = torch.cat(probs)
+            if probabilities:
+                tables[probs_key] = torch.cat(probabilities)
         return tables
 
     def transition_events(self, storage: Any) -> torch.Tensor:
@@ -226,22 +231,12 @@ class LatentWorldModelTrainer(WindowTrainer):
         code head must learn (a door toggled in MiniGrid changes fewer cells than an
         agent's move, so counting cells misses it)."""
         keys = self.loss.tensor_keys
-        if storage is self.buffer.storage:
-            codes, nxt = self.target_tables[keys.code], self.target_tables[keys.next_code]
-        else:
-            codes, nxt = self._encode_codes(storage)
-        return rare_code_changes(codes.cpu(), nxt.cpu())
-
-    def _encode_codes(self, storage: Any, chunk: int = 4096) -> tuple[torch.Tensor, torch.Tensor]:
-        """The encoder's codes ``[N, K]`` of a storage's ``pixels`` and ``("next", "pixels")``."""
-        out = []
-        for key in ("pixels", ("next", "pixels")):
-            codes = []
-            for start in range(0, len(storage), chunk):
-                rows = storage[start : min(len(storage), start + chunk)]
-                codes.append(self.loss.encode_targets(rows.get(key).to(self.device))[0].long())
-            out.append(torch.cat(codes))
-        return out[0], out[1]
+        tables = (
+            self.target_tables
+            if storage is self.buffer.storage
+            else self._encode_storage(storage, probs=False)
+        )
+        return rare_code_changes(tables[keys.code].cpu(), tables[keys.next_code].cpu())
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_model = LatentWorldModelConfig.from_dict(stored).model

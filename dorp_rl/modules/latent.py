@@ -235,35 +235,17 @@ class LatentWorldModel(nn.Module):
         self.latent_width = d
         self._feature_shape = (ch, _downsampled(h), _downsampled(w))
         flat = ch * self._feature_shape[1] * self._feature_shape[2]
+        # conv, then stride-2 convolutions (two for a latent vector); a map latent ends
+        # in a 1x1 convolution to its channels, a vector in a linear layer
+        trunk: list[nn.Module] = [nn.Conv2d(c, ch, 3, padding=1), nn.ReLU()]
+        for _ in range(halvings if self.latent_map is not None else 2):
+            trunk += [nn.Conv2d(ch, ch, 3, stride=2, padding=1), nn.ReLU()]
         if self.latent_map is not None:
-            trunk: list[nn.Module] = [nn.Conv2d(c, ch, 3, padding=1), nn.ReLU()]
-            for _ in range(halvings):
-                trunk += [nn.Conv2d(ch, ch, 3, stride=2, padding=1), nn.ReLU()]
             trunk += [nn.Conv2d(ch, config.latent_channels, 1), nn.Flatten()]
-            self.frame_encoder = nn.Sequential(*trunk)
         else:
-            self.frame_encoder = nn.Sequential(
-                nn.Conv2d(c, ch, 3, padding=1),
-                nn.ReLU(),
-                nn.Conv2d(ch, ch, 3, stride=2, padding=1),
-                nn.ReLU(),
-                nn.Conv2d(ch, ch, 3, stride=2, padding=1),
-                nn.ReLU(),
-                nn.Flatten(),
-                nn.Linear(flat, d),
-            )
-        if self.latent_map is not None:
-            self.encoder_norm = nn.LayerNorm(d)
-            self.dynamics = _ConvDynamics(
-                config.latent_channels, self.num_actions, config.latent_channels
-            )
-            self.dynamics_norm = nn.LayerNorm(d)
-            self.code_head = nn.Sequential(
-                nn.Linear(d, config.hidden),
-                nn.ReLU(),
-                nn.Linear(config.hidden, sum(self.code_sizes)),
-            )
-        elif self.slots:
+            trunk += [nn.Flatten(), nn.Linear(flat, d)]
+        self.frame_encoder = nn.Sequential(*trunk)
+        if self.slots:
             sd, hidden = config.slot_dim, config.hidden
             self.encoder_norm: nn.Module = _SlotNorm(self.slots, sd)
             self.dynamics: nn.Module = _SlotDynamics(self.slots, sd, self.num_actions, hidden)
@@ -274,13 +256,18 @@ class LatentWorldModel(nn.Module):
             )
         else:
             self.encoder_norm = nn.Identity() if self.discrete else nn.LayerNorm(d)
-            layers: list[nn.Module] = []
-            width = d + self.num_actions
-            for _ in range(config.dynamics_layers):
-                layers += [nn.Linear(width, config.hidden), nn.ReLU()]
-                width = config.hidden
-            layers.append(nn.Linear(width, d))
-            self.dynamics = nn.Sequential(*layers)
+            if self.latent_map is not None:
+                self.dynamics = _ConvDynamics(
+                    config.latent_channels, self.num_actions, config.latent_channels
+                )
+            else:
+                layers: list[nn.Module] = []
+                width = d + self.num_actions
+                for _ in range(config.dynamics_layers):
+                    layers += [nn.Linear(width, config.hidden), nn.ReLU()]
+                    width = config.hidden
+                layers.append(nn.Linear(width, d))
+                self.dynamics = nn.Sequential(*layers)
             self.dynamics_norm = nn.LayerNorm(d)
             self.code_head = nn.Sequential(
                 nn.Linear(d, config.hidden),
