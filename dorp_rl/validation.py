@@ -390,9 +390,13 @@ class Choice:
 
 @dataclass(frozen=True)
 class Flag:
-    """Rule of a ``bool`` field."""
+    """Rule of a ``bool`` field (``optional``: ``None`` too)."""
 
-    def __call__(self, name: str, value: Any) -> bool:
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> bool | None:
+        if value is None and self.optional:
+            return None
         return check_bool(name, value)
 
 

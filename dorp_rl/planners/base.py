@@ -162,6 +162,12 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             the planner samples its candidates' actions from instead of uniformly
             (:meth:`action_prior`; random shooting draws every action from it, CEM starts
             from it). ``None`` (default): uniform draws.
+        excluded_actions_key: a key of the acting tensordict holding, per row, bool
+            ``[*B, A]``: actions a plan may not start with (:meth:`excluded_actions`;
+            the DORP policy writes the actions seen to leave the current frame unchanged,
+            which a learned model may believe move something). Candidates starting with
+            one score ``inf``; random shooting and CEM draw their first decision from the
+            others. ``None`` (default): every action may start a plan.
 
     Examples:
         >>> import torch
@@ -194,6 +200,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
         action_prior_key: NestedKey | None = None,
+        excluded_actions_key: NestedKey | None = None,
         prune: bool = False,
     ) -> None:
         if not isinstance(env, EnvBase):
@@ -272,6 +279,11 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         self._env_in_keys = self._env_input_keys()
         self.action_prior_key = None if action_prior_key is None else unravel_key(action_prior_key)
         prior_keys = [] if self.action_prior_key is None else [self.action_prior_key]
+        self.excluded_actions_key = (
+            None if excluded_actions_key is None else unravel_key(excluded_actions_key)
+        )
+        if self.excluded_actions_key is not None:
+            prior_keys.append(self.excluded_actions_key)
         self.in_keys = list(
             dict.fromkeys([*self._env_in_keys, *self._root_keys, *prior_keys, *self.state_keys])
         )
@@ -436,6 +448,36 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             )
         return value / total
 
+    def excluded_actions(self, td: TensorDictBase) -> torch.Tensor | None:
+        """bool ``[b, A]``: the actions the rows of ``td [b]`` may not start a plan with
+        (``None`` without ``excluded_actions_key``, or when no row excludes any)."""
+        if self.excluded_actions_key is None:
+            return None
+        value = td.get(self.excluded_actions_key, None)
+        rows = td.batch_size[0]
+        if value is None:
+            raise MissingKeyError(
+                f"{type(self).__name__} reads the actions a plan may not start with from "
+                f"{self.excluded_actions_key!r}, which the tensordict lacks: write bool "
+                f"[{self.num_actions}] per row there (or build the planner with "
+                "excluded_actions_key=None)."
+            )
+        if value.dtype is not torch.bool or value.numel() != rows * self.num_actions:
+            raise ValueError(
+                f"{self.excluded_actions_key!r} must hold bool [{self.num_actions}] per row "
+                f"(True: the action may not start a plan), got {value.dtype} of shape "
+                f"{list(value.shape)} for {rows} rows."
+            )
+        value = value.reshape(rows, self.num_actions).to(self.generator.device)
+        return value if bool(value.any()) else None
+
+    def first_decision_probs(self, probs: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
+        """``probs [b, A]`` of a plan's first decision without the ``excluded [b, A]``
+        actions, renormalised (rows excluding every action keep ``probs``)."""
+        kept = probs.masked_fill(excluded, 0.0)
+        total = kept.sum(-1, keepdim=True)
+        return torch.where(total > 0, kept / total.clamp_min(1e-30), probs)
+
     def _optimize(
         self,
         td: TensorDictBase,
@@ -512,7 +554,12 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 f"the cost {name} must write a per-step cost of shape {list(expected)} "
                 f"([B, N, H]) under {self.cost_key!r}, got {list(per_step.shape)}."
             )
-        return aggregate_steps(per_step.to(torch.float32), self.step_aggregation)
+        score, step = aggregate_steps(per_step.to(torch.float32), self.step_aggregation)
+        excluded = self.excluded_actions(td)
+        if excluded is not None:  # candidates starting with an excluded action
+            starts = excluded.gather(-1, decisions[..., 0].to(excluded.device))
+            score = score.masked_fill(starts.to(score.device), torch.inf)
+        return score, step
 
     def imagine(self, td: TensorDictBase, decisions: torch.Tensor) -> TensorDictBase:
         """Rolls candidate decisions ``[b, N, H / r]`` out from rows ``td [b]``.

@@ -51,6 +51,8 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         key_prefix: prefix of the state keys (``planner_plan``, ...).
         action_prior_key: per-row action distributions ``[*B, A]`` to draw decisions from
             instead of uniformly (:class:`~dorp_rl.planners.DiscreteMPCPlanner`).
+        excluded_actions_key: per-row bool ``[*B, A]``, actions a plan may not start
+            with (:class:`~dorp_rl.planners.DiscreteMPCPlanner`).
         optim_steps: CEM iterations (default 3).
         top_k: number of elites the distributions are refitted to, in
             ``[1, num_candidates]`` (default 20, 2 % of 1000).
@@ -93,6 +95,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
         action_prior_key: NestedKey | None = None,
+        excluded_actions_key: NestedKey | None = None,
         prune: bool = False,
         optim_steps: int = 3,
         top_k: int = 20,
@@ -114,6 +117,7 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
             action_prior_key=action_prior_key,
+            excluded_actions_key=excluded_actions_key,
             prune=prune,
         )
         self.optim_steps = check_int("optim_steps", optim_steps, low=1)
@@ -181,6 +185,9 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         rows = td.batch_size[0]
         probs = self.initial_probs(previous_plan, shift, valid, self.action_prior(td))
+        excluded = self.excluded_actions(td)
+        if excluded is not None:
+            probs[:, 0] = self.first_decision_probs(probs[:, 0], excluded)
         u = self._uniforms(rows, self.optim_steps)
         index = torch.arange(rows, device=probs.device)
         best_decisions = best_score = best_step = None
@@ -206,6 +213,8 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
                     1, elite_index.unsqueeze(-1).expand(-1, -1, self.num_decisions)
                 )
                 probs = self._refit(probs, elites)
+                if excluded is not None:  # min_probability gives excluded actions mass again
+                    probs[:, 0] = self.first_decision_probs(probs[:, 0], excluded)
         return best_decisions, best_score, best_step
 
     def extra_repr(self) -> str:

@@ -51,6 +51,8 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         key_prefix: prefix of the state keys (``planner_plan``, ...).
         action_prior_key: per-row action distributions ``[*B, A]`` to draw decisions from
             instead of uniformly (:class:`~dorp_rl.planners.DiscreteMPCPlanner`).
+        excluded_actions_key: per-row bool ``[*B, A]``, actions a plan may not start
+            with (:class:`~dorp_rl.planners.DiscreteMPCPlanner`).
 
     Examples:
         >>> from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
@@ -84,6 +86,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         action_key: NestedKey = "action",
         key_prefix: str = "planner_",
         action_prior_key: NestedKey | None = None,
+        excluded_actions_key: NestedKey | None = None,
         prune: bool = False,
     ) -> None:
         super().__init__(
@@ -99,6 +102,7 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
             action_key=action_key,
             key_prefix=key_prefix,
             action_prior_key=action_prior_key,
+            excluded_actions_key=excluded_actions_key,
             prune=prune,
         )
         # the probability that a decision repeats the one before it
@@ -121,6 +125,11 @@ class RandomShootingPlanner(DiscreteMPCPlanner):
         else:  # inverse CDF of each row's distribution
             cdf = prior.cumsum(-1).unsqueeze(1).expand(-1, u.shape[1], -1).contiguous()
             decisions = torch.searchsorted(cdf, u.contiguous(), right=True)
+        excluded = self.excluded_actions(td)
+        if excluded is not None:  # the first decision from the actions left (same draws)
+            first = prior if prior is not None else torch.full_like(excluded, 1.0, dtype=u.dtype)
+            cdf = self.first_decision_probs(first, excluded).cumsum(-1)
+            decisions[..., 0] = torch.searchsorted(cdf, u[..., 0].contiguous(), right=True)
         decisions = decisions.clamp_max(self.num_actions - 1)
         if self.action_persistence > 0:
             repeat = self._uniforms(rows, 1)[:, 0] < self.action_persistence

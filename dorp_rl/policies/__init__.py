@@ -13,6 +13,8 @@ from dorp_rl.policies.config import ORDERS, DORPConfig
 from dorp_rl.policies.factory import DORP_RECIPE, make_dorp_policy, make_waypoint_cost
 from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
 from dorp_rl.policies.recovery import (
+    NOOPS_KEY,
+    AvoidNoops,
     ForgetBlocked,
     GoalRelaxation,
     MissedPlans,
@@ -26,6 +28,7 @@ from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightP
 
 __all__ = [
     "AbstractGoalPolicy",
+    "AvoidNoops",
     "DORPConfig",
     "DORP_RECIPE",
     "ENDINGS",
@@ -34,6 +37,7 @@ __all__ = [
     "LOOP_FIELDS",
     "MODES",
     "MissedPlans",
+    "NOOPS_KEY",
     "ORDERS",
     "PolicyState",
     "RecoveryRule",

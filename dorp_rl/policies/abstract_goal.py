@@ -68,7 +68,7 @@ from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.policies.config import DORPConfig
-from dorp_rl.policies.recovery import RecoveryRule, recovery_rules
+from dorp_rl.policies.recovery import NOOPS_KEY, RecoveryRule, recovery_rules
 from dorp_rl.policies.state import PolicyState, StateKey
 from dorp_rl.validation import (
     MissingKeyError,
@@ -105,6 +105,7 @@ LOOP_FIELDS = (
     "restore_when_stuck",
     "reenter",
     "max_reentries",
+    "avoid_noops",
     "goal_code_weight",
     "goal_patience",
     "max_goal_returns",
@@ -112,7 +113,14 @@ LOOP_FIELDS = (
     "goal_action_prior_mix",
 )
 #: State keys the planners of the policy may read.
-_PLANNER_INPUTS = ("code", "goal_code", "subgoal_code", "subgoal_mask", "goal_code_weight")
+_PLANNER_INPUTS = (
+    "code",
+    "goal_code",
+    "subgoal_code",
+    "subgoal_mask",
+    "goal_code_weight",
+    NOOPS_KEY,
+)
 
 
 def _check_action_prior(
@@ -460,6 +468,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             state["goal_code"][fresh] = codes[int(active.sum()) :]
         code, goal_code = state["code"], state["goal_code"]
         self._each("track", state, active)
+        self._each("observe", state, pixels, active)
 
         # The goal-image phase starts when every code is the goal's, and an open-loop goal
         # plan runs to its end even if frames on the way have other codes: otherwise the
@@ -523,9 +532,12 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         action = torch.zeros(rows, 1, dtype=torch.int64)
         frames = (pixels, goal_pixels)
         waypoint_rows = (mode == _WAYPOINT) & active & ~failed
-        wp_state = self._plan(flat, state, frames, wp, waypoint_rows, new_waypoint, action)
+        replan = self._any_rows("forces_replan", state)
+        if replan is None:
+            replan = torch.zeros(rows, dtype=torch.bool)
+        wp_state = self._plan(flat, state, frames, wp, waypoint_rows, new_waypoint | replan, action)
         gp_state = self._plan(
-            flat, state, frames, gp, (mode == _GOAL) & active, entering_goal, action
+            flat, state, frames, gp, (mode == _GOAL) & active, entering_goal | replan, action
         )
 
         # Step bookkeeping, then the rules that watch the plans.
@@ -538,6 +550,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_goal_steps"][in_goal] += 1
         self._each("after_goal_plan", state, gp_state, in_goal)
 
+        self._each("after_action", state, action, active & ~failed)
         if self.actions is not None:
             action = self.actions.from_index(action)
         out = {"action": action, **state, **wp_state, **gp_state}

@@ -101,6 +101,11 @@ class DORPConfig(ConfigMixin):
     replaces, and when the goal phase stalls in it; 'goal': only the latter"""
     max_reentries: int = checked(8, Int(low=0))
     """re-entries a task may start"""
+    avoid_noops: bool | None = checked(None, Flag(optional=True))
+    """an action that left the frame unchanged does not start a plan again until the
+    frame changes (a learned model may believe a blocked move goes through; assumes a
+    deterministic env). None: on with a learned low level, off with the env's own
+    dynamics (which never predict a move that does not happen)"""
     goal_code_weight: float = checked(100.0, Float(low=0.0))
     """goal phase: cost of a frame whose codes are not the goal's, added to its pixel
     distance (0: pixel distance alone, as the paper)"""

@@ -27,7 +27,8 @@ from dorp_rl.planners.costs import (
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
 from dorp_rl.policies.abstract_goal import GOAL_PRIOR_KEY, PRIOR_KEY, AbstractGoalPolicy
 from dorp_rl.policies.config import DORPConfig
-from dorp_rl.policies.low_level import make_planning_env
+from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
+from dorp_rl.policies.recovery import NOOPS_KEY
 from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
 
 __all__ = [
@@ -41,7 +42,7 @@ __all__ = [
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 8
+DORP_RECIPE = 9
 #: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: ``goal_action_prior_mix`` when the config leaves it ``None``, the encoder has object
@@ -221,7 +222,16 @@ def make_dorp_policy(
     # The planners' own keywords, less those set from the config.
     passed_on = (
         set(keyword_names(RandomShootingPlanner)) | set(keyword_names(CategoricalCEMPlanner))
-    ) - {"env", "cost", "execution", "key_prefix", "seed", "prune", *_CONFIG_FIELDS}
+    ) - {
+        "env",
+        "cost",
+        "execution",
+        "key_prefix",
+        "seed",
+        "prune",
+        "excluded_actions_key",
+        *_CONFIG_FIELDS,
+    }
     check_keywords(planner_kwargs, passed_on, "make_dorp_policy (for its planners)")
     if config is None:
         config = DORPConfig.for_env(env, **fields)
@@ -269,6 +279,11 @@ def make_dorp_policy(
             f"{sorted(cem_only)} are CategoricalCEMPlanner arguments, but neither planner is "
             "CEM: pass planner='cem' (or goal_planner='cem') or drop them."
         )
+    if config.avoid_noops is None:  # the env's own dynamics never mispredict a move
+        config = config.replace(
+            avoid_noops=not (isinstance(low_level, str) and low_level == TRUE_DYNAMICS)
+        )
+    excluded = {"excluded_actions_key": NOOPS_KEY if config.avoid_noops else None}
     if config.action_prior_mix is None:
         mix = DEFAULT_ACTION_PRIOR_MIX if graph.action_counts is not None else 0.0
         config = config.replace(action_prior_mix=mix)
@@ -294,6 +309,7 @@ def make_dorp_policy(
         seed=seed,
         key_prefix="waypoint_planner_",
         action_prior_key=PRIOR_KEY if config.action_prior_mix > 0 else None,
+        **excluded,
         **shared,
         **(cem_only if config.planner == "cem" else rs_only),
     )
@@ -317,6 +333,7 @@ def make_dorp_policy(
         seed=None if seed is None else derive_seed(seed, 1),
         key_prefix="goal_planner_",
         action_prior_key=GOAL_PRIOR_KEY if config.goal_action_prior_mix > 0 else None,
+        **excluded,
         **shared,
         **(cem_only if goal_kind == "cem" else rs_only),
     )

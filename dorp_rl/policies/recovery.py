@@ -22,6 +22,9 @@ rule                   what it does
                        (or when the goal phase stalls in it)
 :class:`GoalRelaxation`  the goal phase keeps the goal's codes (a weighted code term);
                        when its plans stop getting cheaper, the term is dropped
+:class:`AvoidNoops`    an action that left the frame unchanged does not start a plan
+                       again until the frame changes (a learned model may believe a
+                       blocked move goes through, and plan it at every step)
 =====================  ===============================================================
 
 Settings come from :class:`~dorp_rl.policies.DORPConfig` (:func:`recovery_rules`).
@@ -40,6 +43,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from dorp_rl.policies.config import DORPConfig
 
 __all__ = [
+    "AvoidNoops",
     "ForgetBlocked",
     "GoalRelaxation",
     "MissedPlans",
@@ -72,6 +76,17 @@ class RecoveryRule:
 
     def track(self, state: State, active: torch.Tensor) -> None:
         """Each step, on the active rows, after the frames were encoded."""
+
+    def observe(self, state: State, frames: torch.Tensor, active: torch.Tensor) -> None:
+        """Each step, with the current frames uint8 ``[rows, C, H, W]``, before planning."""
+
+    def forces_replan(self, state: State) -> torch.Tensor | None:
+        """Rows whose planners must plan afresh this step (their plans went wrong)."""
+        return None
+
+    def after_action(self, state: State, action: torch.Tensor, rows: torch.Tensor) -> None:
+        """Each step, with the chosen actions int64 ``[rows, 1]`` (planner indices) of the
+        active ``rows``."""
 
     def holds_goal(self, state: State, fresh: torch.Tensor) -> torch.Tensor | None:
         """Rows that count as in the goal phase although their codes are not the goal's."""
@@ -429,6 +444,83 @@ class GoalRelaxation(RecoveryRule):
         plans[self.policy.goal_planner.length_key][rows] = 0
 
 
+#: Where :class:`AvoidNoops` keeps the actions seen to leave the current frame unchanged
+#: (the planners' ``excluded_actions_key``).
+NOOPS_KEY = "dorp_noops"
+
+
+class AvoidNoops(RecoveryRule):
+    """An action that left the frame unchanged does not start a plan again from that frame.
+
+    A learned model that believes a blocked move goes through (an object against a wall or
+    another object) makes the planner choose it at every step, while the frame never
+    changes, until the waypoint's budget runs out. In a deterministic env the same action
+    from the same frame changes nothing again, so the rule writes, per row, the actions
+    tried since the frame last changed (bool ``[A]`` under :data:`NOOPS_KEY`), which the
+    planners built with ``excluded_actions_key=NOOPS_KEY`` do not start plans with, and
+    has them plan afresh (an open-loop plan whose step changed nothing went wrong). A
+    frame is compared with the last by a 64-bit hash of its pixels.
+    """
+
+    def __init__(self) -> None:
+        self.num_actions = 0  # the planners' actions, set by bind
+        self._weights: dict[tuple[int, torch.device], torch.Tensor] = {}
+
+    def bind(self, policy: AbstractGoalPolicy) -> None:
+        super().bind(policy)
+        self.num_actions = policy.waypoint_planner.num_actions
+        for planner in (policy.waypoint_planner, policy.goal_planner):
+            if planner.excluded_actions_key != NOOPS_KEY:
+                raise ValueError(
+                    f"AvoidNoops needs planners that read {NOOPS_KEY!r}: build them with "
+                    f"excluded_actions_key={NOOPS_KEY!r} (make_dorp_policy does when "
+                    "DORPConfig.avoid_noops is set)."
+                )
+
+    def state_keys(self) -> tuple[StateKey, ...]:
+        return (
+            StateKey(
+                NOOPS_KEY,
+                torch.bool,
+                width=self.num_actions,
+                doc="actions that left the current frame unchanged",
+            ),
+            StateKey("dorp_frame_hash", doc="hash of the last frame's pixels"),
+            StateKey("dorp_last_action", fill=-1, doc="the last action (-1: none yet)"),
+        )
+
+    def frame_hash(self, frames: torch.Tensor) -> torch.Tensor:
+        """int64 ``[rows, 1]``: a hash of each uint8 frame ``[rows, C, H, W]`` (equal
+        frames, equal hashes; fixed random 31-bit weights per pixel, no overflow)."""
+        flat = frames.reshape(frames.shape[0], -1)
+        key = (flat.shape[-1], flat.device)
+        if key not in self._weights:
+            gen = torch.Generator().manual_seed(0)
+            weights = torch.randint(1, 2**31, (flat.shape[-1],), generator=gen)
+            self._weights[key] = weights.to(flat.device)
+        return (flat.long() * self._weights[key]).sum(-1, keepdim=True)
+
+    def observe(self, state: State, frames: torch.Tensor, active: torch.Tensor) -> None:
+        if not active.any():
+            return
+        now = self.frame_hash(frames[active]).cpu()
+        last = state["dorp_last_action"][active]
+        unchanged = (last >= 0) & (now == state["dorp_frame_hash"][active])
+        noops = state[NOOPS_KEY][active]
+        noops[~unchanged.squeeze(-1)] = False  # a new frame: every action may work again
+        rows = unchanged.squeeze(-1).nonzero().squeeze(-1)
+        noops[rows, last[rows, 0]] = True
+        state[NOOPS_KEY][active] = noops
+        state["dorp_frame_hash"][active] = now
+
+    def forces_replan(self, state: State) -> torch.Tensor:
+        # a plan whose action changed nothing went wrong: plan again without that action
+        return state[NOOPS_KEY].any(-1)
+
+    def after_action(self, state: State, action: torch.Tensor, rows: torch.Tensor) -> None:
+        state["dorp_last_action"][rows] = action[rows]
+
+
 def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[RecoveryRule]:
     """The rules ``config`` turns on, in the order the policy consults them.
 
@@ -443,6 +535,8 @@ def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[Recovery
         rules.append(RestoreWhenStuck())
     if config.reenter:
         rules.append(Reentry(config.max_reentries, hops=config.reenter is True))
+    if config.avoid_noops:
+        rules.append(AvoidNoops())
     if goal_code_term:
         rules.append(
             GoalRelaxation(config.goal_code_weight, config.goal_patience, config.max_goal_returns)
