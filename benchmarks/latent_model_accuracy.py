@@ -77,6 +77,13 @@ def main() -> None:
         "code_accuracy_all_steps": round(sum(evaluation["code_accuracy"]) / cfg.horizon, 4),
         "pixel_accuracy": None if pixels is None else [round(x, 4) for x in pixels],
         "num_sequences": evaluation["num_sequences"],
+        # windows holding a rare code change (the key taken), drawn when event_share > 0
+        "event_num_sequences": evaluation.get("event_num_sequences"),
+        "event_code_accuracy": {
+            k.removeprefix("event_code_accuracy_"): round(v, 4)
+            for k, v in evaluation.items()
+            if k.startswith("event_code_accuracy_step")
+        },
     }
     print(json.dumps(out))
     if args.json:
