@@ -85,6 +85,11 @@ def test_a_convolutional_latent_is_a_map_stepped_alike_everywhere(frame_shape, s
     )
     with pytest.raises(ValueError, match="continuous latent map"):
         LatentWorldModel(5, config.replace(slot_dim=8))
+    # The convolutions' hidden width is latent_channels unless dynamics_channels says.
+    assert model.dynamics.second.in_channels == 4
+    wide = LatentWorldModel(5, config.replace(dynamics_channels=7))
+    assert wide.dynamics.second.in_channels == 7 and wide.dynamics.out.out_channels == 4
+    assert wide.step(latent, actions).shape == latent.shape
 
 
 def test_slots_read_each_one_hots_codes_off_its_own_slot_and_plan():
@@ -140,8 +145,15 @@ def test_soft_targets_score_the_code_head_against_the_encoders_probabilities():
     nxt = soft.encode_targets(window["next", "pixels"])[1].reshape(8, 3, 2, 6)
     given.set(("next", "code_probs"), nxt)
     torch.testing.assert_close(soft(given)["loss_code"], expected)
+    # hard_weight adds that weight times the hard loss (the argmax still wins at ties).
+    both = LatentWorldModelLoss(model, encoder, soft_targets=True, hard_weight=0.5)
+    torch.testing.assert_close(
+        both(window)["loss_code"], expected + 0.5 * hard(window)["loss_code"]
+    )
     with pytest.raises(ValueError, match="soft_targets"):
         LatentWorldModelLoss(model, encoder, soft_targets="yes")
+    with pytest.raises(ValueError, match="hard_weight must be >= 0"):
+        LatentWorldModelLoss(model, encoder, soft_targets=True, hard_weight=-1.0)
 
 
 def test_the_mlp_decoder_learns_to_draw_frames():

@@ -82,6 +82,9 @@ class LatentWorldModelConfig(TrainerConfig):
     """weight of the imagined latents' distance to the encoded true frames"""
     soft_targets: bool = checked(False, Flag())
     """train the code head on the encoder's code probabilities instead of its codes"""
+    hard_weight: float = checked(0.0, Float(low=0.0))
+    """with soft_targets, weight of a cross-entropy against the encoder's codes as well
+    (where its probabilities are nearly tied, the head still learns which code wins)"""
     batch_size: int = checked(32, Int(low=1))
     """windows per step"""
     lr: float = checked(1e-3, Float(low=0.0, low_open=True, hint="(0 would never change a weight)"))
@@ -189,6 +192,7 @@ class LatentWorldModelTrainer(WindowTrainer):
             pixel_weight=config.pixel_weight,
             latent_weight=config.latent_weight,
             soft_targets=config.soft_targets,
+            hard_weight=config.hard_weight,
         )
         self.actions = DiscreteActions.of(self.env)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)

@@ -70,6 +70,8 @@ class LatentModelConfig(ConfigMixin):
     'conv'; their cost grows with its square, so keep it small)"""
     latent_stride: int = checked(4, Choice((1, 2, 4)))
     """downsampling of the latent map against the frame (dynamics_kind 'conv')"""
+    dynamics_channels: int | None = checked(None, Int(low=1, optional=True))
+    """hidden channels of the convolutions stepping a latent map (None: latent_channels)"""
     channels: int = checked(32, Int(low=1))
     """width of the frame encoder's and decoder's convolutions"""
     hidden: int = checked(256, Int(low=1))
@@ -258,7 +260,9 @@ class LatentWorldModel(nn.Module):
             self.encoder_norm = nn.Identity() if self.discrete else nn.LayerNorm(d)
             if self.latent_map is not None:
                 self.dynamics = _ConvDynamics(
-                    config.latent_channels, self.num_actions, config.latent_channels
+                    config.latent_channels,
+                    self.num_actions,
+                    config.dynamics_channels or config.latent_channels,
                 )
             else:
                 layers: list[nn.Module] = []

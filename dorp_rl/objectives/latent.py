@@ -34,7 +34,9 @@ class LatentWorldModelLoss(LossModule):
     gives the true frame, so that the imagined codes agree with the encoder on real
     frames (``loss_code``: cross-entropy summed over one-hots; with ``soft_targets``
     against the encoder's probabilities instead of its codes, so that the head learns
-    where the encoder is unsure, at the borders of its codes); with a decoder, the
+    where the encoder is unsure, at the borders of its codes, plus ``hard_weight`` times
+    the cross-entropy against its codes, which still picks the encoder's code where its
+    probabilities are nearly tied); with a decoder, the
     decoded frame against the true frame (``loss_pixels``: mean squared error on
     ``[0, 1]`` values, times ``pixel_weight``); and the imagined latent against the
     encoded true frame, without gradient into the target (``loss_latent``, times
@@ -101,6 +103,7 @@ class LatentWorldModelLoss(LossModule):
         pixel_weight: float = 1.0,
         latent_weight: float = 0.1,
         soft_targets: bool = False,
+        hard_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if not isinstance(model, LatentWorldModel):
@@ -116,6 +119,7 @@ class LatentWorldModelLoss(LossModule):
         self.pixel_weight = check_float("pixel_weight", pixel_weight, low=0.0)
         self.latent_weight = check_float("latent_weight", latent_weight, low=0.0)
         self.soft_targets = check_bool("soft_targets", soft_targets)
+        self.hard_weight = check_float("hard_weight", hard_weight, low=0.0)
 
     def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames ``[B, H + 1, C, H', W']`` (o_t .. o_{t+H}) and actions ``[B, H]``."""
@@ -226,11 +230,13 @@ class LatentWorldModelLoss(LossModule):
                 -(target * F.log_softmax(part, -1)).sum(-1).mean()
                 for part, target in zip(logits, probs, strict=True)
             )
-        else:
-            loss_code = sum(
+        hard_weight = 1.0 if not self.soft_targets else self.hard_weight
+        if hard_weight > 0:
+            hard = sum(
                 F.cross_entropy(part.reshape(-1, part.shape[-1]), targets[..., k].reshape(-1))
                 for k, part in enumerate(logits)
             )
+            loss_code = hard_weight * hard + (loss_code if self.soft_targets else 0.0)
         predicted = torch.stack([part.argmax(-1) for part in logits], -1)
         right = (predicted == targets).all(-1)[:, 1:].float()
         with torch.no_grad():
