@@ -104,8 +104,8 @@ class DORPConfig(ConfigMixin):
     avoid_noops: bool | None = checked(None, Flag(optional=True))
     """an action that left the frame unchanged does not start a plan again until the
     frame changes (a learned model may believe a blocked move goes through; assumes a
-    deterministic env). None: on with a learned low level, off with the env's own
-    dynamics (which never predict a move that does not happen)"""
+    deterministic env). None: off with low_level 'gt' (the acting env's own dynamics
+    never predict a move that does not happen), on with any other low level"""
     goal_code_weight: float = checked(100.0, Float(low=0.0))
     """goal phase: cost of a frame whose codes are not the goal's, added to its pixel
     distance (0: pixel distance alone, as the paper)"""
