@@ -12,7 +12,9 @@ waypoint cost (:func:`~dorp_rl.policies.make_waypoint_cost`), in two forms:
 - ``goal term``: as rearrangement's policy plans (its profile's DORP settings): the code
   term plus the goal image's blurred pixel distance, judged at the first arrival. Through
   the latent model every imagined frame is decoded, by the convolutional decoder and by
-  the MLP one (``decoder_kind``).
+  the MLP one (``decoder_kind``); or, as the policy plans through a latent model, the
+  goal term is the imagined latents' distance to the goal image's (``latent goal``), and
+  nothing is decoded.
 - ``goal phase``: the goal-image planner's cost (:func:`~dorp_rl.policies.make_goal_cost`
   as the policy builds it: blurred pixel distance, the encoder's object maps, the
   goal-code term), through the true dynamics and the latent model with the MLP decoder
@@ -97,6 +99,11 @@ def main() -> None:
             make_waypoint_cost(encoder, **goal_term, **predicted),
         ),
     }
+    judged = LatentModelEnv(model(decoder_kind="mlp"))
+    planners["goal term, latent model, latent goal"] = (
+        judged,
+        make_waypoint_cost(encoder, **goal_term, **predicted, latent_model=judged.latent_model),
+    )
     goal_phase = {
         "goal_code_weight": dorp.goal_code_weight,
         "goal_blur_sigmas": dorp.goal_blur_sigmas,

@@ -42,7 +42,7 @@ __all__ = [
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 9
+DORP_RECIPE = 10
 #: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: ``goal_action_prior_mix`` when the config leaves it ``None``, the encoder has object
@@ -69,6 +69,7 @@ def make_waypoint_cost(
     goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
     cache_size: int = 2**18,
     code_key: NestedKey | None = None,
+    latent_model: Any = None,
 ) -> nn.Module:
     """The cost DORP's waypoint planner ranks its plans by (written under ``cost``).
 
@@ -83,7 +84,9 @@ def make_waypoint_cost(
     (:class:`~dorp_rl.planners.FirstArrival`), not at a later, better step that never
     runs. ``code_key``: the codes the planning env
     predicts (``("next", "code")`` of a latent world model), read instead of encoding
-    predicted frames.
+    predicted frames. ``latent_model``: the goal term is the distance of the imagined
+    latents to the goal image's (:class:`~dorp_rl.planners.LatentGoalCost`) instead of
+    the pixel distance, so that no frame is decoded.
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -109,8 +112,13 @@ def make_waypoint_cost(
     parts: list[nn.Module] = [code_cost]
     weights = {"waypoint_code_cost": 1.0}
     if waypoint_goal_weight > 0:
-        parts.append(PixelDistanceCost(out_key="waypoint_pixel_cost", blur_sigmas=goal_blur_sigmas))
-        weights["waypoint_pixel_cost"] = float(waypoint_goal_weight)
+        if latent_model is not None:
+            parts.append(LatentGoalCost(latent_model, out_key="waypoint_goal_cost"))
+        else:
+            parts.append(
+                PixelDistanceCost(out_key="waypoint_goal_cost", blur_sigmas=goal_blur_sigmas)
+            )
+        weights["waypoint_goal_cost"] = float(waypoint_goal_weight)
     total = "waypoint_cost" if first_arrival else "cost"
     parts.append(WeightedCostSum(weights, out_key=total, step_aggregation="min"))
     if first_arrival:
@@ -294,8 +302,15 @@ def make_dorp_policy(
         suits = has_maps and graph.action_counts is not None
         goal_mix = DEFAULT_GOAL_ACTION_PRIOR_MIX if suits else 0.0
         config = config.replace(goal_action_prior_mix=goal_mix)
+    latent_model = getattr(planning_env, "latent_model", None)
+    if config.goal_latent_weight is None:
+        latent_weight = DEFAULT_GOAL_LATENT_WEIGHT if latent_model is not None else 0.0
+        config = config.replace(goal_latent_weight=latent_weight)
+    # With the goal judged on latents, the waypoint term is too: no frame is decoded.
+    judge_latents = latent_model if config.goal_latent_weight > 0 else None
     waypoint_cost = make_waypoint_cost(
         encoder,
+        latent_model=judge_latents,
         waypoint_goal_weight=config.waypoint_goal_weight,
         step_penalty=check_step_penalty(config.waypoint_step_penalty, "waypoint_step_penalty"),
         first_arrival=config.waypoint_first_arrival,
@@ -313,10 +328,6 @@ def make_dorp_policy(
         **shared,
         **(cem_only if config.planner == "cem" else rs_only),
     )
-    latent_model = getattr(planning_env, "latent_model", None)
-    if config.goal_latent_weight is None:
-        latent_weight = DEFAULT_GOAL_LATENT_WEIGHT if latent_model is not None else 0.0
-        config = config.replace(goal_latent_weight=latent_weight)
     goal_cost = make_goal_cost(
         encoder,
         goal_code_weight=config.goal_code_weight,
