@@ -490,8 +490,9 @@ class AvoidNoops(RecoveryRule):
         )
 
     def frame_hash(self, frames: torch.Tensor) -> torch.Tensor:
-        """int64 ``[rows, 1]``: a hash of each uint8 frame ``[rows, C, H, W]`` (equal
-        frames, equal hashes; fixed random 31-bit weights per pixel, no overflow)."""
+        """int64 ``[rows, 1]``: a hash of each uint8 frame ``[rows, C, H, W]``, the sum of
+        its pixels times fixed random 31-bit weights (integer arithmetic: equal frames,
+        equal hashes; no wrap-around below 16 million pixel values per frame)."""
         flat = frames.reshape(frames.shape[0], -1)
         key = (flat.shape[-1], flat.device)
         if key not in self._weights:
