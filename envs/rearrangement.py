@@ -398,7 +398,14 @@ REARRANGEMENT = register_env_profile(
         # codes were right on more open-loop steps than an MLP latent's in less
         # training time, and the MLP decoder's as often as transposed convolutions'
         # (docs/NOTES.md).
-        latent_model=lambda _: {"num_frames": 200_000, "num_steps": 6000, **GRID_LATENT_MODEL},
+        # Its map convolutions twice as wide: with blocks in each other's way, codes
+        # right on 0.936 of 14 open-loop steps at 3 objects against 0.915.
+        latent_model=lambda _: {
+            "num_frames": 200_000,
+            "num_steps": 6000,
+            **GRID_LATENT_MODEL,
+            "model": {**GRID_LATENT_MODEL["model"], "dynamics_channels": 64},
+        },
         # Blocks move one at a time: a block's move seen in one joint code of its group
         # is a move in the group's other joint codes too (CodeGraph.completed).
         graph_completion=True,
