@@ -422,15 +422,13 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         without one), checked and normalised; rows of ``td [b]`` being planned."""
         if self.action_prior_key is None:
             return None
-        value = td.get(self.action_prior_key, None)
-        rows = td.batch_size[0]
-        if value is None:
-            raise MissingKeyError(
-                f"{type(self).__name__} samples from {self.action_prior_key!r}, which the "
-                f"tensordict lacks: write a distribution over the {self.num_actions} actions "
-                "per row there (or build the planner with action_prior_key=None)."
-            )
-        value = value.reshape(rows, -1).to(self.generator.device, torch.float32)
+        value = self._row_input(
+            td,
+            self.action_prior_key,
+            "action_prior_key",
+            "samples from",
+            f"a distribution over the {self.num_actions} actions",
+        ).to(self.generator.device, torch.float32)
         if value.shape[-1] != self.num_actions:
             raise ValueError(
                 f"{self.action_prior_key!r} must hold {self.num_actions} action weights per "
@@ -453,23 +451,33 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         (``None`` without ``excluded_actions_key``, or when no row excludes any)."""
         if self.excluded_actions_key is None:
             return None
-        value = td.get(self.excluded_actions_key, None)
-        rows = td.batch_size[0]
-        if value is None:
-            raise MissingKeyError(
-                f"{type(self).__name__} reads the actions a plan may not start with from "
-                f"{self.excluded_actions_key!r}, which the tensordict lacks: write bool "
-                f"[{self.num_actions}] per row there (or build the planner with "
-                "excluded_actions_key=None)."
-            )
-        if value.dtype is not torch.bool or value.numel() != rows * self.num_actions:
+        value = self._row_input(
+            td,
+            self.excluded_actions_key,
+            "excluded_actions_key",
+            "reads the actions a plan may not start with from",
+            f"bool [{self.num_actions}]",
+        )
+        if value.dtype is not torch.bool or value.shape[-1] != self.num_actions:
             raise ValueError(
                 f"{self.excluded_actions_key!r} must hold bool [{self.num_actions}] per row "
-                f"(True: the action may not start a plan), got {value.dtype} of shape "
-                f"{list(value.shape)} for {rows} rows."
+                f"(True: the action may not start a plan), got {value.dtype} "
+                f"{list(value.shape)} ([rows, values])."
             )
-        value = value.reshape(rows, self.num_actions).to(self.generator.device)
+        value = value.to(self.generator.device)
         return value if bool(value.any()) else None
+
+    def _row_input(
+        self, td: TensorDictBase, key: NestedKey, argument: str, reads: str, holds: str
+    ) -> torch.Tensor:
+        """The per-row values ``[b, -1]`` under ``key`` (the planner's ``argument``)."""
+        value = td.get(key, None)
+        if value is None:
+            raise MissingKeyError(
+                f"{type(self).__name__} {reads} {key!r}, which the tensordict lacks: write "
+                f"{holds} per row there (or build the planner with {argument}=None)."
+            )
+        return value.reshape(td.batch_size[0], -1)  # a tensordict entry leads with [b]
 
     def first_decision_probs(self, probs: torch.Tensor, excluded: torch.Tensor) -> torch.Tensor:
         """``probs [b, A]`` of a plan's first decision without the ``excluded [b, A]``
