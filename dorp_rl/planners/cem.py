@@ -186,12 +186,12 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
         rows = td.batch_size[0]
         probs = self.initial_probs(previous_plan, shift, valid, self.action_prior(td))
         excluded = self.excluded_actions(td)
-        if excluded is not None:
-            probs[:, 0] = self.first_decision_probs(probs[:, 0], excluded)
         u = self._uniforms(rows, self.optim_steps)
         index = torch.arange(rows, device=probs.device)
         best_decisions = best_score = best_step = None
         for i in range(self.optim_steps):
+            if excluded is not None:  # after a refit too: min_probability gives them mass
+                probs[:, 0] = self.first_decision_probs(probs[:, 0], excluded)
             decisions = self._sample(probs, u[:, i])
             score, step = self._evaluate(td, decisions)
             best = select_best(score, step)
@@ -213,8 +213,6 @@ class CategoricalCEMPlanner(DiscreteMPCPlanner):
                     1, elite_index.unsqueeze(-1).expand(-1, -1, self.num_decisions)
                 )
                 probs = self._refit(probs, elites)
-                if excluded is not None:  # min_probability gives excluded actions mass again
-                    probs[:, 0] = self.first_decision_probs(probs[:, 0], excluded)
         return best_decisions, best_score, best_step
 
     def extra_repr(self) -> str:
