@@ -302,10 +302,11 @@ def env_profile(env: str | EnvProfile) -> EnvProfile:
     An import path ``"package.module:attribute"`` names an :class:`EnvProfile` or a
     function building a TorchRL env (given ``batch_size``, ``device`` and ``seed`` as far
     as it takes them); such a function gets a profile with the generic defaults, named
-    by the path.
+    by the path. An imported :class:`EnvProfile` is registered under its name.
 
     Raises:
-        ValueError: naming what was given and what is accepted.
+        ValueError: naming what was given and what is accepted, or when another profile
+            is registered under the imported profile's name.
 
     Examples:
         >>> from dorp_rl.envs import env_profile
@@ -322,7 +323,9 @@ def env_profile(env: str | EnvProfile) -> EnvProfile:
         return _REGISTRY[env]
     target = _import(env)
     if isinstance(target, EnvProfile):
-        return target
+        # Known by its own name from now on too: a checkpoint trained on it records that
+        # name (a config built with the profile itself), and loads in this process.
+        return register_env_profile(target)
     if callable(target):
         return EnvProfile(name=env, make_env=target)
     raise ValueError(

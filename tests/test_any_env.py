@@ -346,6 +346,8 @@ def test_a_profile_is_found_by_name_import_path_or_env(tmp_path):
 
     profile = env_profile("push_blocks:PUSH_BLOCKS")
     assert profile.name == "push-blocks" and profile.play_trajectory_length == 20
+    # Once imported, a profile is known by its name (what a checkpoint trained on it says).
+    assert env_profile("push-blocks") is profile
     bare = env_profile("push_blocks:make_small_env")
     assert bare.name == "push_blocks:make_small_env" and bare.play_trajectory_length == 1
     env = bare.build(batch_size=(2,), seed=0)
