@@ -382,6 +382,21 @@ def _rearrangement_codes(num_objects: int) -> dict:
 
 
 #: k-object rearrangement as the pipeline sees it (``--env rearrangement``).
+def _rearrangement_latent_model(num_objects: int) -> dict:
+    """The grid envs' latent model with more play data and steps (docs/NOTES.md has the
+    measurements): a latent map's codes were right on more open-loop steps than an MLP
+    latent's in less training time, and the MLP decoder's as often as transposed
+    convolutions'. Up to 4 blocks, a 4 x 4 map stepped by convolutions twice as wide as
+    the key rooms'; from 5 blocks on, crowded, an 8 x 8 map (stride 2): there it is right
+    on far more steps, and a planning call through it stays within a few times the true
+    dynamics' (which costs more with more blocks)."""
+    if num_objects >= 5:
+        model = {**GRID_LATENT_MODEL["model"], "latent_stride": 2}
+    else:
+        model = {**GRID_LATENT_MODEL["model"], "dynamics_channels": 64}
+    return {"num_frames": 200_000, "num_steps": 6000, **GRID_LATENT_MODEL, "model": model}
+
+
 REARRANGEMENT = register_env_profile(
     EnvProfile(
         name="rearrangement",
@@ -394,18 +409,7 @@ REARRANGEMENT = register_env_profile(
         # Failed hops are removed at once (blocks stand in the way) and waypoint plans are
         # ranked by the goal image too (docs/NOTES.md has the measurements).
         dorp={"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003},
-        # The grid envs' latent model with more play data and steps: the latent map's
-        # codes were right on more open-loop steps than an MLP latent's in less
-        # training time, and the MLP decoder's as often as transposed convolutions'
-        # (docs/NOTES.md).
-        # Its map convolutions twice as wide: with blocks in each other's way, codes
-        # right on 0.936 of 14 open-loop steps at 3 objects against 0.915.
-        latent_model=lambda _: {
-            "num_frames": 200_000,
-            "num_steps": 6000,
-            **GRID_LATENT_MODEL,
-            "model": {**GRID_LATENT_MODEL["model"], "dynamics_channels": 64},
-        },
+        latent_model=_rearrangement_latent_model,
         # Blocks move one at a time: a block's move seen in one joint code of its group
         # is a move in the group's other joint codes too (CodeGraph.completed).
         graph_completion=True,

@@ -343,6 +343,10 @@ def test_a_profiles_latent_preset_overrides_its_world_model_windows():
     assert (cfg.horizon, cfg.num_frames, cfg.lr) == (6, 1234, 1e-3)
     assert cfg.model.decoder_kind == "mlp" and cfg.model.latent_dim == 128
     assert LatentWorldModelConfig.for_env(PUSH_BLOCKS).model.decoder_kind == "conv"
+    # Rearrangement's preset depends on the number of blocks: a finer map when crowded.
+    few, many = (LatentWorldModelConfig.for_env("rearrangement", k).model for k in (3, 5))
+    assert (few.latent_stride, few.dynamics_channels) == (4, 64)
+    assert (many.latent_stride, many.dynamics_channels) == (2, None)
 
 
 def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_path):
