@@ -381,7 +381,6 @@ def _rearrangement_codes(num_objects: int) -> dict:
     }
 
 
-#: k-object rearrangement as the pipeline sees it (``--env rearrangement``).
 def _rearrangement_latent_model(num_objects: int) -> dict:
     """The grid envs' latent model with more play data and steps (docs/NOTES.md has the
     measurements): a latent map's codes were right on more open-loop steps than an MLP
@@ -397,6 +396,7 @@ def _rearrangement_latent_model(num_objects: int) -> dict:
     return {"num_frames": 200_000, "num_steps": 6000, **GRID_LATENT_MODEL, "model": model}
 
 
+#: k-object rearrangement as the pipeline sees it (``--env rearrangement``).
 REARRANGEMENT = register_env_profile(
     EnvProfile(
         name="rearrangement",
