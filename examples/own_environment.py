@@ -167,20 +167,14 @@ PROFILE = EnvProfile(
         "num_frames": 40_000,
         "num_steps": 1500,
     },
-    # The latent world model of ``--low-level latent``: a 6 x 8 latent map stepped by
-    # convolutions (a shape slides alike anywhere on the canvas), the decoded frames
-    # weigh 10 times the default, the code head learns the encoder's probabilities, an
-    # MLP decoder.
+    # The latent world model of ``--low-level latent``: a latent map stepped by
+    # convolutions (the default stride 4: 6 x 8 cells; a shape slides alike anywhere on
+    # the canvas), the decoded frames weigh 10 times the default, the code head learns
+    # the encoder's probabilities, an MLP decoder.
     latent_model=lambda _: {
         "pixel_weight": 10.0,
         "soft_targets": True,
-        "model": {
-            "dynamics_kind": "conv",
-            "latent_stride": 4,
-            "latent_channels": 32,
-            "decoder_kind": "mlp",
-            "decoder_hidden": 1024,
-        },
+        "model": {"dynamics_kind": "conv", "decoder_kind": "mlp", "decoder_hidden": 1024},
     },
     lower_bound=lambda env, state, goal: (state - goal).abs().flatten(-2).sum(-1),
     # Each shape's place as one id: the labels of the purity diagnostics.
