@@ -92,6 +92,49 @@ def test_a_convolutional_latent_is_a_map_stepped_alike_everywhere(frame_shape, s
     assert wide.step(latent, actions).shape == latent.shape
 
 
+@pytest.mark.parametrize("action_planes", [True, False])
+def test_map_dynamics_take_the_action_as_planes_or_a_vector_and_any_depth(action_planes):
+    config = LatentModelConfig(
+        frame_shape=(3, 12, 10),
+        code_sizes=(5,),
+        dynamics_kind="conv",
+        latent_channels=3,
+        latent_stride=1,
+        dynamics_channels=6,
+        dynamics_layers=4,
+        action_planes=action_planes,
+        decoder=False,
+    )
+    model = LatentWorldModel(7, config)
+    first = model.dynamics.first
+    # Planes widen the first convolution's input by one channel per action; a vector
+    # per action leaves it the map's width.
+    assert first.in_channels == 3 + (7 if action_planes else 0)
+    assert (model.dynamics.action is None) == action_planes
+    # dynamics_layers 3x3 convolutions: each one more cell of sight. A change at one cell
+    # reaches the next map only within that many cells of it.
+    assert model.dynamics.second is not None and len(model.dynamics.more) == 2
+    grid = torch.zeros(2, 3, 12, 10)
+    poked = grid.clone()
+    poked[:, :, 6, 5] = 1.0
+    action = torch.tensor([1, 6])
+    with torch.no_grad():
+        model.dynamics.mean.weight.zero_()  # only the convolutions carry the poke
+        change = (model.dynamics(poked, action) - model.dynamics(grid, action)).abs().sum((0, 1))
+    rows, cols = torch.nonzero(change > 0, as_tuple=True)
+    assert rows.numel() > 0 and int((rows - 6).abs().max()) == 4 == int((cols - 5).abs().max())
+    # Each action steps the latent its own way.
+    latent = model.encode(torch.randint(0, 256, (1, 3, 12, 10), dtype=torch.uint8))
+    steps = model.step(latent.expand(7, -1), torch.arange(7))
+    assert all(not torch.allclose(steps[0], steps[i]) for i in range(1, 7))
+    # Without gradients the convolutions run channels-last: the same next latents.
+    with torch.no_grad():
+        fast = model.step(latent.expand(7, -1), torch.arange(7))
+    torch.testing.assert_close(fast, steps.detach(), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="action_planes"):
+        LatentModelConfig(action_planes="no")
+
+
 def test_slots_read_each_one_hots_codes_off_its_own_slot_and_plan():
     config = LatentModelConfig(frame_shape=(3, 10, 13), code_sizes=(4, 6, 5), slot_dim=8, hidden=16)
     model = LatentWorldModel(6, config)

@@ -77,7 +77,12 @@ class LatentModelConfig(ConfigMixin):
     hidden: int = checked(256, Int(low=1))
     """hidden width of the dynamics and code-head MLPs"""
     dynamics_layers: int = checked(2, Int(low=1))
-    """hidden layers of the dynamics MLP"""
+    """hidden layers of the dynamics MLP, or 3x3 convolutions stepping a latent map (each
+    adds a cell to how far the next map sees)"""
+    action_planes: bool = checked(True, Flag())
+    """dynamics_kind 'conv': the action enters the first convolution as one-hot planes
+    (True) or as a learned vector per action added to its output at every cell (False:
+    the same away from the map's borders, and cheaper the more actions there are)"""
     decoder: bool = checked(True, Flag())
     """whether the model decodes latents into frames (VF, the goal-image phase, pictures)"""
     decoder_kind: str = checked("conv", Choice(("conv", "mlp")))
@@ -154,25 +159,50 @@ def _downsampled(size: int, halvings: int = 2) -> int:
 
 
 class _ConvDynamics(nn.Module):
-    """The change of a latent map ``[*B, S, h, w]`` after an action: two 3x3 convolutions
-    of the map, the action's one-hot at every cell and the map's mean (through a linear
-    layer, added to every cell), then a 1x1 convolution back to ``S`` channels."""
+    """The change of a latent map ``[*B, S, h, w]`` after an action: ``layers`` 3x3
+    convolutions of the map, with the action at every cell and the map's mean (through a
+    linear layer, added to every cell) after the first, then a 1x1 convolution back to
+    ``S`` channels. The action enters as one-hot planes of the first convolution's input
+    (``action_planes``) or as a learned vector per action added to its output at every
+    cell: the same function away from the map's borders, far cheaper with many actions.
+    Without gradients the convolutions run channels-last, which oneDNN runs faster on a
+    CPU."""
 
-    def __init__(self, channels: int, num_actions: int, hidden: int) -> None:
+    def __init__(
+        self,
+        channels: int,
+        num_actions: int,
+        hidden: int,
+        *,
+        layers: int = 2,
+        action_planes: bool = True,
+    ) -> None:
         super().__init__()
         self.num_actions = num_actions
-        self.first = nn.Conv2d(channels + num_actions, hidden, 3, padding=1)
+        planes = num_actions if action_planes else 0
+        self.first = nn.Conv2d(channels + planes, hidden, 3, padding=1)
+        self.action = None if action_planes else nn.Embedding(num_actions, hidden)
         self.mean = nn.Linear(channels, hidden)
-        self.second = nn.Conv2d(hidden, hidden, 3, padding=1)
+        self.second = nn.Conv2d(hidden, hidden, 3, padding=1) if layers > 1 else None
+        self.more = nn.ModuleList(
+            nn.Conv2d(hidden, hidden, 3, padding=1) for _ in range(layers - 2)
+        )
         self.out = nn.Conv2d(hidden, channels, 1)
 
     def forward(self, latent: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(latent.dtype)
-        planes = one_hot[..., None, None].expand(*one_hot.shape, *latent.shape[-2:])
-        x = self.first(torch.cat([latent, planes], -3))
+        if not torch.is_grad_enabled():
+            latent = latent.contiguous(memory_format=torch.channels_last)
+        if self.action is None:
+            one_hot = nn.functional.one_hot(action.long(), self.num_actions).to(latent.dtype)
+            planes = one_hot[..., None, None].expand(*one_hot.shape, *latent.shape[-2:])
+            x = self.first(torch.cat([latent, planes], -3))
+        else:
+            x = self.first(latent) + self.action(action.long())[..., None, None]
         x = x + self.mean(latent.mean((-2, -1)))[..., None, None]
-        x = self.second(torch.relu(x))
-        return self.out(torch.relu(x))
+        for conv in (self.second, *self.more):
+            if conv is not None:
+                x = conv(torch.relu(x))
+        return self.out(torch.relu(x)).contiguous()
 
 
 class LatentWorldModel(nn.Module):
@@ -263,6 +293,8 @@ class LatentWorldModel(nn.Module):
                     config.latent_channels,
                     self.num_actions,
                     config.dynamics_channels or config.latent_channels,
+                    layers=config.dynamics_layers,
+                    action_planes=config.action_planes,
                 )
             else:
                 layers: list[nn.Module] = []
