@@ -119,8 +119,9 @@ class DORPConfig(ConfigMixin):
     ``latent_model``, as :class:`~dorp_rl.envs.LatentModelEnv` does): weight of the
     distance of each imagined latent to the goal image's
     (:class:`~dorp_rl.planners.LatentGoalCost`). Above 0 it replaces the pixel and
-    object-map terms, so the goal phase decodes no frames; the waypoint cost's goal term
-    (waypoint_goal_weight) is then that distance too (None: 1 with such an env, else 0)"""
+    object-map terms, so the goal phase decodes no frames; 0 judges the goal image on
+    decoded frames (None: 1 with such an env, else 0). The waypoint cost's goal term
+    (waypoint_goal_weight) is that distance with such an env either way"""
     goal_patience: int | None = checked(14, Int(low=1, optional=True))
     """goal-phase steps without a lower plan cost after which the goal-code term is
     dropped (None: never)"""

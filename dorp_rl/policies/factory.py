@@ -306,11 +306,11 @@ def make_dorp_policy(
     if config.goal_latent_weight is None:
         latent_weight = DEFAULT_GOAL_LATENT_WEIGHT if latent_model is not None else 0.0
         config = config.replace(goal_latent_weight=latent_weight)
-    # With the goal judged on latents, the waypoint term is too: no frame is decoded.
-    judge_latents = latent_model if config.goal_latent_weight > 0 else None
+    # The waypoint cost's goal term (a tie-break between plans reaching the waypoint) is
+    # judged on imagined latents whenever there are any: a waypoint call decodes no frame.
     waypoint_cost = make_waypoint_cost(
         encoder,
-        latent_model=judge_latents,
+        latent_model=latent_model,
         waypoint_goal_weight=config.waypoint_goal_weight,
         step_penalty=check_step_penalty(config.waypoint_step_penalty, "waypoint_step_penalty"),
         first_arrival=config.waypoint_first_arrival,
