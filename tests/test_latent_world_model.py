@@ -127,10 +127,6 @@ def test_map_dynamics_take_the_action_as_planes_or_a_vector_and_any_depth(action
     latent = model.encode(torch.randint(0, 256, (1, 3, 12, 10), dtype=torch.uint8))
     steps = model.step(latent.expand(7, -1), torch.arange(7))
     assert all(not torch.allclose(steps[0], steps[i]) for i in range(1, 7))
-    # Without gradients the convolutions run channels-last: the same next latents.
-    with torch.no_grad():
-        fast = model.step(latent.expand(7, -1), torch.arange(7))
-    torch.testing.assert_close(fast, steps.detach(), rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="action_planes"):
         LatentModelConfig(action_planes="no")
 
