@@ -385,15 +385,29 @@ def _rearrangement_latent_model(num_objects: int) -> dict:
     """The grid envs' latent model with more play data and steps (docs/NOTES.md has the
     measurements): a latent map's codes were right on more open-loop steps than an MLP
     latent's in less training time, and the MLP decoder's as often as transposed
-    convolutions'. Up to 4 blocks, a 4 x 4 map stepped by convolutions twice as wide as
-    the key rooms'; from 5 blocks on, crowded, an 8 x 8 map (stride 2): there it is right
-    on far more steps, and a planning call through it stays within a few times the true
-    dynamics' (which costs more with more blocks)."""
+    convolutions'. Up to 2 blocks, a 4 x 4 map stepped by convolutions twice as wide as
+    the key rooms'. From 3 blocks on, an 8 x 8 map (stride 2), right on more steps where
+    a block's one-pixel move is a quarter of a 4 x 4 cell: at 3 and 4 blocks 16 channels
+    deep, stepped by three narrow convolutions that take the action as a vector (cheap
+    enough to plan through) and trained at a higher learning rate, which learned far
+    faster; from 5 blocks on, where the true dynamics cost more too, 32 channels."""
+    base = GRID_LATENT_MODEL["model"]
+    fields: dict = {}
     if num_objects >= 5:
-        model = {**GRID_LATENT_MODEL["model"], "latent_stride": 2}
+        model = {**base, "latent_stride": 2}
+    elif num_objects >= 3:
+        narrow = {"latent_channels": 16, "dynamics_channels": 16, "dynamics_layers": 3}
+        model = {**base, "latent_stride": 2, **narrow, "action_planes": False}
+        fields = {"lr": 3e-3}
     else:
-        model = {**GRID_LATENT_MODEL["model"], "dynamics_channels": 64}
-    return {"num_frames": 200_000, "num_steps": 6000, **GRID_LATENT_MODEL, "model": model}
+        model = {**base, "dynamics_channels": 64}
+    return {
+        "num_frames": 200_000,
+        "num_steps": 6000,
+        **GRID_LATENT_MODEL,
+        **fields,
+        "model": model,
+    }
 
 
 #: k-object rearrangement as the pipeline sees it (``--env rearrangement``).

@@ -383,9 +383,13 @@ def test_a_profiles_latent_preset_overrides_its_world_model_windows():
     assert cfg.model.decoder_kind == "mlp" and cfg.model.latent_dim == 128
     assert LatentWorldModelConfig.for_env(PUSH_BLOCKS).model.decoder_kind == "conv"
     # Rearrangement's preset depends on the number of blocks: a finer map when crowded.
-    few, many = (LatentWorldModelConfig.for_env("rearrangement", k).model for k in (3, 5))
-    assert (few.latent_stride, few.dynamics_channels) == (4, 64)
-    assert (many.latent_stride, many.dynamics_channels) == (2, None)
+    presets = {k: LatentWorldModelConfig.for_env("rearrangement", k) for k in (2, 3, 4, 5)}
+    two, three, four, five = (presets[k].model for k in (2, 3, 4, 5))
+    assert (two.latent_stride, two.dynamics_channels, two.action_planes) == (4, 64, True)
+    assert three == four and presets[3].lr == presets[4].lr == 3e-3
+    assert (three.latent_stride, three.latent_channels, three.dynamics_layers) == (2, 16, 3)
+    assert not three.action_planes and presets[2].lr == presets[5].lr == 1e-3
+    assert (five.latent_stride, five.dynamics_channels, five.action_planes) == (2, None, True)
 
 
 def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_path):
