@@ -94,6 +94,8 @@ def test_a_convolutional_latent_is_a_map_stepped_alike_everywhere(frame_shape, s
 
 @pytest.mark.parametrize("action_planes", [True, False])
 def test_map_dynamics_take_the_action_as_planes_or_a_vector_and_any_depth(action_planes):
+    # Seeded: with some initialisations every path of a poke through the ReLUs is shut.
+    torch.manual_seed(0)
     config = LatentModelConfig(
         frame_shape=(3, 12, 10),
         code_sizes=(5,),
