@@ -496,6 +496,7 @@ def test_the_goal_phase_through_a_latent_model_is_judged_on_latents_not_frames()
         )
         keys = latents.waypoint_planner.cost.in_keys
         assert ("next", "latent") in keys and ("next", "pixels") not in keys
+        assert not latents.waypoint_planner.env.decode
         goal_keys = latents.goal_planner.cost.in_keys
         assert (("next", "pixels") in goal_keys) is (weight == 0.0)
     truth = make_dorp_policy(env, encoder, graph, **small)

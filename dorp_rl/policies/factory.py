@@ -360,8 +360,9 @@ def _predicted_codes(
 
     A planning env that predicts the encoder's codes declares a ``code`` observation (a
     latent world model): the costs read ``("next", "code")`` instead of encoding frames,
-    and the waypoint planner, whose cost then needs no frames (without a goal-image term),
-    plans through its ``without_frames()`` variant if it has one. An env whose
+    and the waypoint planner, whose cost then needs no frames (without a goal-image term,
+    or with one judged on the latents the env imagines), plans through its
+    ``without_frames()`` variant if it has one. An env whose
     ``predicts_codes_of(encoder)`` says its codes are another encoder's is planned
     through its frames, which the costs encode.
     """
@@ -386,6 +387,7 @@ def _predicted_codes(
         )
     waypoint_env = planning_env
     lighter = getattr(planning_env, "without_frames", None)
-    if config.waypoint_goal_weight == 0 and callable(lighter):
+    on_latents = getattr(planning_env, "latent_model", None) is not None
+    if (config.waypoint_goal_weight == 0 or on_latents) and callable(lighter):
         waypoint_env = lighter()
     return ("next", "code"), waypoint_env
