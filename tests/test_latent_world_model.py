@@ -197,6 +197,36 @@ def test_soft_targets_score_the_code_head_against_the_encoders_probabilities():
         LatentWorldModelLoss(model, encoder, soft_targets=True, hard_weight=-1.0)
 
 
+def test_the_change_term_scores_only_the_values_a_step_changed():
+    """``loss_change`` is the decoded frames' squared error at the values that differ from
+    the true frame one step before, averaged over those values alone, so a move of a
+    few pixels weighs as much as a frame's worth of error."""
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    window = collect_play_data(env, 80, trajectory_length=10, seed=0)[:80].reshape(8, 10)[:, :3]
+    window.set("action", window["action"].reshape(8, 3, 1).long())
+    model = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    loss = LatentWorldModelLoss(model, _encoder(), change_weight=2.0)
+    out = loss(window)
+    frames = torch.cat([window["pixels"][:, :1], window["next", "pixels"]], 1).float() / 255
+    changed = frames[:, 1:] != frames[:, :-1]
+    assert 0 < int(changed.sum()) < 0.1 * changed.numel()  # moves change few values
+    decoded = model.decode(loss.rollout(*loss._read(window)))[:, 1:]
+    expected = 2.0 * (decoded - frames[:, 1:]).square()[changed].mean()
+    torch.testing.assert_close(out["loss_change"], expected)
+    # A window where nothing changes has no change term, whatever the decoder draws.
+    still = window.clone()
+    still.set(("next", "pixels"), window["pixels"][:, :1].expand_as(window["pixels"]).clone())
+    still.set("pixels", still["next", "pixels"].clone())
+    frozen = loss(still)
+    assert float(frozen["loss_change"].detach()) == 0.0
+    assert float(frozen["loss_pixels"].detach()) > 0
+    out["loss_change"].backward()
+    assert model.dynamics[0].weight.grad is not None  # it trains the dynamics too
+    assert "loss_change" not in LatentWorldModelLoss(model, _encoder())(window).keys()
+    with pytest.raises(ValueError, match="change_weight must be >= 0"):
+        LatentWorldModelLoss(model, _encoder(), change_weight=-1.0)
+
+
 def test_the_mlp_decoder_learns_to_draw_frames():
     """The fast decoder is trained by the loss's pixel term like the convolutional one."""
     env = PushBlocksEnv((3, 24, 32), batch_size=(4,))

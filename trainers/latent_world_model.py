@@ -78,6 +78,10 @@ class LatentWorldModelConfig(TrainerConfig):
     """share of the steps over which the open-loop length grows to horizon"""
     pixel_weight: float = checked(1.0, Float(low=0.0))
     """weight of the decoded frames' squared error"""
+    change_weight: float = checked(0.0, Float(low=0.0))
+    """weight of the decoded frames' squared error at the values that changed since the
+    step before (mean over those values): moves of a few pixels the whole frame's error
+    barely sees"""
     latent_weight: float = checked(0.1, Float(low=0.0))
     """weight of the imagined latents' distance to the encoded true frames"""
     soft_targets: bool = checked(False, Flag())
@@ -193,6 +197,7 @@ class LatentWorldModelTrainer(WindowTrainer):
             latent_weight=config.latent_weight,
             soft_targets=config.soft_targets,
             hard_weight=config.hard_weight,
+            change_weight=config.change_weight,
         )
         self.actions = DiscreteActions.of(self.env)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)

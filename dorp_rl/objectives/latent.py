@@ -38,7 +38,10 @@ class LatentWorldModelLoss(LossModule):
     the cross-entropy against its codes, which still picks the encoder's code where its
     probabilities are nearly tied); with a decoder, the
     decoded frame against the true frame (``loss_pixels``: mean squared error on
-    ``[0, 1]`` values, times ``pixel_weight``); and the imagined latent against the
+    ``[0, 1]`` values, times ``pixel_weight``; and ``loss_change``, the same error at
+    the values that differ from the true frame one step before, times ``change_weight``:
+    a block's one-pixel move changes a few of hundreds of values, too few for the whole
+    frame's error to make the dynamics learn it); and the imagined latent against the
     encoded true frame, without gradient into the target (``loss_latent``, times
     ``latent_weight``: squared distance, or for a categorical latent the cross-entropy of
     each imagined variable against the true frame's), which keeps imagined latents where
@@ -104,6 +107,7 @@ class LatentWorldModelLoss(LossModule):
         latent_weight: float = 0.1,
         soft_targets: bool = False,
         hard_weight: float = 0.0,
+        change_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if not isinstance(model, LatentWorldModel):
@@ -120,6 +124,7 @@ class LatentWorldModelLoss(LossModule):
         self.latent_weight = check_float("latent_weight", latent_weight, low=0.0)
         self.soft_targets = check_bool("soft_targets", soft_targets)
         self.hard_weight = check_float("hard_weight", hard_weight, low=0.0)
+        self.change_weight = check_float("change_weight", change_weight, low=0.0)
 
     def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames ``[B, H + 1, C, H', W']`` (o_t .. o_{t+H}) and actions ``[B, H]``."""
@@ -259,5 +264,9 @@ class LatentWorldModelLoss(LossModule):
             decoded = model.decode(latents)
             truth = frames_to_unit_float(frames)
             out["loss_pixels"] = self.pixel_weight * F.mse_loss(decoded, truth)
+            if self.change_weight > 0:
+                changed = (truth[:, 1:] != truth[:, :-1]).to(truth.dtype)
+                error = (decoded[:, 1:] - truth[:, 1:]).square() * changed
+                out["loss_change"] = self.change_weight * error.sum() / changed.sum().clamp(min=1)
             out["pixel_error"] = (decoded - truth).abs().mean().detach()
         return TensorDict(out, batch_size=[])
