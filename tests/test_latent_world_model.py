@@ -227,6 +227,38 @@ def test_the_change_term_scores_only_the_values_a_step_changed():
         LatentWorldModelLoss(model, _encoder(), change_weight=-1.0)
 
 
+def test_pixel_steps_decode_only_that_many_steps_of_each_window():
+    env = PushBlocksEnv((3, 24, 32), batch_size=(4,))
+    window = collect_play_data(env, 80, trajectory_length=10, seed=0)[:80].reshape(8, 10)[:, :3]
+    window.set("action", window["action"].reshape(8, 3, 1).long())
+    model = LatentWorldModel(8, LatentModelConfig(frame_shape=(3, 24, 32), code_sizes=(6, 6)))
+    decoded = []  # the hidden layer's inputs: one row per decoded latent
+    model.frame_decoder.register_forward_hook(lambda m, i, o: decoded.append(i[0].detach()))
+    every = LatentWorldModelLoss(model, _encoder(), change_weight=1.0)(window)
+    assert len(decoded[0]) == 8 * 4  # o_t and three imagined steps per window
+    # As many steps as the window has (or more) is every step: the same terms.
+    whole = LatentWorldModelLoss(model, _encoder(), change_weight=1.0, pixel_steps=4)(window)
+    for key in ("loss_pixels", "loss_change"):
+        torch.testing.assert_close(whole[key], every[key])
+    rows = decoded[0].reshape(8, 4, -1)
+    two = LatentWorldModelLoss(model, _encoder(), change_weight=1.0, pixel_steps=2)
+    picked = []
+    for seed in (0, 1):
+        decoded.clear()
+        torch.manual_seed(seed)
+        out = two(window)
+        chosen = decoded[0].reshape(8, 2, 1, -1)
+        # two distinct steps of each window's own four
+        match = torch.isclose(chosen, rows.unsqueeze(1), atol=1e-5).all(-1)  # [8, 2, 4]
+        assert bool((match.sum(-1) == 1).all()) and bool((match.sum(1) <= 1).all())
+        picked.append(match.int().argmax(-1))
+        # the codes are scored on every step still
+        torch.testing.assert_close(out["loss_code"], every["loss_code"])
+    assert not torch.equal(picked[0], picked[1])  # other random steps
+    with pytest.raises(ValueError, match="pixel_steps must be >= 1"):
+        LatentWorldModelLoss(model, _encoder(), pixel_steps=0)
+
+
 def test_the_mlp_decoder_learns_to_draw_frames():
     """The fast decoder is trained by the loss's pixel term like the convolutional one."""
     env = PushBlocksEnv((3, 24, 32), batch_size=(4,))

@@ -82,6 +82,9 @@ class LatentWorldModelConfig(TrainerConfig):
     """weight of the decoded frames' squared error at the values that changed since the
     step before (mean over those values): moves of a few pixels the whole frame's error
     barely sees"""
+    pixel_steps: int | None = checked(None, Int(low=1, optional=True))
+    """decode and score this many random steps of each window (None: every step of it;
+    decoding is the largest part of a training step)"""
     latent_weight: float = checked(0.1, Float(low=0.0))
     """weight of the imagined latents' distance to the encoded true frames"""
     soft_targets: bool = checked(False, Flag())
@@ -198,6 +201,7 @@ class LatentWorldModelTrainer(WindowTrainer):
             soft_targets=config.soft_targets,
             hard_weight=config.hard_weight,
             change_weight=config.change_weight,
+            pixel_steps=config.pixel_steps,
         )
         self.actions = DiscreteActions.of(self.env)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)

@@ -333,6 +333,8 @@ class LatentWorldModel(nn.Module):
         """The frame encoder's output ``[*B, D]`` before normalisation or quantisation."""
         lead = pixels.shape[:-3]
         x = frames_to_unit_float(pixels).reshape(-1, *pixels.shape[-3:])
+        # channels-last: oneDNN runs these small convolutions faster on a CPU
+        x = x.contiguous(memory_format=torch.channels_last)
         return self.frame_encoder(x).reshape(*lead, -1)
 
     def encode(self, pixels: torch.Tensor) -> torch.Tensor:

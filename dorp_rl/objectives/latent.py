@@ -41,7 +41,9 @@ class LatentWorldModelLoss(LossModule):
     ``[0, 1]`` values, times ``pixel_weight``; and ``loss_change``, the same error at
     the values that differ from the true frame one step before, times ``change_weight``:
     a block's one-pixel move changes a few of hundreds of values, too few for the whole
-    frame's error to make the dynamics learn it); and the imagined latent against the
+    frame's error to make the dynamics learn it; both on ``pixel_steps`` random steps of
+    each window, or all: decoding is the largest part of a training step); and the
+    imagined latent against the
     encoded true frame, without gradient into the target (``loss_latent``, times
     ``latent_weight``: squared distance, or for a categorical latent the cross-entropy of
     each imagined variable against the true frame's), which keeps imagined latents where
@@ -108,6 +110,7 @@ class LatentWorldModelLoss(LossModule):
         soft_targets: bool = False,
         hard_weight: float = 0.0,
         change_weight: float = 0.0,
+        pixel_steps: int | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(model, LatentWorldModel):
@@ -125,6 +128,7 @@ class LatentWorldModelLoss(LossModule):
         self.soft_targets = check_bool("soft_targets", soft_targets)
         self.hard_weight = check_float("hard_weight", hard_weight, low=0.0)
         self.change_weight = check_float("change_weight", change_weight, low=0.0)
+        self.pixel_steps = check_int("pixel_steps", pixel_steps, low=1, optional=True)
 
     def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames ``[B, H + 1, C, H', W']`` (o_t .. o_{t+H}) and actions ``[B, H]``."""
@@ -261,12 +265,30 @@ class LatentWorldModelLoss(LossModule):
             "code_accuracy_last": right[:, -1].mean().detach(),
         }
         if model.frame_decoder is not None:
-            decoded = model.decode(latents)
-            truth = frames_to_unit_float(frames)
-            out["loss_pixels"] = self.pixel_weight * F.mse_loss(decoded, truth)
-            if self.change_weight > 0:
-                changed = (truth[:, 1:] != truth[:, :-1]).to(truth.dtype)
-                error = (decoded[:, 1:] - truth[:, 1:]).square() * changed
-                out["loss_change"] = self.change_weight * error.sum() / changed.sum().clamp(min=1)
-            out["pixel_error"] = (decoded - truth).abs().mean().detach()
+            out.update(self._pixel_terms(latents, frames_to_unit_float(frames)))
         return TensorDict(out, batch_size=[])
+
+    def _pixel_terms(self, latents: torch.Tensor, truth: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``loss_pixels``, ``loss_change`` and ``pixel_error`` of the decoded latents
+        ``[B, H + 1, D]`` against the true frames ``[B, H + 1, C, H', W']`` in [0, 1], on
+        ``pixel_steps`` random steps of each window (all steps if None)."""
+        # Each step's frame before it (o_t's own for step 0, so nothing changed there).
+        before = torch.cat([truth[:, :1], truth[:, :-1]], 1)
+        steps = truth.shape[1]
+        if self.pixel_steps is not None and self.pixel_steps < steps:
+            order = torch.rand(truth.shape[:2], device=truth.device).argsort(-1)
+            index = order[:, : self.pixel_steps]  # [B, n]
+
+            def pick(x: torch.Tensor) -> torch.Tensor:
+                shaped = index.reshape(*index.shape, *(1,) * (x.dim() - 2))
+                return x.gather(1, shaped.expand(*index.shape, *x.shape[2:]))
+
+            latents, truth, before = pick(latents), pick(truth), pick(before)
+        decoded = self.model.decode(latents)
+        out = {"loss_pixels": self.pixel_weight * F.mse_loss(decoded, truth)}
+        if self.change_weight > 0:
+            changed = (truth != before).to(truth.dtype)
+            error = (decoded - truth).square() * changed
+            out["loss_change"] = self.change_weight * error.sum() / changed.sum().clamp(min=1)
+        out["pixel_error"] = (decoded - truth).abs().mean().detach()
+        return out
