@@ -456,6 +456,9 @@ def test_a_profiles_latent_preset_overrides_its_world_model_windows():
     assert (five.latent_stride, five.dynamics_channels, five.action_planes) == (2, None, True)
     # Crowded blocks: the error where a step changed the frame weighs on its own.
     assert presets[5].change_weight == 10.0 and presets[3].change_weight == 0.0
+    # 3-4 blocks train in under 10 minutes: fewer steps, decoding 4 steps of each window.
+    assert (presets[3].num_steps, presets[3].pixel_steps) == (5000, 4)
+    assert (presets[5].num_steps, presets[5].pixel_steps) == (6000, None)
 
 
 def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_path):
