@@ -113,7 +113,8 @@ class EnvProfile:
             to the full-graph ablation (``groups="full"``).
         dorp: fields of :class:`~dorp_rl.policies.DORPConfig` that suit the env (e.g.
             ``reenter``, ``replan_on_miss``, ``waypoint_goal_weight``), over its defaults
-            (:meth:`~dorp_rl.policies.DORPConfig.for_env`).
+            (:meth:`~dorp_rl.policies.DORPConfig.for_env`); a mapping, or a function of
+            ``num_objects``.
         draw_tasks: ``(env, num_tasks, seed) -> TensorDict`` of ``state`` and
             ``goal_state`` (default :func:`reset_tasks`).
         lower_bound: ``(env, state, goal_state) -> [num_tasks]`` steps no policy can beat
@@ -145,7 +146,7 @@ class EnvProfile:
     latent_model: Callable[[int], Mapping[str, Any]] | None = None
     groups: Any = "onehot"
     graph_completion: bool = False
-    dorp: Mapping[str, Any] = field(default_factory=dict)
+    dorp: Mapping[str, Any] | Callable[[int], Mapping[str, Any]] = field(default_factory=dict)
     draw_tasks: Callable[[EnvBase, int, int], TensorDictBase] | None = None
     lower_bound: Callable[[EnvBase, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
     objects: Callable[[torch.Tensor], torch.Tensor] | None = None
@@ -229,6 +230,12 @@ class EnvProfile:
         """Latent-world-model-config fields that suit the env (empty: the config's defaults)."""
         n = self.resolve_num_objects(num_objects)
         return dict(self.latent_model(n)) if self.latent_model is not None else {}
+
+    def dorp_overrides(self, num_objects: int | None = None) -> dict[str, Any]:
+        """DORP-config fields that suit the env with ``num_objects`` (empty: the defaults)."""
+        if callable(self.dorp):
+            return dict(self.dorp(self.resolve_num_objects(num_objects)))
+        return dict(self.dorp)
 
     def tasks(self, env: EnvBase, num_tasks: int, seed: int) -> TensorDictBase:
         """``num_tasks`` tasks of ``env`` drawn with ``seed`` (:attr:`draw_tasks`), with

@@ -418,6 +418,18 @@ def _rearrangement_latent_model(num_objects: int) -> dict:
     }
 
 
+def _rearrangement_dorp(num_objects: int) -> dict:
+    """DORP's settings (docs/NOTES.md has the measurements): failed hops are removed at
+    once (blocks stand in the way) and waypoint plans are ranked by the goal image too.
+    From 5 blocks on, a latent model's goal-image phase judges decoded frames, not
+    latents: imagined latents of five blocks drift apart from the real frames', and
+    the phase stalled where decoded frames reached the goal."""
+    fields = {"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003}
+    if num_objects >= 5:
+        fields["goal_latent_weight"] = 0.0
+    return fields
+
+
 #: k-object rearrangement as the pipeline sees it (``--env rearrangement``).
 REARRANGEMENT = register_env_profile(
     EnvProfile(
@@ -428,9 +440,7 @@ REARRANGEMENT = register_env_profile(
         max_steps=lambda k: DEFAULT_MAX_STEPS.get(k, 400 * k - 200),
         code_layout=lambda size, k: (size,) * k,
         codes=_rearrangement_codes,
-        # Failed hops are removed at once (blocks stand in the way) and waypoint plans are
-        # ranked by the goal image too (docs/NOTES.md has the measurements).
-        dorp={"reenter": False, "replan_on_miss": False, "waypoint_goal_weight": 0.003},
+        dorp=_rearrangement_dorp,
         latent_model=_rearrangement_latent_model,
         # Blocks move one at a time: a block's move seen in one joint code of its group
         # is a move in the group's other joint codes too (CodeGraph.completed).

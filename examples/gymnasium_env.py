@@ -370,7 +370,12 @@ def main() -> None:
     # 50 goal images and kept seed 1 at 50.
     learned = {"max_misses": None} if args.low_level == "latent" else {}
     policy = make_dorp_policy(
-        env, encoder, graph, low_level=low_level, seed=args.seed, **{**PROFILE.dorp, **learned}
+        env,
+        encoder,
+        graph,
+        low_level=low_level,
+        seed=args.seed,
+        **{**PROFILE.dorp_overrides(), **learned},
     )
     tasks = make_task_set(env, args.tasks, seed=0, profile=PROFILE)
     out = evaluate_policy(env, policy, tasks, max_steps=200, tasks_per_rollout=10, seed=0)

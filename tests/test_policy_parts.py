@@ -38,6 +38,20 @@ def test_the_config_comes_from_the_env_profile_and_arguments_override_it():
     assert DORPConfig.for_env("rearrangement").waypoint_goal_weight == 0.003
     assert DORPConfig.for_env(KeyWallEnv(), reenter=False).reenter is False
     assert DORPConfig.for_env(KeyWallEnv()).replan_on_miss is True
+    # A profile's settings may depend on the env's number of objects.
+    counted = EnvProfile(
+        name="counted",
+        make_env=ObjectRearrangementEnv,
+        counts_objects=True,
+        env_type=ObjectRearrangementEnv,
+        default_num_objects=2,
+        dorp=lambda k: {"goal_patience": 10 * k},
+    )
+    assert DORPConfig.for_env(counted).goal_patience == 20  # the profile's default count
+    # An env gives its own count: rearrangement judges a latent model's goal image on
+    # decoded frames from 5 blocks on.
+    assert DORPConfig.for_env(ObjectRearrangementEnv(num_objects=5)).goal_latent_weight == 0.0
+    assert DORPConfig.for_env(ObjectRearrangementEnv(num_objects=3)).goal_latent_weight is None
     odd = EnvProfile(name="odd", make_env=ObjectRearrangementEnv, dorp={"reentr": True})
     with pytest.raises(ValueError, match=r"env profile 'odd' name \['reentr'\]"):
         DORPConfig.for_env(odd)
@@ -125,5 +139,5 @@ def test_every_registered_profile_names_only_dorp_config_fields():
     for name in names:
         profile = env_profile(name)
         config = DORPConfig.for_env(profile)
-        for key, value in profile.dorp.items():
+        for key, value in profile.dorp_overrides().items():
             assert getattr(config, key) == value

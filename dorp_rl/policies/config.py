@@ -170,12 +170,16 @@ class DORPConfig(ConfigMixin):
     @classmethod
     def for_env(cls, env: Any, **overrides: Any) -> DORPConfig:
         """The config that suits ``env`` (an env, a profile or its name): the profile's
-        ``dorp`` over the defaults, then ``overrides``."""
+        ``dorp`` over the defaults (for an env that counts its objects, its
+        ``num_objects``; a name, the profile's default count), then ``overrides``."""
         from dorp_rl.envs.profile import EnvProfile, env_profile, profile_of
 
         named = isinstance(env, (str, EnvProfile))
         profile = env_profile(env) if named else profile_of(env)
-        suited = dict(profile.dorp) if profile is not None else {}
+        suited: dict[str, Any] = {}
+        if profile is not None:
+            count = getattr(env, "num_objects", None) if profile.counts_objects else None
+            suited = profile.dorp_overrides(None if named else count)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(suited) - known)
         if unknown:
