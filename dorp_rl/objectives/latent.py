@@ -36,18 +36,17 @@ class LatentWorldModelLoss(LossModule):
     against the encoder's probabilities instead of its codes, so that the head learns
     where the encoder is unsure, at the borders of its codes, plus ``hard_weight`` times
     the cross-entropy against its codes, which still picks the encoder's code where its
-    probabilities are nearly tied); with a decoder, the
-    decoded frame against the true frame (``loss_pixels``: mean squared error on
-    ``[0, 1]`` values, times ``pixel_weight``; and ``loss_change``, the same error at
-    the values that differ from the true frame one step before, times ``change_weight``:
-    a block's one-pixel move changes a few of hundreds of values, too few for the whole
-    frame's error to make the dynamics learn it; both on ``pixel_steps`` random steps of
-    each window, or all: decoding is the largest part of a training step); and the
-    imagined latent against the
-    encoded true frame, without gradient into the target (``loss_latent``, times
-    ``latent_weight``: squared distance, or for a categorical latent the cross-entropy of
-    each imagined variable against the true frame's), which keeps imagined latents where
-    real frames put them.
+    probabilities are nearly tied); with a decoder, the decoded frame against the true
+    frame (``loss_pixels``: mean squared error on ``[0, 1]`` values, times
+    ``pixel_weight``) and, with ``change_weight``, the same error at the values that
+    differ from the true frame one step before, averaged over those values alone
+    (``loss_change``: a block's one-pixel move changes a dozen of hundreds of values,
+    too few for the whole frame's error to make the dynamics learn it), both on
+    ``pixel_steps`` random steps of each window or on all (decoding is the largest part
+    of a training step); and the imagined latent against the encoded true frame, without
+    gradient into the target (``loss_latent``, times ``latent_weight``: squared distance,
+    or for a categorical latent the cross-entropy of each imagined variable against the
+    true frame's), which keeps imagined latents where real frames put them.
 
     Reads ``pixels`` ``[B, H, C, H', W']`` (o_t is ``pixels[:, 0]``), ``action``
     ``[B, H, 1]`` (int indices) and ``("next", "pixels")``, e.g. a
