@@ -271,8 +271,9 @@ class LatentWorldModelLoss(LossModule):
         """``loss_pixels``, ``loss_change`` and ``pixel_error`` of the decoded latents
         ``[B, H + 1, D]`` against the true frames ``[B, H + 1, C, H', W']`` in [0, 1], on
         ``pixel_steps`` random steps of each window (all steps if None)."""
-        # Each step's frame before it (o_t's own for step 0, so nothing changed there).
-        before = torch.cat([truth[:, :1], truth[:, :-1]], 1)
+        # Each step's frame before it (o_t's own for step 0, so nothing changed there),
+        # only for the change term.
+        before = torch.cat([truth[:, :1], truth[:, :-1]], 1) if self.change_weight > 0 else None
         steps = truth.shape[1]
         if self.pixel_steps is not None and self.pixel_steps < steps:
             order = torch.rand(truth.shape[:2], device=truth.device).argsort(-1)
@@ -282,10 +283,11 @@ class LatentWorldModelLoss(LossModule):
                 shaped = index.reshape(*index.shape, *(1,) * (x.dim() - 2))
                 return x.gather(1, shaped.expand(*index.shape, *x.shape[2:]))
 
-            latents, truth, before = pick(latents), pick(truth), pick(before)
+            latents, truth = pick(latents), pick(truth)
+            before = None if before is None else pick(before)
         decoded = self.model.decode(latents)
         out = {"loss_pixels": self.pixel_weight * F.mse_loss(decoded, truth)}
-        if self.change_weight > 0:
+        if before is not None:
             changed = (truth != before).to(truth.dtype)
             error = (decoded - truth).square() * changed
             out["loss_change"] = self.change_weight * error.sum() / changed.sum().clamp(min=1)

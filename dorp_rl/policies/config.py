@@ -178,8 +178,8 @@ class DORPConfig(ConfigMixin):
         profile = env_profile(env) if named else profile_of(env)
         suited: dict[str, Any] = {}
         if profile is not None:
-            count = getattr(env, "num_objects", None) if profile.counts_objects else None
-            suited = profile.dorp_overrides(None if named else count)
+            counted = profile.counts_objects and not named
+            suited = profile.dorp_overrides(getattr(env, "num_objects", None) if counted else None)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(suited) - known)
         if unknown:
