@@ -9,7 +9,10 @@ On held-out play windows (another seed than training's, as the trainer evaluates
   changed and where it did not;
 - per action, over the steps where the frame changed: the share whose imagined latent is
   nearer the encoding of the next true frame than of the frame it started from (near 0:
-  the model leaves the scene as it was after that action).
+  the model leaves the scene as it was after that action);
+- ``open_loop_accuracy``: codes right over the windows' steps (open loop, as the trainer
+  measures it) in float32 and in bfloat16 (:func:`torch.autocast`, as a planning env
+  imagines where the hardware runs bfloat16 natively).
 
     python benchmarks/latent_model_errors.py --env rearrangement --num-objects 5 \\
         --codes runs/<run>/5obj-seed0/codes/checkpoints/last.pt --model <latent checkpoint>
@@ -23,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from dorp_rl.metrics import latent_open_loop_accuracy
 from dorp_rl.objectives import LatentWorldModelLoss
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
@@ -94,6 +98,13 @@ def main() -> None:
     windows.set("action", trainer.actions.index(windows.get("action")))
     out = {"env": args.env, "num_objects": cfg.num_objects, "model": args.model}
     out.update(one_step_errors(model, encoder, windows))
+    out["open_loop_accuracy"] = {}
+    for dtype in (torch.float32, torch.bfloat16):
+        with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
+            steps = latent_open_loop_accuracy(model, encoder, windows)["code_accuracy"]
+        out["open_loop_accuracy"][str(dtype).removeprefix("torch.")] = round(
+            sum(steps) / len(steps), 4
+        )
     print(json.dumps(out))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,8 @@ waypoint cost (:func:`~dorp_rl.policies.make_waypoint_cost`), in two forms:
   goal-code term), through the true dynamics and the latent model with the MLP decoder
   (whose frames the object-map term encodes).
 
+The latent model imagines in ``--compute-dtype`` (``auto``, the planning env's default:
+bfloat16 where the hardware runs it natively; ``float32``; ``bfloat16``).
 Latency does not depend on the weights, so all use freshly initialised models at the
 given sizes (``--set FIELD=JSON`` for :class:`~dorp_rl.modules.LatentModelConfig`). Each
 number is the median of ``--repeats`` calls after a warm-up call, all alternating in one
@@ -38,6 +40,7 @@ import time
 import torch
 
 from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
+from dorp_rl.envs.latent_planning import COMPUTE_DTYPES
 from dorp_rl.modules import DiscreteCodeEncoder, LatentModelConfig, LatentWorldModel
 from dorp_rl.planners import RandomShootingPlanner
 from dorp_rl.policies import DORPConfig, make_planning_env, make_waypoint_cost
@@ -54,6 +57,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--set", nargs="*", default=(), metavar="FIELD=JSON")
+    parser.add_argument("--compute-dtype", default="auto", choices=COMPUTE_DTYPES)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -65,6 +69,9 @@ def main() -> None:
     def model(**fields) -> LatentWorldModel:
         config = LatentModelConfig(code_sizes=tuple(encoder.code_sizes), **{**extra, **fields})
         return LatentWorldModel(env.num_actions, config).eval()
+
+    def latent_env(planned: LatentWorldModel, decode: bool = False) -> LatentModelEnv:
+        return LatentModelEnv(planned, decode=decode, compute_dtype=args.compute_dtype)
 
     td = env.reset()
     start = encoder(td["pixels"])[0]
@@ -86,20 +93,20 @@ def main() -> None:
     planners = {
         "code term, true dynamics": (gt, make_waypoint_cost(encoder)),
         "code term, latent model": (
-            LatentModelEnv(model(decoder=False)),
+            latent_env(model(decoder=False)),
             make_waypoint_cost(encoder, **predicted),
         ),
         "goal term, true dynamics": (gt, make_waypoint_cost(encoder, **goal_term)),
         "goal term, latent model, conv decoder": (
-            LatentModelEnv(model(decoder_kind="conv"), decode=True),
+            latent_env(model(decoder_kind="conv"), decode=True),
             make_waypoint_cost(encoder, **goal_term, **predicted),
         ),
         "goal term, latent model, mlp decoder": (
-            LatentModelEnv(model(decoder_kind="mlp"), decode=True),
+            latent_env(model(decoder_kind="mlp"), decode=True),
             make_waypoint_cost(encoder, **goal_term, **predicted),
         ),
     }
-    judged = LatentModelEnv(model(decoder_kind="mlp"))
+    judged = latent_env(model(decoder_kind="mlp"))
     planners["goal term, latent model, latent goal"] = (
         judged,
         make_waypoint_cost(encoder, **goal_term, **predicted, latent_model=judged.latent_model),
@@ -113,7 +120,7 @@ def main() -> None:
     td.set("goal_code_weight", torch.full((args.rows, 1), dorp.goal_code_weight))
     planners["goal phase, true dynamics"] = (gt, make_goal_cost(encoder, **goal_phase))
     planners["goal phase, latent model, mlp decoder"] = (
-        LatentModelEnv(model(decoder_kind="mlp"), decode=True),
+        latent_env(model(decoder_kind="mlp"), decode=True),
         make_goal_cost(encoder, **goal_phase, **predicted),
     )
     planners = {
@@ -137,6 +144,7 @@ def main() -> None:
         "candidates": args.candidates,
         "planning_horizon": args.planning_horizon,
         "threads": args.threads,
+        "step_dtype": str(judged.step_dtype).removeprefix("torch."),
         "model": LatentModelConfig(code_sizes=tuple(encoder.code_sizes), **extra).to_dict(),
         "median_ms": {name: round(1000 * value, 1) for name, value in medians.items()},
         "ratio": {

@@ -13,7 +13,7 @@ from dorp_rl.envs.grid_base import DIRECTIONS, GRID_SIZE, GridWorldEnv, paint_la
 from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_envs
 from dorp_rl.envs.gymnasium_goals import GymGoalEnv, draw_reachable_tasks
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
-from dorp_rl.envs.latent_planning import LatentModelEnv
+from dorp_rl.envs.latent_planning import LatentModelEnv, planning_dtype
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.envs.profile import (
     EnvProfile,
@@ -58,4 +58,5 @@ __all__ = [
     "register_gymnasium_envs",
     "WorldModelEnv",
     "LatentModelEnv",
+    "planning_dtype",
 ]

@@ -10,6 +10,9 @@ this library's planners all step it the same way.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -21,7 +24,46 @@ from torchrl.envs.model_based import WorldModelEnv as TorchRLWorldModelEnv
 from dorp_rl.integrity import state_digest
 from dorp_rl.validation import check_device, frames_to_uint8
 
-__all__ = ["LatentModelEnv"]
+__all__ = ["LatentModelEnv", "planning_dtype"]
+
+#: what ``compute_dtype`` accepts
+COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
+
+
+@functools.cache
+def _cpu_runs_bfloat16() -> bool:
+    """Whether this CPU has bfloat16 instructions (AVX512-BF16 or AMX-BF16; read from
+    ``/proc/cpuinfo``, so False where that file is missing). Without them oneDNN
+    emulates bfloat16, slower than float32."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return ("avx512_bf16" in flags or "amx_bf16" in flags) and bool(
+        torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    )
+
+
+def planning_dtype(compute_dtype: str, device: torch.device) -> torch.dtype:
+    """The dtype a latent model imagines in on ``device``: ``"float32"``, ``"bfloat16"``,
+    or ``"auto"``: bfloat16 where the hardware runs it natively (a CUDA device that
+    supports it, a CPU with bfloat16 instructions), else float32.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs import planning_dtype
+        >>> planning_dtype("float32", torch.device("cpu"))
+        torch.float32
+    """
+    if compute_dtype not in COMPUTE_DTYPES:
+        raise ValueError(f"compute_dtype must be one of {COMPUTE_DTYPES}, got {compute_dtype!r}.")
+    if compute_dtype != "auto":
+        return getattr(torch, compute_dtype)
+    if device.type == "cuda":
+        native = torch.cuda.is_bf16_supported()
+    else:
+        native = device.type == "cpu" and _cpu_runs_bfloat16()
+    return torch.bfloat16 if native else torch.float32
 
 
 class LatentModelEnv(TorchRLWorldModelEnv):
@@ -46,6 +88,10 @@ class LatentModelEnv(TorchRLWorldModelEnv):
             ``as_world_model``, ``num_actions``, ``code_sizes``, ``frame_shape``).
         decode: decode a frame at every step (for costs that read ``("next", "pixels")``).
         device: where tensors live (default: the model's parameters' device).
+        compute_dtype: what the steps, code head and decoder compute in: ``"float32"``,
+            ``"bfloat16"`` (through :func:`torch.autocast`; the start frame is still
+            encoded, and latents and frames written, in float32), or ``"auto"``
+            (:func:`planning_dtype`: bfloat16 where the hardware runs it natively).
 
     Examples:
         >>> import torch
@@ -63,7 +109,9 @@ class LatentModelEnv(TorchRLWorldModelEnv):
 
     _supports_set_state = True
 
-    def __init__(self, model: Any, *, decode: bool = False, device: Any = None) -> None:
+    def __init__(
+        self, model: Any, *, decode: bool = False, device: Any = None, compute_dtype: str = "auto"
+    ) -> None:
         for name in ("encode", "step", "codes", "as_world_model", "num_actions", "code_sizes"):
             if not hasattr(model, name):
                 raise ValueError(
@@ -104,6 +152,15 @@ class LatentModelEnv(TorchRLWorldModelEnv):
         self.model = model
         self.decode = bool(decode)
         self.num_actions = int(model.num_actions)
+        self.compute_dtype = compute_dtype
+        #: the dtype the steps run in (``compute_dtype`` resolved on ``device``)
+        self.step_dtype = planning_dtype(compute_dtype, device)
+
+    def _computing(self) -> contextlib.AbstractContextManager:
+        """Autocast to :attr:`step_dtype` (nothing for float32)."""
+        if self.step_dtype == torch.float32:
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=self.step_dtype)
 
     def _set_seed(self, seed: int | None) -> None:
         """Nothing to seed: the model is deterministic."""
@@ -157,7 +214,7 @@ class LatentModelEnv(TorchRLWorldModelEnv):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         tensordict = self._with_latent(tensordict)
         shape = tensordict.batch_size
-        with torch.no_grad():
+        with torch.no_grad(), self._computing():
             nxt = self.world_model(tensordict.copy()).get("next")
         # torchrl's WorldModelEnv._step builds its output with the env's batch_size; the
         # planners step [b, N] candidates through a batch_size=() env, so it is built here
@@ -165,7 +222,7 @@ class LatentModelEnv(TorchRLWorldModelEnv):
         false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
         out = TensorDict(
             {
-                self.latent_key: nxt.get(self.latent_key),
+                self.latent_key: nxt.get(self.latent_key).float(),
                 "code": nxt.get("code"),
                 "reward": nxt.get("reward"),
                 "done": false,
@@ -198,7 +255,9 @@ class LatentModelEnv(TorchRLWorldModelEnv):
 
     def without_frames(self) -> LatentModelEnv:
         """The same model as a planning env that decodes no frames (codes only)."""
-        return LatentModelEnv(self.model, decode=False, device=self.device)
+        return LatentModelEnv(
+            self.model, decode=False, device=self.device, compute_dtype=self.compute_dtype
+        )
 
     #: what :meth:`imagine_candidates` can give
     IMAGINED_KEYS = (("next", "latent"), ("next", "code"), ("next", "pixels"))
@@ -216,14 +275,14 @@ class LatentModelEnv(TorchRLWorldModelEnv):
         if ("next", "pixels") in next_keys and not self.decode:
             return None  # stepped, so that the missing frames are named
         start = self._with_latent(td).get(self.latent_key)
-        with torch.no_grad():
+        with torch.no_grad(), self._computing():
             latent = start.unsqueeze(-2).expand(*actions.shape[:-1], start.shape[-1])
             latents = self.model.imagine(latent, actions)  # [b, N, H, D]
             rollout = TensorDict(
                 {"action": actions.unsqueeze(-1)}, batch_size=actions.shape, device=td.device
             )
             if ("next", "latent") in next_keys:
-                rollout.set(("next", "latent"), latents)
+                rollout.set(("next", "latent"), latents.float())
             if ("next", "code") in next_keys:
                 rollout.set(("next", "code"), self.model.codes(latents))
             if ("next", "pixels") in next_keys:

@@ -13,7 +13,7 @@ from push_blocks import PushBlocksEnv
 from tensordict import TensorDict
 
 from dorp_rl.data import EventWindowSampler, collect_play_data, rare_code_changes
-from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv
+from dorp_rl.envs import LatentModelEnv, ObjectRearrangementEnv, planning_dtype
 from dorp_rl.integrity import state_digest
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, LatentModelConfig, LatentWorldModel
 from dorp_rl.objectives import LatentWorldModelLoss
@@ -309,7 +309,7 @@ def test_torchrl_world_model_parts_and_rollout_in_latent_space():
     out = world.step(td)
     assert out["next", "latent"].shape == (2, 128) and out["next", "code"].shape == (2, 2)
     assert out["next", "pixels"].dtype == torch.uint8
-    env = LatentModelEnv(model, decode=True)
+    env = LatentModelEnv(model, decode=True, compute_dtype="float32")
     start = env.reset(
         TensorDict(pixels=torch.zeros(3, 3, 24, 32, dtype=torch.uint8), batch_size=[3])
     )
@@ -328,6 +328,38 @@ def test_torchrl_world_model_parts_and_rollout_in_latent_space():
     assert env.step(td)["next", "code"].shape == (2, 6, 2)
     with pytest.raises(ValueError, match=r"\[\*B, 3, 24, 32\]"):
         env.check_frame(torch.zeros(2, 3, 16, 16, dtype=torch.uint8))
+
+
+def test_the_latent_env_imagines_in_bfloat16_and_writes_float32():
+    torch.manual_seed(0)
+    model = LatentWorldModel(
+        4,
+        LatentModelConfig(
+            frame_shape=(3, 12, 20), code_sizes=(5, 3), dynamics_kind="conv", latent_stride=2
+        ),
+    )
+    td = TensorDict(pixels=torch.randint(0, 256, (2, 3, 12, 20), dtype=torch.uint8), batch_size=[2])
+    actions = torch.randint(0, 4, (2, 7, 5))
+    keys = [("next", "latent"), ("next", "code"), ("next", "pixels")]
+    exact = LatentModelEnv(model, decode=True, compute_dtype="float32")
+    fast = LatentModelEnv(model, decode=True, compute_dtype="bfloat16")
+    assert (exact.step_dtype, fast.step_dtype) == (torch.float32, torch.bfloat16)
+    want, _ = exact.imagine_candidates(td, actions, keys)
+    got, _ = fast.imagine_candidates(td, actions, keys)
+    assert got["next", "latent"].dtype == torch.float32
+    assert got["next", "pixels"].dtype == torch.uint8
+    # bfloat16 keeps 8 bits of mantissa: the same latents to about 1%, not exactly
+    error = (got["next", "latent"] - want["next", "latent"]).abs().max()
+    assert 0 < error < 0.1 * want["next", "latent"].abs().max()
+    frame_error = (got["next", "pixels"].int() - want["next", "pixels"].int()).abs()
+    assert frame_error.float().mean() < 2.0
+    # the torchrl step path runs in the same dtype and writes float32 latents too
+    step = td.clone().set("action", actions[:, 0, :1])
+    assert fast.step(step)["next", "latent"].dtype == torch.float32
+    assert fast.without_frames().step_dtype == torch.bfloat16
+    assert planning_dtype("auto", torch.device("cpu")) in (torch.float32, torch.bfloat16)
+    with pytest.raises(ValueError, match="compute_dtype must be one of"):
+        LatentModelEnv(model, compute_dtype="float16")
 
 
 def test_imagined_candidates_equal_stepping_the_latent_env():

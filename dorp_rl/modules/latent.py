@@ -399,12 +399,14 @@ class LatentWorldModel(nn.Module):
         lead = latent.shape[:-1]
         x = self.decoder_input(latent.reshape(-1, latent.shape[-1]))
         c, h, w = self.frame_shape
+        # the sigmoid in float32, whatever the layers ran in (bfloat16 has 8 bits of
+        # mantissa: too few for 256 levels)
         if self.config.decoder_kind == "mlp":
-            return torch.sigmoid(self.frame_decoder(x)).reshape(*lead, c, h, w)
+            return torch.sigmoid(self.frame_decoder(x).float()).reshape(*lead, c, h, w)
         x = self.frame_decoder(x.reshape(-1, *self._feature_shape))
         if tuple(x.shape[-2:]) != (h, w):
             x = nn.functional.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
-        return torch.sigmoid(x).reshape(*lead, c, h, w)
+        return torch.sigmoid(x.float()).reshape(*lead, c, h, w)
 
     def decode_uint8(self, latent: torch.Tensor) -> torch.Tensor:
         """:meth:`decode` as uint8 frames (rounded to 0..255)."""
