@@ -153,3 +153,43 @@ def test_an_action_that_changed_nothing_is_not_planned_again_until_the_frame_cha
         other[key] = td[key]
     other = policy(other)
     assert not other[NOOPS_KEY].any()
+    # Back at the first frame, its four unchanging actions are remembered.
+    back = td.clone()
+    for key in policy.state_keys:
+        back[key] = other[key]
+    back = policy(back)
+    assert back[NOOPS_KEY].all()
+
+
+def test_the_noop_memory_keeps_the_last_frames_and_forgets_the_oldest(one_object):
+    env, oracle, graph = one_object
+    policy = make_dorp_policy(env, oracle, graph, avoid_noops=True, noop_memory=2, **SMALL)
+    rule = next(rule for rule in policy.rules if isinstance(rule, AvoidNoops))
+    assert rule.memory == 2
+    frames = []
+    while len(frames) < 3:
+        frame = env.reset()["pixels"]
+        if not any(torch.equal(frame, seen) for seen in frames):
+            frames.append(frame)
+    state = policy.state.read(env.reset())
+    active = torch.ones(1, dtype=torch.bool)
+
+    def noop_at(frame, action):
+        # the policy saw `frame`, acted `action`, and saw `frame` again
+        rule.observe(state, frame, active)
+        state["dorp_last_action"][0] = action
+        rule.observe(state, frame, active)
+        return state[NOOPS_KEY][0].nonzero().squeeze(-1).tolist()
+
+    assert noop_at(frames[0], 1) == [1]
+    assert noop_at(frames[0], 3) == [1, 3]
+    assert noop_at(frames[1], 0) == [0]
+    state["dorp_last_action"][0] = -1
+    rule.observe(state, frames[0], active)  # frame 0 again: still remembered
+    assert state[NOOPS_KEY][0].nonzero().squeeze(-1).tolist() == [1, 3]
+    assert noop_at(frames[2], 2) == [2]  # a third frame takes the oldest's place
+    state["dorp_last_action"][0] = -1
+    rule.observe(state, frames[0], active)
+    assert not state[NOOPS_KEY][0].any()
+    with pytest.raises(ValueError, match="memory must be >= 1"):
+        AvoidNoops(0)

@@ -106,6 +106,7 @@ LOOP_FIELDS = (
     "reenter",
     "max_reentries",
     "avoid_noops",
+    "noop_memory",
     "goal_code_weight",
     "goal_patience",
     "max_goal_returns",

@@ -102,10 +102,13 @@ class DORPConfig(ConfigMixin):
     max_reentries: int = checked(8, Int(low=0))
     """re-entries a task may start"""
     avoid_noops: bool | None = checked(None, Flag(optional=True))
-    """an action that left the frame unchanged does not start a plan again until the
-    frame changes (a learned model may believe a blocked move goes through; assumes a
+    """an action that left a frame unchanged does not start a plan from that frame again
+    (a learned model may believe a blocked move goes through; assumes a
     deterministic env). None: off with low_level 'gt' (the acting env's own dynamics
     never predict a move that does not happen), on with any other low level"""
+    noop_memory: int = checked(32, Int(low=1))
+    """avoid_noops: frames per acting env whose unchanging actions are remembered (1: the
+    current frame's only, forgotten once the frame changes)"""
     goal_code_weight: float = checked(100.0, Float(low=0.0))
     """goal phase: cost of a frame whose codes are not the goal's, added to its pixel
     distance (0: pixel distance alone, as the paper)"""

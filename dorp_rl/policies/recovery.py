@@ -450,19 +450,29 @@ NOOPS_KEY = "dorp_noops"
 
 
 class AvoidNoops(RecoveryRule):
-    """An action that left the frame unchanged does not start a plan again from that frame.
+    """An action that left a frame unchanged does not start a plan from that frame again.
 
     A learned model that believes a blocked move goes through (an object against a wall or
     another object) makes the planner choose it at every step, while the frame never
-    changes, until the waypoint's budget runs out. In a deterministic env the same action
-    from the same frame changes nothing again, so the rule writes, per row, the actions
-    tried since the frame last changed (bool ``[A]`` under :data:`NOOPS_KEY`), which the
-    planners built with ``excluded_actions_key=NOOPS_KEY`` do not start plans with, and
-    has them plan afresh (an open-loop plan whose step changed nothing went wrong). A
-    frame is compared with the last by a 64-bit hash of its pixels.
+    changes, until the waypoint's budget runs out; and, when other moves change the frame
+    in between, again each time the scene comes back. In a deterministic env the same
+    action from the same frame changes nothing again, so the rule remembers, per row, the
+    actions seen to change nothing at each of the last ``memory`` frames where one did
+    (the oldest forgotten first), writes those of the current frame (bool ``[A]`` under
+    :data:`NOOPS_KEY`), which the planners built with ``excluded_actions_key=NOOPS_KEY``
+    do not start plans with, and has them plan afresh after a step that changed nothing
+    (an open-loop plan whose step changed nothing went wrong). Frames are compared by a
+    64-bit hash of their pixels.
+
+    Args:
+        memory: frames remembered per row (1: only the current frame, forgotten as soon
+            as the frame changes).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, memory: int = 32) -> None:
+        if int(memory) < 1:
+            raise ValueError(f"memory must be >= 1 (frames remembered), got {memory}.")
+        self.memory = int(memory)
         self.num_actions = 0  # the planners' actions, set by bind
         self._weights: dict[tuple[int, torch.device], torch.Tensor] = {}
 
@@ -487,6 +497,18 @@ class AvoidNoops(RecoveryRule):
             ),
             StateKey("dorp_frame_hash", doc="hash of the last frame's pixels"),
             StateKey("dorp_last_action", fill=-1, doc="the last action (-1: none yet)"),
+            StateKey(
+                "dorp_noop_frames",
+                width=self.memory,
+                doc="hashes of the remembered frames where an action changed nothing",
+            ),
+            StateKey(
+                "dorp_noop_actions",
+                torch.bool,
+                width=self.memory * self.num_actions,
+                doc="per remembered frame (row-major), the actions that changed nothing",
+            ),
+            StateKey("dorp_noop_next", doc="the remembered frame written next (ring)"),
         )
 
     def frame_hash(self, frames: torch.Tensor) -> torch.Tensor:
@@ -506,12 +528,29 @@ class AvoidNoops(RecoveryRule):
             return
         now = self.frame_hash(frames[active]).cpu()
         last = state["dorp_last_action"][active]
-        unchanged = (last >= 0) & (now == state["dorp_frame_hash"][active])
-        noops = state[NOOPS_KEY][active]
-        noops[~unchanged.squeeze(-1)] = False  # a new frame: every action may work again
-        rows = unchanged.squeeze(-1).nonzero().squeeze(-1)
-        noops[rows, last[rows, 0]] = True
-        state[NOOPS_KEY][active] = noops
+        unchanged = ((last >= 0) & (now == state["dorp_frame_hash"][active])).squeeze(-1)
+        hashes = state["dorp_noop_frames"][active]
+        seen = state["dorp_noop_actions"][active].unflatten(-1, (self.memory, -1))
+        ring = state["dorp_noop_next"][active]
+        # where each row's current frame is remembered ([rows, memory])
+        found = (hashes == now) & seen.any(-1)
+        for row in unchanged.nonzero().squeeze(-1).tolist():
+            slots = found[row].nonzero().squeeze(-1)
+            if slots.numel():
+                slot = int(slots[0])
+            else:  # a new frame to remember, in place of the oldest
+                slot = int(ring[row, 0])
+                ring[row, 0] = (slot + 1) % self.memory
+                hashes[row, slot] = now[row, 0]
+                seen[row, slot] = False
+                found[row] = False
+                found[row, slot] = True
+            seen[row, slot, last[row, 0]] = True
+        current = (seen & found.unsqueeze(-1)).any(-2)
+        state[NOOPS_KEY][active] = current
+        state["dorp_noop_frames"][active] = hashes
+        state["dorp_noop_actions"][active] = seen.flatten(-2)
+        state["dorp_noop_next"][active] = ring
         state["dorp_frame_hash"][active] = now
 
     def forces_replan(self, state: State) -> torch.Tensor:
@@ -537,7 +576,7 @@ def recovery_rules(config: DORPConfig, *, goal_code_term: bool) -> list[Recovery
     if config.reenter:
         rules.append(Reentry(config.max_reentries, hops=config.reenter is True))
     if config.avoid_noops:
-        rules.append(AvoidNoops())
+        rules.append(AvoidNoops(config.noop_memory))
     if goal_code_term:
         rules.append(
             GoalRelaxation(config.goal_code_weight, config.goal_patience, config.max_goal_returns)
