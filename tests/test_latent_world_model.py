@@ -541,6 +541,14 @@ def test_dorp_and_visual_foresight_plan_through_the_latent_model(tmp_path):
     assert rollout["action"].shape[:2] == (2, 4)
     vf = VisualForesightPolicy(planning, "rs", num_candidates=8, planning_horizon=3, seed=0)
     assert env.rollout(3, vf, break_when_any_done=False).shape == (2, 3)
+    # A planning env given as the low level keeps its compute dtype in every planner.
+    exact = LatentModelEnv(model, decode=True, compute_dtype="float32")
+    policy = make_dorp_policy(
+        env, encoder, graph, low_level=exact, num_candidates=8, planning_horizon=3, seed=0
+    )
+    for planner in (policy.waypoint_planner, policy.goal_planner):
+        assert planner.env.step_dtype == torch.float32
+    assert env.rollout(2, policy, break_when_any_done=False).shape == (2, 2)
 
 
 def test_a_policy_with_another_encoder_plans_through_decoded_frames():
