@@ -490,7 +490,9 @@ def test_a_profiles_latent_preset_overrides_its_world_model_windows():
     assert presets[5].change_weight == 10.0 and presets[3].change_weight == 0.0
     # 3-4 blocks train in under 10 minutes: fewer steps, decoding 4 steps of each window.
     assert (presets[3].num_steps, presets[3].pixel_steps) == (5000, 4)
-    assert (presets[5].num_steps, presets[5].pixel_steps) == (6000, None)
+    # 5 blocks and more: twice the steps on twice the play data.
+    assert (presets[5].num_steps, presets[5].pixel_steps) == (12_000, 4)
+    assert (presets[5].num_frames, presets[3].num_frames) == (400_000, 200_000)
 
 
 def test_trainer_checkpoints_are_refused_against_another_env_or_code_sizes(tmp_path):
