@@ -460,9 +460,10 @@ class AvoidNoops(RecoveryRule):
     actions seen to change nothing at each of the last ``memory`` frames where one did
     (the oldest forgotten first), writes those of the current frame (bool ``[A]`` under
     :data:`NOOPS_KEY`), which the planners built with ``excluded_actions_key=NOOPS_KEY``
-    do not start plans with, and has them plan afresh after a step that changed nothing
-    (an open-loop plan whose step changed nothing went wrong). Frames are compared by a
-    64-bit hash of their pixels.
+    do not start plans with, and has them plan afresh at a frame with remembered noops:
+    after a step that changed nothing (an open-loop plan whose step changed nothing went
+    wrong) and back at such a frame (the plan in hand may hold one). Frames are compared
+    by a 64-bit hash of their pixels.
 
     Args:
         memory: frames remembered per row (1: only the current frame, forgotten as soon
@@ -554,7 +555,8 @@ class AvoidNoops(RecoveryRule):
         state["dorp_frame_hash"][active] = now
 
     def forces_replan(self, state: State) -> torch.Tensor:
-        # a plan whose action changed nothing went wrong: plan again without that action
+        # a plan whose action changed nothing went wrong, and a plan made elsewhere may
+        # hold an action this frame is known to ignore: plan again without them
         return state[NOOPS_KEY].any(-1)
 
     def after_action(self, state: State, action: torch.Tensor, rows: torch.Tensor) -> None:
