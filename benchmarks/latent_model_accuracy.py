@@ -8,7 +8,8 @@ training within 10 minutes at one torch thread at 3 objects.
 The codes are those of a representation checkpoint (``--codes PATH``) or oracle codes of
 the true positions (``--codes oracle``, regions of ``--cell-size`` cells: a quick stand-in
 while trying architectures). ``--set FIELD=JSON`` changes fields of
-:class:`~dorp_rl.trainers.LatentWorldModelConfig` (``model='{"latent_dim": 256}'``).
+:class:`~dorp_rl.trainers.LatentWorldModelConfig` (``model='{"latent_dim": 256}'``). ``--resume`` goes on from the last checkpoint of
+``--out-dir`` to ``--steps`` steps (the same other arguments).
 
     python benchmarks/latent_model_accuracy.py --env rearrangement --num-objects 3 \\
         --codes oracle --steps 2000 --json outputs/latent/k3.json
@@ -40,6 +41,11 @@ def main() -> None:
     parser.add_argument("--out-dir", default="outputs/latent_model")
     parser.add_argument("--json", default=None, help="write the result here too")
     parser.add_argument("--set", nargs="*", default=(), metavar="FIELD=JSON")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="go on from the last checkpoint in --out-dir up to --steps (same other settings)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
@@ -61,7 +67,7 @@ def main() -> None:
         encoder = load_encoder(args.codes, env)
     start = time.perf_counter()
     trainer = LatentWorldModelTrainer(cfg, encoder=encoder)
-    result = trainer.train()
+    result = trainer.train(resume=args.resume)
     seconds = time.perf_counter() - start
     evaluation = result["evaluation"]
     pixels = evaluation["pixel_accuracy"]
@@ -72,7 +78,8 @@ def main() -> None:
         "code_sizes": list(encoder.code_sizes),
         "steps": args.steps,
         "set": extra,
-        "train_seconds": round(seconds, 1),
+        "train_seconds": round(seconds, 1),  # of this run only, when resumed
+        "resumed_from_step": result.get("resumed_from_step"),
         "code_accuracy": [round(x, 4) for x in evaluation["code_accuracy"]],
         "code_accuracy_all_steps": round(sum(evaluation["code_accuracy"]) / cfg.horizon, 4),
         "pixel_accuracy": None if pixels is None else [round(x, 4) for x in pixels],
