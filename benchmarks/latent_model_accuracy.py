@@ -42,9 +42,13 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="write the result here too")
     parser.add_argument("--set", nargs="*", default=(), metavar="FIELD=JSON")
     parser.add_argument(
+        "--eval-every", type=int, default=None, help="steps between evaluations (steps // 4)"
+    )
+    parser.add_argument(
         "--resume",
         action="store_true",
-        help="go on from the last checkpoint in --out-dir up to --steps (same other settings)",
+        help="go on from the last checkpoint in --out-dir up to --steps (the same other "
+        "settings, --eval-every included)",
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -55,7 +59,7 @@ def main() -> None:
         num_steps=args.steps,
         num_frames=args.frames,
         seed=args.seed,
-        eval_every=max(args.steps // 4, 1),
+        eval_every=args.eval_every or max(args.steps // 4, 1),
         out_dir=args.out_dir,
         progress=False,
         **extra,
