@@ -15,6 +15,7 @@ from dorp_rl.data import collect_play_data
 from dorp_rl.envs import ObjectRearrangementEnv
 from dorp_rl.eval import (
     evaluate_parallel,
+    failure_section,
     evaluate_policy,
     format_failures,
     make_task_set,
@@ -173,6 +174,28 @@ def test_pooled_rows_keep_each_seeds_records_and_tasks_csv_has_a_line_per_task(t
         ("1", "0", "solved", "3"), ("1", "1", "step_limit", "4"),
     ]  # fmt: skip
     assert [x["edge_removals"] for x in lines] == ["0", "1", "0", "1"]
+    assert {x["low_level"] for x in lines} == {"gt"}
+
+
+def test_tasks_csv_and_failure_section_tell_apart_one_method_through_two_low_levels(
+    tmp_path,
+) -> None:
+    def row(low_level, outcome):
+        records = [{"task": 0, "outcome": outcome, "steps": 7}]
+        return dict(setting="5obj", method="dorp", low_level=low_level, tasks=1,
+                    per_task=dict(success=[outcome == "solved"], steps=[7],
+                    lower_bound=[5], records=records))  # fmt: skip
+
+    rows = [row("gt", "step_limit"), row("checkpoint", "solved")]
+    with write_task_records(rows, tmp_path / "tasks.csv").open() as f:
+        lines = list(csv.DictReader(f))
+    assert [(x["low_level"], x["outcome"]) for x in lines] == [
+        ("gt", "step_limit"),
+        ("checkpoint", "solved"),
+    ]
+    section = failure_section(rows)
+    assert "5obj dorp (gt): 0 of 1 solved" in section
+    assert "5obj dorp (checkpoint): 1 of 1 solved" in section
 
 
 def test_summaries_refuse_what_is_not_a_record() -> None:

@@ -35,6 +35,7 @@ COUNTS: tuple[str, ...] = (
 TASK_COLUMNS: tuple[str, ...] = (
     "setting",
     "method",
+    "low_level",
     "seed",
     "task",
     "outcome",
@@ -165,7 +166,8 @@ def tasks_to_draw(records: Sequence[dict[str, Any]], count: int) -> list[int]:
 
 def write_task_records(rows: Sequence[dict[str, Any]], path: str | Path) -> Path:
     """Writes the task records of result rows (``row["per_task"]["records"]``, with the
-    row's setting, method and seed) as one CSV, :data:`TASK_COLUMNS` first."""
+    row's setting, method, low level and seed) as one CSV, :data:`TASK_COLUMNS` first.
+    The low level tells apart the rows of one method planned through different models."""
     path = Path(path)
     lines: list[dict[str, Any]] = []
     for row in rows:
@@ -176,6 +178,7 @@ def write_task_records(rows: Sequence[dict[str, Any]], path: str | Path) -> Path
             line = {
                 "setting": row.get("setting", ""),
                 "method": row.get("method", ""),
+                "low_level": row.get("low_level", ""),
                 "seed": row.get("seed", ""),
                 **record,
             }
@@ -194,12 +197,19 @@ def write_task_records(rows: Sequence[dict[str, Any]], path: str | Path) -> Path
 def failure_section(rows: Sequence[dict[str, Any]], *, by_seed: bool = False) -> str:
     """The markdown section of a ``results.md`` on how each row's tasks ended (from the
     task records of the rows; :func:`write_task_records` writes one line per task).
-    ``by_seed``: name each row's seed (the rows of a seed sweep)."""
+    ``by_seed``: name each row's seed (the rows of a seed sweep). A method with rows
+    through several low levels names the low level of each."""
     lines = []
+    # A method planned through several low levels (the true dynamics and a model) names them.
+    levels: dict[tuple, set] = {}
+    for row in rows:
+        levels.setdefault((row["setting"], row["method"]), set()).add(row.get("low_level"))
     for row in rows:
         records = (row.get("per_task") or {}).get("records")
         if records:
             label = f"{row['setting']} {row['method']}"
+            if len(levels[(row["setting"], row["method"])]) > 1:
+                label += f" ({row.get('low_level')})"
             lines.append(
                 format_failures(records, label + (f" seed {row['seed']}" if by_seed else ""))
             )
