@@ -15,8 +15,8 @@ from dorp_rl.data import collect_play_data
 from dorp_rl.envs import ObjectRearrangementEnv
 from dorp_rl.eval import (
     evaluate_parallel,
-    failure_section,
     evaluate_policy,
+    failure_section,
     format_failures,
     make_task_set,
     summarize_failures,
