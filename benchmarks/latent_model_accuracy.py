@@ -8,8 +8,9 @@ training within 10 minutes at one torch thread at 3 objects.
 The codes are those of a representation checkpoint (``--codes PATH``) or oracle codes of
 the true positions (``--codes oracle``, regions of ``--cell-size`` cells: a quick stand-in
 while trying architectures). ``--set FIELD=JSON`` changes fields of
-:class:`~dorp_rl.trainers.LatentWorldModelConfig` (``model='{"latent_dim": 256}'``). ``--resume`` goes on from the last checkpoint of
-``--out-dir`` to ``--steps`` steps (the same other arguments).
+:class:`~dorp_rl.trainers.LatentWorldModelConfig` (``model='{"latent_dim": 256}'``).
+``--resume`` goes on from the last checkpoint of ``--out-dir`` to ``--steps`` steps (the
+same other arguments).
 
     python benchmarks/latent_model_accuracy.py --env rearrangement --num-objects 3 \\
         --codes oracle --steps 2000 --json outputs/latent/k3.json

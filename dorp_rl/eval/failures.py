@@ -200,7 +200,6 @@ def failure_section(rows: Sequence[dict[str, Any]], *, by_seed: bool = False) ->
     ``by_seed``: name each row's seed (the rows of a seed sweep). A method with rows
     through several low levels names the low level of each."""
     lines = []
-    # A method planned through several low levels (the true dynamics and a model) names them.
     levels: dict[tuple, set] = {}
     for row in rows:
         levels.setdefault((row["setting"], row["method"]), set()).add(row.get("low_level"))
