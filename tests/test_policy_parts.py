@@ -9,6 +9,7 @@ from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import EnvProfile, KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.eval import EvalSpec
 from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import (
@@ -52,6 +53,13 @@ def test_the_config_comes_from_the_env_profile_and_arguments_override_it():
     # decoded frames from 5 blocks on.
     assert DORPConfig.for_env(ObjectRearrangementEnv(num_objects=5)).goal_latent_weight == 0.0
     assert DORPConfig.for_env(ObjectRearrangementEnv(num_objects=3)).goal_latent_weight is None
+    # A profile or its name takes a count; without one, the profile's default count.
+    assert DORPConfig.for_env("rearrangement", num_objects=5).goal_latent_weight == 0.0
+    assert DORPConfig.for_env("rearrangement").goal_latent_weight is None
+    assert DORPConfig.for_env(counted, num_objects=3).goal_patience == 30
+    # ...and the evaluation's policy of the 5-object setting gets the 5-object settings.
+    assert EvalSpec("5obj", "random").dorp_config().goal_latent_weight == 0.0
+    assert EvalSpec("3obj", "random").dorp_config().goal_latent_weight is None
     odd = EnvProfile(name="odd", make_env=ObjectRearrangementEnv, dorp={"reentr": True})
     with pytest.raises(ValueError, match=r"env profile 'odd' name \['reentr'\]"):
         DORPConfig.for_env(odd)

@@ -53,7 +53,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -71,6 +71,9 @@ from dorp_rl.eval.tasks import (
 )
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
+
+if TYPE_CHECKING:  # for annotations; the policies are imported where used (make_policy)
+    from dorp_rl.policies import DORPConfig
 
 #: backends of :func:`evaluate_parallel`
 BACKENDS = ("local", "ray")
@@ -152,10 +155,17 @@ class EvalSpec:
             batch_size=(self.tasks_per_rollout,), seed=self.seed, **self.env_kwargs
         )
 
+    def dorp_config(self) -> DORPConfig:
+        """The :class:`~dorp_rl.policies.DORPConfig` of the setting's env profile for its
+        object count (rearrangement's differ from 5 blocks on)."""
+        from dorp_rl.policies import DORPConfig
+
+        setting = setting_of(self.setting)
+        return DORPConfig.for_env(setting.profile, num_objects=setting.num_objects)
+
     def make_policy(self, env: EnvBase) -> Policy:
         """The policy of :attr:`method` for ``env`` (``env.rand_action`` for random)."""
         from dorp_rl.policies import (
-            DORPConfig,
             VisualForesightPolicy,
             make_dorp_policy,
             make_planning_env,
@@ -173,7 +183,7 @@ class EvalSpec:
                 env,
                 encoder,
                 self.graph,
-                DORPConfig.for_env(setting_of(self.setting).profile),  # the env's settings
+                self.dorp_config(),
                 **self.planner_kwargs,
                 low_level=self.low_level,
                 planner=self.dorp_planner,

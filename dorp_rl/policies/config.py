@@ -171,18 +171,21 @@ class DORPConfig(ConfigMixin):
     the encoder has object maps and the graph action counts, else 0; 0: uniform draws)"""
 
     @classmethod
-    def for_env(cls, env: Any, **overrides: Any) -> DORPConfig:
+    def for_env(cls, env: Any, *, num_objects: int | None = None, **overrides: Any) -> DORPConfig:
         """The config that suits ``env`` (an env, a profile or its name): the profile's
-        ``dorp`` over the defaults (for an env that counts its objects, its
-        ``num_objects``; a name, the profile's default count), then ``overrides``."""
+        ``dorp`` over the defaults, then ``overrides``. For a profile that counts objects
+        the count is ``num_objects``, else an env's own ``num_objects``, else the
+        profile's default count (a name's settings may differ by count: rearrangement's
+        from 5 blocks on)."""
         from dorp_rl.envs.profile import EnvProfile, env_profile, profile_of
 
         named = isinstance(env, (str, EnvProfile))
         profile = env_profile(env) if named else profile_of(env)
         suited: dict[str, Any] = {}
         if profile is not None:
-            counted = profile.counts_objects and not named
-            suited = profile.dorp_overrides(getattr(env, "num_objects", None) if counted else None)
+            if num_objects is None and profile.counts_objects and not named:
+                num_objects = getattr(env, "num_objects", None)
+            suited = profile.dorp_overrides(num_objects if profile.counts_objects else None)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(suited) - known)
         if unknown:
