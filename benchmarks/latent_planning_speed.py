@@ -81,7 +81,7 @@ def main() -> None:
         torch.zeros_like(start, dtype=torch.bool).index_fill_(-1, torch.tensor([0]), True),
     )
     shape = {"planning_horizon": args.planning_horizon, "num_candidates": args.candidates}
-    dorp = DORPConfig.for_env("rearrangement")
+    dorp = DORPConfig.for_env("rearrangement", num_objects=args.objects)
     goal_term = {
         "waypoint_goal_weight": dorp.waypoint_goal_weight,
         "step_penalty": dorp.waypoint_step_penalty,
