@@ -83,11 +83,21 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out-dir", default="outputs/latent_model_errors")
     parser.add_argument("--json", default=None, help="write the result here too")
+    parser.add_argument("--eval-windows", type=int, default=4096, help="held-out windows")
+    parser.add_argument(
+        "--eval-frames", type=int, default=64_000, help="held-out play transitions they come from"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     # The trainer's held-out windows (its eval seed), with a token training buffer.
     cfg = LatentWorldModelConfig.for_env(
-        args.env, args.num_objects, num_frames=4000, num_steps=1, out_dir=args.out_dir
+        args.env,
+        args.num_objects,
+        num_frames=4000,
+        num_steps=1,
+        out_dir=args.out_dir,
+        eval_sequences=args.eval_windows,
+        eval_frames=args.eval_frames,
     )
     cfg = cfg.replace(progress=False)
     env = cfg.make_env(batch_size=(cfg.num_envs,))
