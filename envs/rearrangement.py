@@ -393,16 +393,17 @@ def _rearrangement_latent_model(num_objects: int) -> dict:
       the action as a vector (cheap enough to plan through), trained at a higher
       learning rate (far faster) for 5000 steps that decode 4 random steps of each
       window (as accurate as decoding all, in a fifth less time);
-    - from 5 blocks on, where the true dynamics cost more too, 32 channels, with the
-      decoded frames' error at the values a step changed weighted on its own (a block's
-      sideways move changes a dozen of 768 values: without it the model left some
-      blocks where they were), trained twice as long on twice the play data (each
-      doubling more accurate on held-out play), decoding 4 random steps of each window.
+    - from 5 blocks on, where the true dynamics cost more too, 32 channels stepped by
+      convolutions twice as wide (their one-step errors compounded less over 14 steps),
+      with the decoded frames' error at the values a step changed weighted on its own
+      (a block's sideways move changes a dozen of 768 values: without it the model left
+      some blocks where they were), trained twice as long on twice the play data,
+      decoding 4 random steps of each window.
     """
     base = GRID_LATENT_MODEL["model"]
     fields: dict = {}
     if num_objects >= 5:
-        model = {**base, "latent_stride": 2}
+        model = {**base, "latent_stride": 2, "dynamics_channels": 64}
         fields = {
             "change_weight": 10.0,
             "pixel_steps": 4,

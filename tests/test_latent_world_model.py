@@ -485,7 +485,7 @@ def test_a_profiles_latent_preset_overrides_its_world_model_windows():
     assert three == four and presets[3].lr == presets[4].lr == 3e-3
     assert (three.latent_stride, three.latent_channels, three.dynamics_layers) == (2, 16, 3)
     assert not three.action_planes and presets[2].lr == presets[5].lr == 1e-3
-    assert (five.latent_stride, five.dynamics_channels, five.action_planes) == (2, None, True)
+    assert (five.latent_stride, five.dynamics_channels, five.action_planes) == (2, 64, True)
     # Crowded blocks: the error where a step changed the frame weighs on its own.
     assert presets[5].change_weight == 10.0 and presets[3].change_weight == 0.0
     # 3-4 blocks train in under 10 minutes: fewer steps, decoding 4 steps of each window.
