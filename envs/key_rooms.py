@@ -401,8 +401,16 @@ def _key_room_profile(
         },
         groups=((0, 1),),
         # Re-enter a code another way, replan after a miss, no goal-image term in the
-        # waypoint cost (pixel distance ignores the walls; docs/NOTES.md has the figures).
-        dorp={"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0},
+        # waypoint cost (pixel distance ignores the walls). A latent model's goal-image
+        # phase judges decoded frames: the agent is one pixel, and the imagined latents
+        # one step from the goal did not tell its neighbouring cells apart (the phase
+        # went back and forth between two cells). docs/NOTES.md has the figures.
+        dorp={
+            "reenter": True,
+            "replan_on_miss": True,
+            "waypoint_goal_weight": 0.0,
+            "goal_latent_weight": 0.0,
+        },
         draw_tasks=draw_grid_tasks,
         description=description,
     )

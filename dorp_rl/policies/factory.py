@@ -42,7 +42,7 @@ __all__ = [
 #: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
 #: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
 #: older recipe runs again instead of being reused.
-DORP_RECIPE = 10
+DORP_RECIPE = 11
 #: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
 DEFAULT_ACTION_PRIOR_MIX = 0.8
 #: ``goal_action_prior_mix`` when the config leaves it ``None``, the encoder has object
