@@ -56,15 +56,15 @@ def test_the_config_comes_from_the_env_profile_and_arguments_override_it():
     # A profile or its name takes a count; without one, the profile's default count.
     assert DORPConfig.for_env("rearrangement", num_objects=5).goal_latent_weight == 0.0
     assert DORPConfig.for_env("rearrangement").goal_latent_weight is None
+    assert DORPConfig.for_env(counted, num_objects=3).goal_patience == 30
+    # ...and the evaluation's policy of the 5-object setting gets the 5-object settings.
+    assert EvalSpec("5obj", "random").dorp_config().goal_latent_weight == 0.0
+    assert EvalSpec("3obj", "random").dorp_config().goal_latent_weight is None
     # The key rooms judge it on decoded frames: their agent is one pixel, which imagined
     # latents near the goal did not place.
     assert DORPConfig.for_env(KeyWallEnv()).goal_latent_weight == 0.0
     assert DORPConfig.for_env("key-corridor").goal_latent_weight == 0.0
     assert EvalSpec("keycorridor", "random").dorp_config().goal_latent_weight == 0.0
-    assert DORPConfig.for_env(counted, num_objects=3).goal_patience == 30
-    # ...and the evaluation's policy of the 5-object setting gets the 5-object settings.
-    assert EvalSpec("5obj", "random").dorp_config().goal_latent_weight == 0.0
-    assert EvalSpec("3obj", "random").dorp_config().goal_latent_weight is None
     odd = EnvProfile(name="odd", make_env=ObjectRearrangementEnv, dorp={"reentr": True})
     with pytest.raises(ValueError, match=r"env profile 'odd' name \['reentr'\]"):
         DORPConfig.for_env(odd)
