@@ -33,6 +33,7 @@ from torchrl.envs import EnvBase
 from dorp_rl.envs.grid_base import CheckedRolloutLength
 from dorp_rl.envs.planning import distinct_rows
 from dorp_rl.envs.spec import qualified_name
+from dorp_rl.validation import frames_to_uint8
 
 __all__ = ["GymGoalEnv", "draw_reachable_tasks"]
 
@@ -128,9 +129,11 @@ class GymGoalEnv(CheckedRolloutLength, EnvBase):
     Keys: ``pixels`` / ``goal_pixels`` uint8 ``[*B, C, H, W]`` (the gymnasium env's
     ``render()``, channels first), ``state`` / ``goal_state`` int64 ``[*B, S]``
     (``state_of``), ``action`` int64 ``[*B, 1]``; ``done`` / ``terminated`` when the
-    state equals the goal. ``reset()`` draws start and goal uniformly from the states
-    reachable from the gymnasium env's own reset (goal different from the start);
-    ``reset(td, set_state=True)`` starts from ``td``'s ``state`` and ``goal_state``.
+    state equals the goal (for a goal given as an image only, ``goal_pixels`` without
+    ``goal_state``: when the frame equals it). ``reset()`` draws start and goal uniformly
+    from the states reachable from the gymnasium env's own reset (goal different from the
+    start); ``reset(td, set_state=True)`` starts from ``td``'s ``state`` and
+    ``goal_state`` (or keeps ``goal_pixels`` given without ``goal_state``).
 
     Args:
         make_gym_env: builds the gymnasium env (``render_mode="rgb_array"``); its reset
@@ -242,8 +245,8 @@ class GymGoalEnv(CheckedRolloutLength, EnvBase):
             return torch.zeros(*state.shape[:-1], *shape, dtype=torch.uint8, device=self.device)
         distinct, inverse = _distinct(rows)
         frames = np.stack([self.dynamics.frame(tuple(r)) for r in distinct.tolist()])
-        out = torch.from_numpy(frames).permute(0, 3, 1, 2)
-        out = out if inverse is None else out[inverse]
+        out = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()
+        out = out if inverse is None else out.index_select(0, inverse)  # rows copied whole
         return out.reshape(*state.shape[:-1], *shape).to(self.device)
 
     def transition(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -275,35 +278,46 @@ class GymGoalEnv(CheckedRolloutLength, EnvBase):
         given = tensordict if kwargs.get("set_state", False) else None
         state = None if given is None else given.get("state", None)
         goal = None if given is None else given.get("goal_state", None)
+        goal_pixels = None if given is None else given.get("goal_pixels", None)
         state = self._draw(shape) if state is None else state.to(torch.int64).cpu()
-        goal = self._draw(shape, avoid=state) if goal is None else goal.to(torch.int64).cpu()
-        return TensorDict(
+        out = TensorDict(
             pixels=self.render_states(state),
-            goal_pixels=self.render_states(goal),
             state=state.to(self.device),
-            goal_state=goal.to(self.device),
             batch_size=shape,
             device=self.device,
         )
+        if goal is None and goal_pixels is not None:  # a goal given as an image only
+            frame = tuple(self.observation_spec["pixels"].shape[len(self.batch_size) :])
+            goal_pixels = frames_to_uint8(goal_pixels, "goal_pixels", shape=frame)
+            out.set("goal_pixels", goal_pixels.to(self.device).expand_as(out["pixels"]).clone())
+            return out
+        goal = self._draw(shape, avoid=state) if goal is None else goal.to(torch.int64).cpu()
+        out.set("goal_pixels", self.render_states(goal))
+        out.set("goal_state", goal.to(self.device))
+        return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The next rows; solved where ``state == goal_state``, or, for a goal given as an
+        image only (``goal_pixels`` without ``goal_state``), where the frame equals it."""
         shape = tensordict.batch_size
         state = tensordict.get("state").cpu()
         action = tensordict.get("action").to(torch.int64).reshape(shape).cpu()
         nxt = self.transition(state, action)
-        goal = tensordict.get("goal_state")
-        solved = (nxt == goal).all(-1, keepdim=True)
-        return TensorDict(
-            pixels=self.render_states(nxt),
-            goal_pixels=tensordict.get("goal_pixels"),
-            state=nxt,
-            goal_state=goal,
-            reward=solved.float(),
-            done=solved,
-            terminated=solved.clone(),
-            batch_size=shape,
-            device=self.device,
-        )
+        pixels = self.render_states(nxt)
+        goal = tensordict.get("goal_state", None)
+        goal_pixels = tensordict.get("goal_pixels", None)
+        out = TensorDict(pixels=pixels, state=nxt, batch_size=shape, device=self.device)
+        if goal is not None:
+            solved = (nxt == goal.to(nxt.device)).all(-1, keepdim=True)
+            out.set("goal_state", goal)
+        elif goal_pixels is not None:
+            solved = (pixels == goal_pixels.to(pixels.device)).flatten(-3).all(-1, keepdim=True)
+        else:
+            solved = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
+        if goal_pixels is not None:
+            out.set("goal_pixels", goal_pixels)
+        out.update({"reward": solved.float(), "done": solved, "terminated": solved.clone()})
+        return out
 
 
 def draw_reachable_tasks(env: GymGoalEnv, num_tasks: int, seed: int) -> TensorDict:

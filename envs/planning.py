@@ -39,6 +39,7 @@ Imagining candidates without stepping
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
@@ -56,6 +57,7 @@ from dorp_rl.envs.grid_base import (
 )
 from dorp_rl.envs.spec import DiscreteActions
 from dorp_rl.validation import (
+    MissingKeyError,
     check_action,
     check_device,
     check_frames,
@@ -366,6 +368,8 @@ class GroundTruthModelEnv(_PlanningEnvBase):
 
 
 _HASH_WEIGHTS: dict[tuple[torch.device, int], torch.Tensor] = {}
+#: int8 limbs of the hash weights, ``(weights, limbs [num_bytes, 8])`` per (device, bytes)
+_HASH_LIMBS: dict[tuple[torch.device, int], tuple[torch.Tensor, torch.Tensor]] = {}
 
 
 def row_hashes(rows: torch.Tensor) -> torch.Tensor:
@@ -377,10 +381,16 @@ def row_hashes(rows: torch.Tensor) -> torch.Tensor:
     (a weighted sum of byte differences, each below 2**8 in size, vanishing modulo
     2**64). A weight per 8-byte word instead would let a difference in a word's top byte
     reach only the hash's top 8 bits: frames differing there collided one time in 256.
+
+    On the CPU the sum is one int8 matrix product (:func:`_byte_hashes`): a pass over the
+    bytes, about 11 ms for 4000 rows of 3 x 76 x 76 bytes on one thread (the int64 sum
+    it replaces took 0.54 s).
     """
     n = rows.shape[0]
-    flat = rows.reshape(n, -1)
+    flat = rows.reshape(n, rows[0].numel() if n else rows.shape[1:].numel())
     weights = _hash_weights(rows.device, flat.shape[1])
+    if flat.dtype == torch.uint8 and flat.device.type == "cpu" and hasattr(torch, "_int_mm"):
+        return _byte_hashes(flat, weights)
     out = torch.empty(n, dtype=torch.int64, device=rows.device)
     for start in range(0, n, _HASH_CHUNK):  # bounds the int64 copy of the bytes
         chunk = flat[start : start + _HASH_CHUNK].to(torch.int64)
@@ -388,8 +398,57 @@ def row_hashes(rows: torch.Tensor) -> torch.Tensor:
     return out
 
 
-#: rows hashed at once by :func:`row_hashes`
+#: rows hashed at once by :func:`row_hashes` off the CPU
 _HASH_CHUNK = 2048
+#: bytes of rows converted at once by :func:`_byte_hashes` (stays in cache)
+_HASH_CHUNK_BYTES = 1 << 22
+#: columns per int8 product of :func:`_byte_hashes`: its int32 sums of ``K`` products of
+#: at most 2**14 in size stay below 2**31
+_HASH_BLOCK = 131064
+_LIMB_SHIFTS = torch.tensor([1 << (8 * k) for k in range(8)], dtype=torch.int64)
+
+
+def _hash_limbs(weights: torch.Tensor) -> torch.Tensor:
+    """int8 ``[D, 8]`` signed base-256 digits ``c`` of int64 weights ``[D]``:
+    ``sum_k c[:, k] * 256**k == weights`` modulo 2**64."""
+    key = (weights.device, weights.shape[0])
+    cached = _HASH_LIMBS.get(key)
+    if cached is not None and cached[0] is weights:
+        return cached[1]
+    limbs, carry = [], torch.zeros_like(weights)
+    for k in range(8):
+        value = ((weights >> (8 * k)) & 255) + carry  # 0..256
+        carry = (value >= 128).to(torch.int64)
+        limbs.append(value - 256 * carry)  # -128..127
+    out = torch.stack(limbs, -1).to(torch.int8)
+    _HASH_LIMBS[key] = (weights, out)
+    return out
+
+
+def _byte_hashes(flat: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """:func:`row_hashes` of CPU uint8 rows ``[n, D]``, exactly, as int8 matrix products.
+
+    ``sum_b w_b x_b = sum_b w_b (x_b - 128) + 128 sum_b w_b``; the bytes less 128 are int8
+    (``x ^ 128``), the weights int8 digits of base 256 (:func:`_hash_limbs`), so
+    ``torch._int_mm`` gives the digits' sums in int32, combined modulo 2**64.
+    """
+    n, num_bytes = flat.shape
+    out = torch.empty(n, dtype=torch.int64)
+    if n == 0 or num_bytes == 0:
+        return out.fill_(0)
+    limbs = _hash_limbs(weights)
+    offset = 128 * weights.sum()  # modulo 2**64
+    rows = max(1, _HASH_CHUNK_BYTES // num_bytes)
+    buffer = torch.empty(min(rows, n), num_bytes, dtype=torch.uint8)
+    for start in range(0, n, rows):
+        chunk = flat[start : start + rows]
+        signed = torch.bitwise_xor(chunk, 128, out=buffer[: chunk.shape[0]]).view(torch.int8)
+        sums = torch.zeros(chunk.shape[0], 8, dtype=torch.int64)
+        for col in range(0, num_bytes, _HASH_BLOCK):
+            block = slice(col, col + _HASH_BLOCK)
+            sums += torch._int_mm(signed[:, block], limbs[block])
+        out[start : start + rows] = (sums * _LIMB_SHIFTS).sum(-1) + offset
+    return out
 
 
 def _hash_weights(device: torch.device, num_bytes: int) -> torch.Tensor:
@@ -425,14 +484,45 @@ def distinct_rows(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None
         (2, True)
     """
     n = rows.shape[0]
+    if n == 0:
+        return rows, torch.zeros(0, dtype=torch.long, device=rows.device)
     key = row_hashes(rows)
     unique, inverse = torch.unique(key, return_inverse=True)
     first = torch.full((unique.shape[0],), n, dtype=torch.long, device=key.device)
     first.scatter_reduce_(0, inverse, torch.arange(n, device=key.device), reduce="amin")
     representatives = rows[first]
-    if not bool((representatives[inverse] == rows).reshape(n, -1).all()):
+    if not _rows_match(rows.reshape(n, -1), representatives.reshape(first.shape[0], -1), inverse):
         return rows, None
     return representatives, inverse
+
+
+def _rows_match(rows: torch.Tensor, table: torch.Tensor, index: torch.Tensor) -> bool:
+    """Whether ``table[index] == rows`` (``[n, D]`` each), compared as int64 words in
+    chunks that stay in cache on the CPU (a uint8 comparison there is 6x slower)."""
+    if rows.device.type != "cpu" or rows.dtype != torch.uint8:
+        return bool((table[index] == rows).all())
+    rows = rows.contiguous()
+    n, num_bytes = rows.shape
+    step = max(1, _HASH_CHUNK_BYTES // max(num_bytes, 1))
+    step = step - step % 8 if step >= 8 else step  # chunk starts stay word-aligned
+    buffer = torch.empty(min(step, n), num_bytes, dtype=torch.uint8)
+    for start in range(0, n, step):
+        chunk = rows[start : start + step]
+        drawn = buffer[: chunk.shape[0]]
+        torch.index_select(table, 0, index[start : start + step], out=drawn)
+        if not torch.equal(*_words(drawn.reshape(-1), chunk.reshape(-1))):
+            return False
+    return True
+
+
+def _words(*flats: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """1-D uint8 tensors of one length viewed as int64 words where their offsets allow."""
+    if flats[0].numel() % 8 == 0 and all(f.storage_offset() % 8 == 0 for f in flats):
+        try:
+            return tuple(f.view(torch.int64) for f in flats)
+        except RuntimeError:
+            pass
+    return flats
 
 
 def int64_columns(columns: torch.Tensor) -> torch.Tensor:
@@ -839,16 +929,24 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
 
     A stateless env reads everything it needs from the tensordict it steps (torchrl's
     convention, e.g. ``PendulumEnv``): its state entries, here ``state``. This model
-    steps a ``[*B]`` batch of candidates by flattening it to rows and handing them to the
-    env's ``_step`` in chunks of the env's own batch (one call for an env with
-    ``batch_size=()`` that is not batch-locked), so a user's env whose batch is fixed at
-    ``(n,)`` plans as well as one of any shape. ``goal_pixels`` ride along unchanged; the
-    done flags are always ``False`` and the reward 0 (imagined rollouts run the whole
-    horizon and are scored by cost modules).
+    hands the env's ``_step`` every entry of the env's observation (and state) spec that
+    the planning tensordict holds, plus the action, so an env reading e.g. ``step_count``
+    steps here as it does when acting; a missing ``goal_state`` is filled with ``state``
+    and a missing ``goal_pixels`` with zeros (a goal is not needed to imagine a step) and
+    left out of the output. A ``[*B]`` batch of candidates is flattened to rows: an env
+    of any shape takes them at once; an env whose batch is fixed at ``(n,)`` takes them
+    in chunks of ``n``, or at once if a probe on the first step finds that its ``_step``
+    gives exactly the chunks' results on the whole batch. ``goal_pixels`` ride along
+    unchanged; the done flags are always ``False`` and the reward 0 (imagined rollouts run
+    the whole horizon and are scored by cost modules).
 
     Args:
         env: the env whose dynamics to use; it must step from a tensordict holding
             ``state`` and an action (``_supports_set_state`` and a ``state`` entry).
+
+    Raises:
+        MissingKeyError: (a ``ValueError`` and a ``KeyError``) from ``step`` when the
+            env's ``_step`` looks up an entry the planning tensordict lacks.
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -879,9 +977,20 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
         self.true_env = env
         batch = len(env.batch_size)
         self.rows = int(env.batch_size.numel()) if env.batch_locked and batch else None
-        self.observation_spec = Composite(
-            {k: env.observation_spec[k][(0,) * batch].clone() for k in env.observation_spec.keys()}
-        )
+        #: whether the env's ``_step`` takes a whole flat batch (fixed batch only; ``None``:
+        #: not probed yet)
+        self.whole_batch: bool | None = None
+
+        def unbatched(spec: Composite, keys) -> Composite:
+            return Composite({k: spec[k][(0,) * batch].clone() for k in keys})
+
+        self.observation_spec = unbatched(env.observation_spec, env.observation_spec.keys())
+        observed = set(self.observation_spec.keys())
+        extra = [k for k in env.state_spec.keys() if k not in observed]
+        if extra:  # entries the env reads besides its observations (torchrl's "params")
+            self.state_spec = unbatched(env.state_spec, extra)
+        #: the entries handed to the env's ``_step`` when the tensordict holds them
+        self._step_keys = [*self.observation_spec.keys(), *extra]
         # Planners draw indices; a one-hot env gets them in its own layout.
         self.actions = DiscreteActions.of(env)
         self.action_spec = Categorical(
@@ -907,30 +1016,49 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
         outs = [call(rows[i : i + size].reshape(batch)) for i in range(0, rows.shape[0], size)]
         return torch.cat([o.reshape(-1) for o in outs], 0)[:n]
 
+    def _step_rows(self, rows: TensorDictBase) -> TensorDictBase:
+        """The env's ``_step`` on flat ``rows`` ``[n]``: by chunks of a fixed batch until a
+        probe (the first batch of another size than the env's) finds the whole batch at
+        once gives exactly the same outputs; ``[n]`` back."""
+        step = self.true_env._step
+        n = rows.shape[0]
+        if self.rows is None or n == self.rows:
+            return self._by_rows(rows, step)
+        if self.whole_batch:
+            return step(rows)
+        out = self._by_rows(rows, step)
+        if self.whole_batch is None:
+            self.whole_batch = _same_outputs(out, _try_call(step, rows))
+        return out
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         env = self.true_env
+        keys = self._step_keys
         if tensordict is None or not kwargs.get("set_state", False):
             td = env.reset()
-            return td.reshape(-1)[0].select(*self.observation_spec.keys()).clone()
+            return td.reshape(-1)[0].select(*keys, strict=False).clone()
         out = self._by_rows(
             tensordict.reshape(-1), lambda rows: env.reset(rows.clone(), set_state=True)
         )
-        return out.select(*self.observation_spec.keys()).reshape(tensordict.batch_size)
+        return out.select(*keys, strict=False).reshape(tensordict.batch_size)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = tensordict.batch_size
-        keys = [
-            k for k in ("state", "goal_state", "goal_pixels", "action") if k in tensordict.keys()
-        ]
-        rows = tensordict.select(*keys).reshape(-1)
+        rows = tensordict.select(*self._step_keys, "action", strict=False).reshape(-1)
         rows.set("action", self.actions.from_index(rows.get("action")))
-        if "goal_state" not in rows.keys():  # a goal is not needed to imagine a step
+        given = sorted(str(k) for k in rows.keys())
+        filled = []  # a goal is not needed to imagine a step
+        if "goal_state" not in rows.keys():
             rows.set("goal_state", rows.get("state").clone())
-        if "goal_pixels" not in rows.keys() and "goal_pixels" in self.observation_spec.keys():
-            spec = self.observation_spec["goal_pixels"]
-            rows.set("goal_pixels", spec.zero(rows.batch_size))
-        out = self._by_rows(rows, self.true_env._step)
-        out = out.select(*self.observation_spec.keys()).reshape(shape)
+            filled.append("goal_state")
+        if "goal_pixels" in self.observation_spec.keys() and "goal_pixels" not in rows.keys():
+            rows.set("goal_pixels", self.observation_spec["goal_pixels"].zero(rows.batch_size))
+            filled.append("goal_pixels")
+        try:
+            out = self._step_rows(rows)
+        except KeyError as err:
+            raise self._missing_entry(err, given) from err
+        out = out.select(*self._step_keys, strict=False).exclude(*filled).reshape(shape)
         false = torch.zeros((*shape, 1), dtype=torch.bool, device=self.device)
         out.update(
             {
@@ -943,3 +1071,59 @@ class StatelessEnvModel(CheckedRolloutLength, EnvBase):
         if "goal_pixels" in tensordict.keys():
             out.set("goal_pixels", tensordict.get("goal_pixels"))
         return out
+
+    def _missing_entry(self, err: KeyError, given: list[str]) -> MissingKeyError:
+        """The error naming the entry the env's ``_step`` looked up and did not find
+        (``given``: the entries the planning tensordict held)."""
+        name = type(self.true_env).__name__
+        text = str(err.args[0]) if err.args else ""
+        found = re.search(r'key "(.+?)" not found', text)
+        key = found.group(1) if found else (err.args[0] if err.args else "?")
+        specs = [self.observation_spec, self.state_spec]
+        declared = {k for spec in specs for k in spec.keys(True)}
+        declared |= {k[-1] for k in declared if isinstance(k, tuple)}  # tensordict names leaves
+        if key in declared:
+            why = (
+                f"{key!r} is in {name}'s observation spec, and the planner hands the model "
+                "the entries the acting tensordict holds: that tensordict lacks it (the env's "
+                "reset writes it; keep it in what the policy is given)."
+            )
+        else:
+            why = (
+                f"{key!r} is not in {name}'s observation spec: the planning tensordict "
+                "carries what the env declares there (as its reset writes it), so declare it."
+            )
+        return MissingKeyError(
+            f"{name}._step looked up {key!r}, missing from the planning tensordict that "
+            f"StatelessEnvModel (dorp_rl.envs.planning, the planning model of the env's true "
+            f"dynamics) stepped it on, which holds {given}. {why}"
+        )
+
+
+def _try_call(call, rows: TensorDictBase) -> TensorDictBase | None:
+    """``call(rows)``, or ``None`` if it raises."""
+    try:
+        return call(rows)
+    except Exception:  # noqa: BLE001 (any failure means: step in chunks)
+        return None
+
+
+def _same_outputs(expected: TensorDictBase, got: TensorDictBase | None) -> bool:
+    """Whether ``got`` holds exactly ``expected``'s entries (keys, shapes, dtypes, values)."""
+    if not isinstance(got, TensorDictBase) or got.batch_size != expected.batch_size:
+        return False
+    keys = set(expected.keys(True, True))
+    if set(got.keys(True, True)) != keys:
+        return False
+    for key in keys:
+        a, b = expected.get(key), got.get(key)
+        if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+            if a.dtype != b.dtype or not torch.equal(a, b):
+                return False
+            continue
+        try:  # non-tensor entries
+            if not bool(a == b):
+                return False
+        except Exception:  # noqa: BLE001 (no comparison: no proof of sameness)
+            return False
+    return True
