@@ -1,7 +1,12 @@
 """Models as TensorDict-friendly modules: code encoder, similarity matrices, video prediction
 model, latent world model."""
 
-from dorp_rl.modules.encoder import DiscreteCodeEncoder, EncoderConfig, check_pixels
+from dorp_rl.modules.encoder import (
+    DiscreteCodeEncoder,
+    EncoderConfig,
+    check_pixels,
+    choose_map_stride,
+)
 from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel
 from dorp_rl.modules.oracle import OracleCodeEncoder
 from dorp_rl.modules.similarity import (
@@ -30,6 +35,7 @@ __all__ = [
     "VideoModelConfig",
     "VideoPredictionModel",
     "check_pixels",
+    "choose_map_stride",
     "make_similarity",
     "palette_from_frames",
 ]

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torch import nn
 
@@ -41,7 +43,7 @@ class EncoderConfig(ConfigMixin):
         >>> cfg.replace(map_competition="max")
         Traceback (most recent call last):
         ...
-        ValueError: map_competition must be one of ('sigmoid', 'softmax'), got 'max'.
+        ValueError: map_competition must be one of ('auto', 'sigmoid', 'softmax'), got 'max'.
     """
 
     code_sizes: tuple[int, ...] = checked((32,), Ints(low=2))
@@ -56,12 +58,37 @@ class EncoderConfig(ConfigMixin):
     """hidden widths of the per-map encoder shared by all maps (the last gets a LayerNorm)"""
     input_scale: float = checked(10.0, Float(low=0.0, low_open=True))
     """pixels in [0, 1] are multiplied by this"""
-    map_competition: str = checked("sigmoid", Choice(("sigmoid", "softmax")))
-    """how object maps share a pixel: sigmoid (independent) or softmax (they compete)"""
+    map_competition: str = checked("auto", Choice(("auto", "sigmoid", "softmax")))
+    """how object maps share a pixel: sigmoid (independent) or softmax (they compete);
+    auto: softmax where two or more one-hots have more than 2 codes (objects), else sigmoid"""
     frame_shape: tuple[int, int, int] = checked(
         (3, 16, 16), Ints(low=1, min_length=3, max_length=3)
     )
-    """(C, H, W) of the frames: channels of the first conv, H x W inputs of the map encoder"""
+    """(C, H, W) of the frames: channels of the first conv; the map encoder reads the maps'
+    ceil(H / map_stride) x ceil(W / map_stride) cells"""
+    map_stride: int | None = checked(None, Int(low=1, optional=True))
+    """the object maps' resolution is the frame's divided by this (each map cell averages a
+    map_stride x map_stride block of pixels before the convolutions); 1 keeps every pixel;
+    None: :func:`choose_map_stride` of the frame size"""
+
+    @classmethod
+    def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """Configs stored before the stride and the automatic competition kept every pixel
+        and independent maps."""
+        values = super().upgrade(values)
+        values.setdefault("map_stride", 1)
+        values.setdefault("map_competition", "sigmoid")
+        return values
+
+    def resolved(self) -> EncoderConfig:
+        """This config with ``map_competition="auto"`` and ``map_stride=None`` decided
+        (:func:`competing_maps`, :func:`choose_map_stride`)."""
+        changes: dict[str, Any] = {}
+        if self.map_competition == "auto":
+            changes["map_competition"] = "softmax" if competing_maps(self.code_sizes) else "sigmoid"
+        if self.map_stride is None:
+            changes["map_stride"] = choose_map_stride(self.frame_shape)
+        return self.replace(**changes) if changes else self
 
     @classmethod
     def authors(cls, code_sizes: Sequence[int] = (32,), **overrides: Any) -> EncoderConfig:
@@ -77,6 +104,44 @@ class EncoderConfig(ConfigMixin):
     def check_relations(self) -> None:
         if self.kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be an odd int >= 1, got {self.kernel_size}.")
+
+
+def competing_maps(code_sizes: Sequence[int]) -> bool:
+    """Whether object maps should compete for pixels: two or more one-hots of more than 2
+    codes (objects; a 2-code one-hot is a flag, such as a key held)."""
+    return sum(int(size) > 2 for size in code_sizes) > 1
+
+
+#: The fewest cells :func:`choose_map_stride` leaves on the maps' shorter side.
+MIN_MAP_CELLS = 16
+
+
+def choose_map_stride(frame_shape: tuple[int, int, int], smallest_object: int | None = None) -> int:
+    """The :attr:`EncoderConfig.map_stride` for frames of ``frame_shape`` ``(C, H, W)``.
+
+    The largest stride ``s`` that leaves the object maps at least 16 cells on their shorter
+    side (``min(H, W) // s >= 16``) and, when ``smallest_object`` (the extent in pixels of
+    the smallest moving object) is given, at most that extent, so that an object still
+    covers a whole map cell's worth of pixels. Frames of 16 pixels or fewer a side get 1.
+
+    Code training costs about as much per step at every frame size with it: 64 x 64 frames
+    get 16 x 16 maps, 84 x 84 frames 17 x 17 maps.
+
+    Examples:
+        >>> from dorp_rl.modules import choose_map_stride
+        >>> [choose_map_stride((3, n, n)) for n in (16, 30, 64, 84)]
+        [1, 1, 4, 5]
+        >>> choose_map_stride((3, 84, 84), smallest_object=3), choose_map_stride((1, 24, 32))
+        (3, 1)
+    """
+    shape = tuple(frame_shape)
+    if len(shape) != 3:
+        raise ValueError(f"frame_shape must be (C, H, W), got {frame_shape}.")
+    _, height, width = (check_int(f"frame_shape[{i}]", d, low=1) for i, d in enumerate(shape))
+    stride = max(1, min(height, width) // MIN_MAP_CELLS)
+    if smallest_object is not None:
+        stride = min(stride, check_int("smallest_object", smallest_object, low=1))
+    return stride
 
 
 def module_device(module: nn.Module) -> torch.device:
@@ -98,6 +163,16 @@ def check_pixels(
     return frames_to_unit_float(pixels, name, shape=shape)
 
 
+def pool_blocks(x: torch.Tensor, stride: int, reduce: str = "mean") -> torch.Tensor:
+    """Mean (or sum) of ``x`` ``[N, C, H, W]`` over ``stride x stride`` blocks, ``[N, C,
+    ceil(H / stride), ceil(W / stride)]``; a partial block at the bottom or right edge
+    averages (sums) the pixels it has. ``x`` itself for ``stride`` 1."""
+    if stride == 1:
+        return x
+    divisor = 1 if reduce == "sum" else None
+    return F.avg_pool2d(x, stride, stride, ceil_mode=True, divisor_override=divisor)
+
+
 class DiscreteCodeEncoder(nn.Module):
     """Maps images to C discrete codes, one per one-hot (ideally one per object).
 
@@ -113,7 +188,11 @@ class DiscreteCodeEncoder(nn.Module):
 
     Frames of any ``(C, H, W)`` are taken: ``config.frame_shape`` sizes the first
     convolution and the map encoder, and :meth:`for_env` reads it off an env's
-    observation spec.
+    observation spec. With ``config.map_stride`` ``s > 1`` the frames are first averaged
+    over ``s x s`` blocks (the last row and column of blocks may be partial), so the
+    convolutions and the maps have ``ceil(H / s) x ceil(W / s)`` cells
+    (:attr:`map_shape`): large frames then train about as fast as small ones
+    (:func:`choose_map_stride`).
 
     Args:
         config: sizes (see :class:`EncoderConfig`).
@@ -131,6 +210,10 @@ class DiscreteCodeEncoder(nn.Module):
         >>> gray = DiscreteCodeEncoder(EncoderConfig.small((8,), frame_shape=(1, 24, 32)))
         >>> gray.encode(torch.zeros(5, 1, 24, 32, dtype=torch.uint8)).shape
         torch.Size([5, 1])
+        >>> config = EncoderConfig.small((8,), frame_shape=(3, 84, 84), map_stride=5)
+        >>> big = DiscreteCodeEncoder(config)  # 84 x 84 frames, 17 x 17 maps
+        >>> big.object_maps(torch.zeros(2, 3, 84, 84, dtype=torch.uint8)).shape
+        torch.Size([2, 1, 17, 17])
     """
 
     env_config: dict | None = None
@@ -149,7 +232,8 @@ class DiscreteCodeEncoder(nn.Module):
         )
         if not sizes:
             raise ValueError(f"code_sizes needs at least one one-hot of >= 2 codes, got {sizes}.")
-        check_choice("map_competition", config.map_competition, ("sigmoid", "softmax"))
+        check_choice("map_competition", config.map_competition, ("auto", "sigmoid", "softmax"))
+        config = config.resolved()
         self.config = config
         self.code_sizes = sizes
         self.num_onehots = len(sizes)
@@ -166,6 +250,14 @@ class DiscreteCodeEncoder(nn.Module):
         )
         if len(self.frame_shape) != 3:
             raise ValueError(f"frame_shape must be (C, H, W), got {config.frame_shape}.")
+        self.map_stride = check_int("map_stride", config.map_stride, low=1)
+        if self.map_stride > min(self.frame_shape[1:]):
+            raise ValueError(
+                f"map_stride {self.map_stride} is larger than the frames' shorter side "
+                f"{min(self.frame_shape[1:])} (frame_shape {self.frame_shape})."
+            )
+        # (h, w) cells of the object maps: ceil(H / map_stride), ceil(W / map_stride)
+        self.map_shape = tuple(math.ceil(d / self.map_stride) for d in self.frame_shape[1:])
         layers: list[nn.Module] = []
         in_channels = self.frame_shape[0]
         for _ in range(config.conv_layers):
@@ -179,7 +271,7 @@ class DiscreteCodeEncoder(nn.Module):
         layers.append(nn.Conv2d(in_channels, self.num_onehots + extra, k, padding=k // 2))
         self.extractor = nn.Sequential(*layers)
         mlp: list[nn.Module] = []
-        width = self.frame_shape[1] * self.frame_shape[2]
+        width = self.map_shape[0] * self.map_shape[1]
         for i, hidden in enumerate(config.mlp_sizes):
             mlp.append(nn.Linear(width, hidden))
             if i == len(config.mlp_sizes) - 1:
@@ -213,15 +305,32 @@ class DiscreteCodeEncoder(nn.Module):
             elif isinstance(module, (nn.BatchNorm2d, nn.LayerNorm)):
                 module.reset_parameters()
 
+    def pool_to_maps(self, x: torch.Tensor, reduce: str = "mean") -> torch.Tensor:
+        """``[N, C', H, W]`` frame-sized floats on the maps' cells, ``[N, C', h, w]``
+        (:attr:`map_shape`): the mean (or with ``reduce="sum"`` the sum) of each cell's
+        ``map_stride x map_stride`` block of pixels, over the pixels a partial block at
+        the bottom or right edge has. The identity (the same tensor) for ``map_stride`` 1.
+        """
+        check_choice("reduce", reduce, ("mean", "sum"))
+        return pool_blocks(x, self.map_stride, reduce)
+
     def object_maps(self, pixels: torch.Tensor) -> torch.Tensor:
-        """The extractor's per-one-hot maps, float ``[*B, C, H, W]`` (one per one-hot).
+        """The extractor's per-one-hot maps, float ``[*B, C, h, w]`` (one per one-hot).
+
+        ``(h, w)`` is :attr:`map_shape`: the frame's ``(H, W)`` for ``map_stride`` 1,
+        else ``ceil(H / map_stride), ceil(W / map_stride)``, map cell ``(i, j)`` standing
+        for pixels ``[i * s, (i + 1) * s) x [j * s, (j + 1) * s)``.
 
         In eval mode without gradients (planning, graph building) the extractor runs as
         :meth:`inference_extractor`: the same function, 2-3x faster on a CPU.
         """
-        x = check_pixels(pixels, shape=self.frame_shape) * self.config.input_scale
+        x = check_pixels(pixels, shape=self.frame_shape)
         batch = x.shape[:-3]
         x = x.reshape(-1, *self.frame_shape)
+        if self.map_stride > 1:
+            # pool before scaling: the same up to rounding, on s^2 fewer values
+            x = pool_blocks(x, self.map_stride, "mean")
+        x = x * self.config.input_scale
         if self.training or torch.is_grad_enabled() or not self.fast_inference:
             out = self.extractor(x)
         else:
@@ -231,13 +340,15 @@ class DiscreteCodeEncoder(nn.Module):
             out = out.softmax(dim=1)[:, : self.num_onehots]
         else:
             out = out.sigmoid()
-        return out.reshape(*batch, self.num_onehots, *self.frame_shape[1:])
+        return out.reshape(*batch, self.num_onehots, *self.map_shape)
 
     def inference_extractor(self) -> nn.Module:
         """The extractor for inference: BatchNorm folded into the convolutions, channels-last.
 
         Equal to the extractor in eval mode up to float rounding (about 1e-6 relative),
-        and 2-3x faster on a CPU, where oneDNN prefers channels-last inputs. Built on
+        and 2-3x faster on a CPU, where oneDNN prefers channels-last inputs. Like
+        :attr:`extractor`, it takes the frames already pooled to the maps' cells
+        (:meth:`pool_to_maps`; nothing to pool for ``map_stride`` 1). Built on
         first use and rebuilt whenever a weight or running statistic changes (training
         steps, ``load_state_dict``, moving to another device); it is not a submodule, so
         it never enters the state dict.
@@ -305,7 +416,8 @@ class DiscreteCodeEncoder(nn.Module):
         last.bias.copy_(last.bias[index])
 
     def logits_and_maps(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, H, W]``."""
+        """Code logits ``[*B, C, Z]`` (``-inf`` on masked codes) and the maps ``[*B, C, h, w]``
+        (:meth:`object_maps`)."""
         maps = self.object_maps(pixels)
         logits = self.map_encoder(maps.flatten(-2))
         return logits.masked_fill(self.code_mask, float("-inf")), maps

@@ -12,7 +12,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
-from dorp_rl.modules.encoder import DiscreteCodeEncoder
+from dorp_rl.modules.encoder import DiscreteCodeEncoder, pool_blocks
 from dorp_rl.modules.similarity import _Similarity
 from dorp_rl.validation import Floats, check_choice, check_float
 
@@ -79,16 +79,29 @@ def change_imbalance(change: torch.Tensor) -> torch.Tensor:
 
 
 def uncovered_motion(
-    anchor: torch.Tensor, future: torch.Tensor, anchor_maps: torch.Tensor, future_maps: torch.Tensor
+    anchor: torch.Tensor,
+    future: torch.Tensor,
+    anchor_maps: torch.Tensor,
+    future_maps: torch.Tensor,
+    stride: int = 1,
 ) -> torch.Tensor:
     """Share of moving pixels that no object map covers, in [0, 1].
 
     A pixel moves when it differs between the two frames ``[B, 3, H, W]`` of a pair; it
-    is covered as much as the highest value any map ``[B, C', H, W]`` takes on it in either
-    frame (the object is under its map where it was and where it went).
+    is covered as much as the highest value any map ``[B, C', h, w]`` takes on it in either
+    frame (the object is under its map where it was and where it went). Maps of an encoder
+    with ``map_stride`` ``s`` (``stride``) have a cell per ``s x s`` block of pixels
+    (``h = ceil(H / s)``): a pixel takes its cell's value, so each cell weighs as many
+    times as it has moving pixels.
     """
     moved = (anchor != future).any(-3).to(anchor_maps.dtype)  # [B, H, W]
-    cover = torch.maximum(anchor_maps, future_maps).amax(-3)  # [B, H, W]
+    moved = pool_blocks(moved.unsqueeze(1), stride, "sum").squeeze(1)  # [B, h, w]
+    cover = torch.maximum(anchor_maps, future_maps).amax(-3)  # [B, h, w]
+    if moved.shape != cover.shape:
+        raise ValueError(
+            f"maps of {list(cover.shape[-2:])} cells do not fit frames of "
+            f"{list(anchor.shape[-2:])} pixels at map stride {stride}."
+        )
     return ((1 - cover) * moved).sum() / moved.sum().clamp_min(1)
 
 
@@ -284,7 +297,10 @@ class CPCLoss(LossModule):
             # Only the wide one-hots' maps may cover motion: a key bit's map that did
             # took the agent (docs/NOTES.md, "Key-wall codes").
             wide = self._wide_onehots.to(maps.device)
-            uncovered = uncovered_motion(anchor, future, maps[:batch, wide], maps[batch:, wide])
+            stride = getattr(self.encoder, "map_stride", 1)
+            uncovered = uncovered_motion(
+                anchor, future, maps[:batch, wide], maps[batch:, wide], stride=stride
+            )
             out.set("loss_motion", self.motion_weight * uncovered)
         out.set("map_mass", maps.detach().flatten(-2).sum(-1).mean())
         if self.exclusivity_weight > 0 and encoder_has_pairs(probs):
