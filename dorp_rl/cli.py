@@ -69,7 +69,7 @@ from dorp_rl.pipeline import (
     world_model_stage,
 )
 from dorp_rl.reproduce import pictures_stage, reproduce_paper, say_pictures
-from dorp_rl.trainers import OfflineTrainer, load_world_model
+from dorp_rl.trainers import OfflineTrainer, TrainingGaveUpError, load_world_model
 
 __all__ = [
     "COMMANDS",
@@ -276,6 +276,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         message = " ".join(line for line in lines if line)  # one line, whatever the library's
         print(f"usage: dorp {name} [-h] [OPTIONS]\ndorp {name}: error: {message}", file=sys.stderr)
         raise SystemExit(2) from None
+    except TrainingGaveUpError as err:
+        # A training that learned nothing: what it saw and what to change, exit code 1.
+        print(f"dorp {name}: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
     except KeyboardInterrupt:
         print(
             f"\ndorp {name}: stopped. Finished stages are kept: the same command goes on, "

@@ -56,6 +56,7 @@ from dorp_rl.trainers import (
     OfflineTrainer,
     RepresentationConfig,
     RepresentationTrainer,
+    TrainingGaveUpError,
     WorldModelConfig,
     WorldModelTrainer,
     load_encoder,
@@ -863,6 +864,13 @@ def play_stage(run: Run, codes: RepresentationConfig):
     )
 
 
+def say_chosen(run: Run, stage: str, chosen: dict[str, dict[str, Any]]) -> None:
+    """Writes each setting a trainer chose from the env (``{field: {"value", "why"}}``) to
+    the run's log, as ``<stage>: chose <field> = <value> (<why>)``."""
+    for name, choice in chosen.items():
+        run.say(f"{stage}: chose {name} = {choice['value']} ({choice['why']})")
+
+
 def _tagged(name: str, variant: str, sep: str = ":") -> str:
     return f"{name}{sep}{variant}" if variant else name
 
@@ -885,7 +893,10 @@ def codes_stage(run: Run, codes: RepresentationConfig, variant: str = ""):
 
     def build(resume: bool = False):
         trainer = RepresentationTrainer(cfg, buffer=buffer)
-        trainer.train(resume=resume)
+        say_chosen(run, _tagged("codes", variant), trainer.chosen)
+        result = trainer.train(resume=resume)
+        if result["gave_up"] is not None:
+            raise TrainingGaveUpError(f"{_tagged('codes', variant)}: {result['gave_up']}")
         diagnostics = trainer.evaluate()
         summary = {
             k: diagnostics[k]
@@ -894,6 +905,8 @@ def codes_stage(run: Run, codes: RepresentationConfig, variant: str = ""):
         }
         if summary:
             run.say(f"{_tagged('codes', variant)}: {json.dumps(summary)}")
+        if trainer.chosen:
+            summary["chosen"] = {k: c["value"] for k, c in trainer.chosen.items()}
         return trainer.encoder.eval(), summary
 
     def load():
@@ -968,8 +981,14 @@ def _model_stage(run: Run, folder: str, trainer: Any, cfg: Any, metric: str, con
     checkpoint = run.dir / folder / "checkpoints" / "last.pt"
 
     def build(resume: bool = False):
-        result = trainer(cfg).train(resume=resume)
-        return checkpoint, {metric: result.get("evaluation", {}).get(metric)}
+        model_trainer = trainer(cfg)
+        chosen = getattr(model_trainer, "chosen", {})
+        say_chosen(run, folder, chosen)
+        result = model_trainer.train(resume=resume)
+        summary = {metric: result.get("evaluation", {}).get(metric)}
+        if chosen:
+            summary["chosen"] = {k: c["value"] for k, c in chosen.items()}
+        return checkpoint, summary
 
     outputs = [run.dir / folder, run.dir / f"{folder}_play"]
     resume = functools.partial(build, resume=True)

@@ -36,22 +36,6 @@ from dorp_rl.validation import (
 
 GRID_SIZE = 16
 
-#: The latent world model measured on the grid envs' frames (docs/RESULTS.md): a 32 x 4 x
-#: 4 latent map stepped by convolutions, an MLP decoder of 1024 units (several times
-#: faster to run than transposed convolutions), the encoder's probabilities as the code
-#: head's targets and a heavier pixel term. Profiles add their play data and steps.
-GRID_LATENT_MODEL = {
-    "pixel_weight": 10.0,
-    "soft_targets": True,
-    "model": {
-        "decoder_kind": "mlp",
-        "decoder_hidden": 1024,
-        "dynamics_kind": "conv",
-        "latent_stride": 4,
-        "latent_channels": 32,
-    },
-}
-
 # Directions of a unit move, indexed as in the paper's action encoding:
 # 0 up (row - 1), 1 down (row + 1), 2 left (column - 1), 3 right (column + 1).
 DIRECTIONS = torch.tensor([[-1, 0], [1, 0], [0, -1], [0, 1]], dtype=torch.int64)

@@ -6,7 +6,6 @@ import torch
 
 from dorp_rl.envs.grid_base import (
     DIRECTIONS,
-    GRID_LATENT_MODEL,
     GRID_SIZE,
     GridWorldEnv,
     colour_codes,
@@ -390,15 +389,10 @@ def _key_room_profile(
             **KEY_ROOM_RECIPE,
         },
         world_model=lambda _: {"trajectory_length": env_type.PLAY_TRAJECTORY_LENGTH, **world_model},
-        # The grid envs' latent model, measured in both rooms (docs/RESULTS.md); a
-        # quarter of its windows hold a key event (found in the codes), without which
+        # The default latent model with more play data; a quarter of its windows hold
+        # a key event (the default where the codes show one), without which
         # key-corridor's model never imagined the key taken.
-        latent_model=lambda _: {
-            "num_frames": 100_000,
-            "num_steps": 3000,
-            "event_share": 0.25,
-            **GRID_LATENT_MODEL,
-        },
+        latent_model=lambda _: {"num_frames": 100_000, "num_steps": 3000},
         groups=((0, 1),),
         # Re-enter a code another way, replan after a miss, no goal-image term in the
         # waypoint cost (pixel distance ignores the walls). A latent model's goal-image

@@ -8,7 +8,6 @@ import torch
 
 from dorp_rl.envs.grid_base import (
     DIRECTIONS,
-    GRID_LATENT_MODEL,
     GRID_SIZE,
     GridWorldEnv,
     colour_codes,
@@ -368,14 +367,9 @@ class ObjectRearrangementEnv(GridWorldEnv):
 
 def _rearrangement_codes(num_objects: int) -> dict:
     """The code preset of k blocks: one one-hot per block (16 codes for one block, 32 for
-    more, whose maps compete), with the step and play budgets of the measured runs."""
-    several = num_objects > 1
+    more), with the step and play budgets of the measured runs."""
     return {
-        "encoder": {
-            "code_sizes": (32 if several else 16,),
-            "map_competition": "softmax" if several else "sigmoid",
-        },
-        "exclusivity_weight": 3.0 if several else 0.0,
+        "encoder": {"code_sizes": (32 if num_objects > 1 else 16,)},
         "num_steps": {1: 1500, 2: 1500, 3: 2000, 6: 4000}.get(num_objects, 3000),
         "num_frames": {1: 60_000, 2: 100_000, 3: 150_000, 6: 250_000}.get(num_objects, 200_000),
     }
@@ -400,10 +394,9 @@ def _rearrangement_latent_model(num_objects: int) -> dict:
       some blocks where they were), trained twice as long on twice the play data,
       decoding 4 random steps of each window.
     """
-    base = GRID_LATENT_MODEL["model"]
     fields: dict = {}
     if num_objects >= 5:
-        model = {**base, "latent_stride": 2, "dynamics_channels": 64}
+        model = {"latent_stride": 2, "dynamics_channels": 64}
         fields = {
             "change_weight": 10.0,
             "pixel_steps": 4,
@@ -412,14 +405,13 @@ def _rearrangement_latent_model(num_objects: int) -> dict:
         }
     elif num_objects >= 3:
         narrow = {"latent_channels": 16, "dynamics_channels": 16, "dynamics_layers": 3}
-        model = {**base, "latent_stride": 2, **narrow, "action_planes": False}
+        model = {"latent_stride": 2, **narrow, "action_planes": False}
         fields = {"lr": 3e-3, "pixel_steps": 4, "num_steps": 5000}
     else:
-        model = {**base, "dynamics_channels": 64}
+        model = {"dynamics_channels": 64}
     return {
         "num_frames": 200_000,
         "num_steps": 6000,
-        **GRID_LATENT_MODEL,
         **fields,
         "model": model,
     }

@@ -458,7 +458,7 @@ def test_the_trainer_looks_up_soft_targets_encoded_once(tmp_path):
     torch.testing.assert_close(batch["next", "code_probs"], probs.reshape(*batch.shape, 2, 6))
     assert torch.equal(batch["next", "code"], codes.reshape(*batch.shape, 2))
     # Hard targets keep only the codes.
-    hard = LatentWorldModelTrainer(_config(tmp_path / "hard"), encoder=encoder)
+    hard = LatentWorldModelTrainer(_config(tmp_path / "hard", soft_targets=False), encoder=encoder)
     assert set(hard.target_tables) == {"code", ("next", "code")}
 
 
@@ -470,14 +470,18 @@ def test_a_profiles_latent_preset_overrides_its_world_model_windows():
     profile = dataclasses.replace(
         PUSH_BLOCKS,
         world_model=lambda _: {"horizon": 6, "num_frames": 999, "lr": 0.5},
-        latent_model=lambda _: {"num_frames": 1234, "model": {"decoder_kind": "mlp"}},
+        latent_model=lambda _: {"num_frames": 1234, "model": {"decoder_kind": "conv"}},
     )
     cfg = LatentWorldModelConfig.for_env(profile)
     # Play windows from the world-model preset (not its other fields), the latent preset
     # over them, the config's defaults for the rest.
     assert (cfg.horizon, cfg.num_frames, cfg.lr) == (6, 1234, 1e-3)
-    assert cfg.model.decoder_kind == "mlp" and cfg.model.latent_dim == 128
-    assert LatentWorldModelConfig.for_env(PUSH_BLOCKS).model.decoder_kind == "conv"
+    assert cfg.model.decoder_kind == "conv" and cfg.model.latent_dim == 128
+    # The recipe where the profile says nothing: a map stepped by convolutions, an MLP
+    # decoder, the encoder's probabilities as targets and a heavier pixel term.
+    default = LatentWorldModelConfig.for_env(PUSH_BLOCKS)
+    assert (default.model.decoder_kind, default.model.dynamics_kind) == ("mlp", "conv")
+    assert (default.pixel_weight, default.soft_targets, default.event_share) == (10.0, True, None)
     # Rearrangement's preset depends on the number of blocks: a finer map when crowded.
     presets = {k: LatentWorldModelConfig.for_env("rearrangement", k) for k in (2, 3, 4, 5)}
     two, three, four, five = (presets[k].model for k in (2, 3, 4, 5))

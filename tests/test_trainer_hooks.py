@@ -18,6 +18,7 @@ from dorp_rl.trainers import (
     TrainerHook,
     WorldModelConfig,
     WorldModelTrainer,
+    choose_code_settings,
     load_encoder,
     load_video_model,
 )
@@ -88,7 +89,11 @@ def rewrite_as_flat(path, flat_config: dict[str, Any], legacy_extra: bool) -> No
 
 def test_flat_configs_are_read_into_the_nested_ones(tmp_path, tiny_configs):
     rep = tiny_configs.representation(tmp_path / "rep")
-    assert RepresentationConfig.from_dict(flat_representation_config(rep.out_dir)) == rep
+    # The flat config stored what the defaults now choose for one block (independent maps,
+    # no exclusivity, every pixel): equal once the open settings are chosen.
+    flat = RepresentationConfig.from_dict(flat_representation_config(rep.out_dir))
+    assert (flat.encoder.map_competition, flat.exclusivity_weight) == ("sigmoid", 0.0)
+    assert choose_code_settings(flat, None)[0] == choose_code_settings(rep, None)[0]
     assert rep.encoder == EncoderConfig.small((8,))
     wm = tiny_configs.world_model(tmp_path / "wm")
     assert WorldModelConfig.from_dict(flat_world_model_config(wm.out_dir)) == wm

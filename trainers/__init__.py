@@ -14,6 +14,7 @@ from dorp_rl.trainers.base import (
     TrainerConfig,
     TrainerHook,
     TrainingDivergedError,
+    TrainingGaveUpError,
 )
 from dorp_rl.trainers.latent_world_model import (
     LatentWorldModelConfig,
@@ -30,6 +31,7 @@ from dorp_rl.trainers.representation import (
     RepresentationTrainer,
     RestartHook,
     WidthOrder,
+    choose_code_settings,
     diagnose,
     load_encoder,
 )
@@ -51,7 +53,9 @@ __all__ = [
     "TrainerConfig",
     "TrainerHook",
     "TrainingDivergedError",
+    "TrainingGaveUpError",
     "WidthOrder",
+    "choose_code_settings",
     "WorldModelConfig",
     "WorldModelTrainer",
     "diagnose",

@@ -218,6 +218,11 @@ class TrainingDivergedError(ValueError):
     """Training produced a non-finite loss, gradient or weight; nothing was saved after it."""
 
 
+class TrainingGaveUpError(RuntimeError):
+    """Training stopped before its end because it learned nothing (e.g. every attempt of
+    the codes collapsed); the message says what was seen and what to change."""
+
+
 class NoCheckpointWarning(UserWarning):
     """``train(resume=True)`` found no checkpoint to continue from, so it trained from step 0."""
 
@@ -599,6 +604,8 @@ class OfflineTrainer:
                 if self.step % cfg.checkpoint_every == 0:
                     self.save()
                 if bar is not None:
+                    if bar.total != self.planned_steps:  # a restart added steps
+                        bar.total = self.planned_steps
                     bar.update(1)
         finally:
             if bar is not None:

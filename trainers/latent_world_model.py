@@ -14,7 +14,7 @@ from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
-from dorp_rl.data import play_segment_length, rare_code_changes
+from dorp_rl.data import SequenceSampler, play_segment_length, rare_code_changes
 from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.integrity import state_digest
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
@@ -62,21 +62,27 @@ class LatentWorldModelConfig(TrainerConfig):
     given to the trainer)"""
     horizon: int = checked(14, Int(low=1))
     """steps per training window"""
-    event_share: float = checked(0.0, Float(low=0.0, high=1.0, high_open=True))
+    event_share: float | None = checked(
+        None, Float(low=0.0, high=1.0, high_open=True, optional=True)
+    )
     """least share of training windows holding a rare event: a change of the code of a
     one-hot whose code changes at most a quarter as often as the most changing one-hot's
-    (the key taken, a door toggled)"""
+    (the key taken, a door toggled); None: chosen by the trainer, 0.25 where the
+    encoder's codes of the play data show such events, else 0"""
     eval_frames: int = checked(8_000, Int(low=1))
     """held-out play transitions for evaluation"""
     eval_sequences: int = checked(512, Int(low=1))
     """held-out windows the open-loop accuracy is measured on"""
     eval_every: int = checked(1000, Int(low=1))
     """steps between evaluations"""
-    model: LatentModelConfig = checked(rule=Nested(LatentModelConfig))
-    """the model (frame_shape and code_sizes are set from the env and the encoder)"""
+    model: LatentModelConfig = checked(
+        rule=Nested(LatentModelConfig, default=LatentModelConfig.recipe)
+    )
+    """the model (default :meth:`LatentModelConfig.recipe`; frame_shape and code_sizes are
+    set from the env and the encoder)"""
     open_loop_ramp: float = checked(0.3, Float(low=0.0, high=1.0))
     """share of the steps over which the open-loop length grows to horizon"""
-    pixel_weight: float = checked(1.0, Float(low=0.0))
+    pixel_weight: float = checked(10.0, Float(low=0.0))
     """weight of the decoded frames' squared error"""
     change_weight: float = checked(0.0, Float(low=0.0))
     """weight of the decoded frames' squared error at the values that changed since the
@@ -87,7 +93,7 @@ class LatentWorldModelConfig(TrainerConfig):
     decoding is the largest part of a training step)"""
     latent_weight: float = checked(0.1, Float(low=0.0))
     """weight of the imagined latents' distance to the encoded true frames"""
-    soft_targets: bool = checked(False, Flag())
+    soft_targets: bool = checked(True, Flag())
     """train the code head on the encoder's code probabilities instead of its codes"""
     hard_weight: float = checked(0.0, Float(low=0.0))
     """with soft_targets, weight of a cross-entropy against the encoder's codes as well
@@ -102,6 +108,17 @@ class LatentWorldModelConfig(TrainerConfig):
     """gradient-norm clip (inf: off)"""
     num_steps: int = checked(3000, Int(low=1))
     """training steps"""
+
+    @classmethod
+    def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
+        """Stored configs of older versions keep the defaults they were trained with."""
+        values = super().upgrade(values)
+        for name, before in (("pixel_weight", 1.0), ("soft_targets", False), ("event_share", 0.0)):
+            values.setdefault(name, before)
+        if isinstance(values.get("model"), dict):  # fields stored before the recipe existed
+            model = {"dynamics_kind": "mlp", "decoder_kind": "conv", "decoder_hidden": 256}
+            values["model"] = {**model, **values["model"]}
+        return values
 
     @classmethod
     def profile_overrides(cls, profile: Any, num_objects: int) -> dict[str, Any]:
@@ -209,6 +226,34 @@ class LatentWorldModelTrainer(WindowTrainer):
         # frame, once: each batch's targets are looked up by the sampled indices
         # instead of encoding 2 x H frames per window.
         self.target_tables = self._encode_storage()
+        #: the settings chosen from the env's data: field -> {"value", "why"}
+        self.chosen: dict[str, dict[str, Any]] = {}
+        if self.config.event_share is None:
+            self._choose_event_share()
+
+    def training_sampler(self) -> SequenceSampler:
+        """Uniform windows until :attr:`config.event_share` is chosen, then as configured."""
+        if self.config.event_share is None:
+            return SequenceSampler(self.config.horizon)
+        return super().training_sampler()
+
+    def _choose_event_share(self) -> None:
+        """``event_share``: 0.25 where the codes of the play data show rare events, else 0."""
+        events = self.transition_events(self.buffer.storage)
+        found = int(events.sum())
+        share = 0.25 if found else 0.0
+        self.config = self.config.replace(event_share=share)
+        why = (
+            f"{found} of {events.numel()} play transitions change a rarely changing one-hot's "
+            "code: a quarter of the windows hold one"
+            if found
+            else "no one-hot's code changes rarely in the play data"
+        )
+        self.chosen["event_share"] = {"value": share, "why": why}
+        self.logger.log_hparams({"chosen.event_share": f"{share} ({why})"})
+        if share:
+            self.buffer.set_sampler(self.training_sampler())
+            self.buffer.set_rng(self.data_generator)
 
     def _encode_storage(
         self, storage: Any = None, *, probs: bool | None = None, chunk: int = 4096

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from collections.abc import Sequence
@@ -16,7 +17,14 @@ from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
-from dorp_rl.data import FuturePairSampler, check_play_buffer, collect_play_data, future_pairs
+from dorp_rl.data import (
+    FrameScan,
+    FuturePairSampler,
+    check_play_buffer,
+    collect_play_data,
+    future_pairs,
+    scan_frames,
+)
 from dorp_rl.envs import env_identity
 from dorp_rl.metrics.code_information import (
     code_dynamics,
@@ -24,7 +32,8 @@ from dorp_rl.metrics.code_information import (
     play_code_dynamics,
 )
 from dorp_rl.metrics.diagnostics import ground_truth_diagnostics, play_object_diagnostics
-from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, make_similarity
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, choose_map_stride, make_similarity
+from dorp_rl.modules.encoder import competing_maps
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.code_graph import encode_transitions
@@ -71,6 +80,9 @@ class RepresentationConfig(TrainerConfig):
     # encoder
     encoder: EncoderConfig = checked(rule=Nested(EncoderConfig, default=_default_encoder))
     """the encoder; its code_sizes may be one number, the size of every object one-hot"""
+    num_onehots: int | None = checked(None, Int(low=1, optional=True))
+    """one-hots of a one-number code_sizes where the env lays out none (None: one per
+    piece that moves in the play frames, counted by dorp_rl.data.scan_frames)"""
     # loss
     similarity: str = checked("dddp", Choice(tuple(SIMILARITIES)))
     """code similarity of the CPC loss: dddp, full or identity"""
@@ -93,8 +105,9 @@ class RepresentationConfig(TrainerConfig):
     usage_weight: float | tuple[float, ...] = checked(0.0, Floats(low=0.0, allow_scalar=True))
     """weight of the code-usage term: one number, or one per one-hot in the encoder's
     code_sizes order (0 leaves that one-hot's code usage to the contrastive loss alone)"""
-    exclusivity_weight: float = checked(0.0, Float(low=0.0))
-    """weight of the map-exclusivity term (objects on separate maps)"""
+    exclusivity_weight: float | None = checked(None, Float(low=0.0, optional=True))
+    """weight of the map-exclusivity term (objects on separate maps); None: chosen by
+    the trainer, 3.0 where several one-hots' maps compete (softmax), else 0"""
     sparsity_weight: float = checked(0.0, Float(low=0.0))
     """weight of the map-sparsity term"""
     motion_weight: float = checked(0.0, Float(low=0.0))
@@ -170,6 +183,10 @@ class RepresentationConfig(TrainerConfig):
         values = super().upgrade(values)
         # Configs stored before the dead one-hot check existed resume as they ran.
         values.setdefault("dead_check_frames", 0)
+        # ... and before the one-hots were counted: one number meant one one-hot.
+        values.setdefault("num_onehots", 1)
+        if isinstance(values.get("encoder"), dict):
+            values["encoder"] = EncoderConfig.upgrade(dict(values["encoder"]))
         flat = cls.pop_flat_fields(values, _FLAT_ENCODER_FIELDS, "encoder")
         if flat:
             preset = flat.get("encoder_preset", "small")
@@ -191,8 +208,20 @@ class RepresentationConfig(TrainerConfig):
     @property
     def code_sizes(self) -> tuple[int, ...]:
         """Codes of each one-hot: ``encoder.code_sizes``, one number laid out by the env
-        profile's :attr:`~dorp_rl.envs.EnvProfile.code_layout`."""
-        return self.profile.code_sizes(tuple(self.encoder.code_sizes), self.num_objects)
+        profile's :attr:`~dorp_rl.envs.EnvProfile.code_layout`, else repeated for
+        :attr:`num_onehots` one-hots (one while that is still to be chosen)."""
+        sizes = tuple(self.encoder.code_sizes)
+        if len(sizes) == 1 and self.profile.code_layout is None and self.num_onehots:
+            return sizes * self.num_onehots
+        return self.profile.code_sizes(sizes, self.num_objects)
+
+    def counts_onehots(self) -> bool:
+        """Whether the number of one-hots is still to be counted in the play frames."""
+        return (
+            self.num_onehots is None
+            and len(self.encoder.code_sizes) == 1
+            and self.profile.code_layout is None
+        )
 
     def check_relations(self) -> None:
         """Rules between fields; each message names the fields and what they allow."""
@@ -239,6 +268,85 @@ class RepresentationConfig(TrainerConfig):
             )
 
 
+def choose_code_settings(
+    config: RepresentationConfig, scan: FrameScan | None
+) -> tuple[RepresentationConfig, dict[str, dict[str, Any]]]:
+    """The settings of ``config`` left to the library, chosen from the env's play frames.
+
+    Chosen where the config leaves them open (``None``, ``"auto"``, one code size on an
+    env without a layout): the number of one-hots (one per moving piece the
+    :func:`~dorp_rl.data.scan_frames` scan counts), the map competition (softmax where
+    several one-hots of more than 2 codes share the pixels), the exclusivity weight
+    (3.0 with competing maps)
+    and the object maps' stride (:func:`~dorp_rl.modules.choose_map_stride`: maps at
+    least 16 cells a side, a cell no wider than the smallest piece).
+
+    Returns:
+        the config with every open setting filled in, and per chosen field its
+        ``value`` and ``why``.
+
+    Examples:
+        >>> from dorp_rl.trainers import RepresentationConfig
+        >>> from dorp_rl.trainers.representation import choose_code_settings
+        >>> cfg, chosen = choose_code_settings(RepresentationConfig.for_env("key-wall"), None)
+        >>> cfg.encoder.map_competition, cfg.exclusivity_weight, sorted(chosen)
+        ('sigmoid', 0.0, ['encoder.map_competition', 'encoder.map_stride', 'exclusivity_weight'])
+    """
+    chosen: dict[str, dict[str, Any]] = {}
+
+    def choose(field: str, value: Any, why: str) -> None:
+        chosen[field] = {"value": value, "why": why}
+
+    if config.counts_onehots():
+        if scan is None:
+            raise ValueError(
+                "choose_code_settings needs a scan of the play frames to count the one-hots "
+                "(or set num_onehots, or give encoder.code_sizes one size per one-hot)."
+            )
+        config = config.replace(num_onehots=scan.pieces)
+        choose(
+            "num_onehots",
+            scan.pieces,
+            f"{scan.pieces} pieces move in a play frame ({scan.frames} frames scanned, "
+            f"median {scan.pieces_median:g}): one one-hot each",
+        )
+    # Objects are one-hots of more than 2 codes (a 2-code one-hot is a flag, a key held).
+    objects = sum(size > 2 for size in config.code_sizes)
+    several = competing_maps(config.code_sizes)
+    if config.encoder.map_competition == "auto":
+        competition = "softmax" if several else "sigmoid"
+        config = config.replace(encoder={"map_competition": competition})
+        choose(
+            "encoder.map_competition",
+            competition,
+            f"{objects} one-hot(s) of more than 2 codes: "
+            + ("their maps compete for each pixel" if several else "no objects to share pixels"),
+        )
+    if config.exclusivity_weight is None:
+        weight = 3.0 if config.encoder.map_competition == "softmax" and several else 0.0
+        config = config.replace(exclusivity_weight=weight)
+        choose(
+            "exclusivity_weight",
+            weight,
+            "competing maps are kept on separate objects"
+            if weight
+            else "no competing maps to keep apart",
+        )
+    if config.encoder.map_stride is None:
+        frame_shape = tuple(config.encoder.frame_shape)
+        smallest = scan.smallest_piece if scan is not None and scan.smallest_piece else None
+        stride = choose_map_stride(frame_shape, smallest)
+        config = config.replace(encoder={"map_stride": stride})
+        choose(
+            "encoder.map_stride",
+            stride,
+            f"frames {frame_shape[1]} x {frame_shape[2]}"
+            + (f", smallest piece {smallest} pixels" if smallest else "")
+            + f": maps of {-(-frame_shape[1] // stride)} x {-(-frame_shape[2] // stride)} cells",
+        )
+    return config, chosen
+
+
 def diagnose(
     env: EnvBase, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
 ) -> dict:
@@ -267,7 +375,10 @@ class RestartHook(TrainerHook):
         if trainer.screening:
             return False
         reason = self.reason(metrics, logged)
-        if reason is None or len(trainer.restarts) >= trainer.config.max_restarts:
+        if reason is None:
+            return False
+        if len(trainer.restarts) >= trainer.config.max_restarts:
+            self.out_of_restarts(reason)
             return False
         trainer.new_init()
         self.restarts.append({"step": trainer.step, "attempt": trainer.attempt, "reason": reason})
@@ -280,6 +391,9 @@ class RestartHook(TrainerHook):
         )
         trainer.logger.log_scalar("restart", float(count), step=trainer.step)
         return True
+
+    def out_of_restarts(self, reason: str) -> None:
+        """The attempt failed with no restart left (default: it trains on)."""
 
     def state_dict(self) -> dict[str, Any]:
         return {"restarts": list(self.restarts)}
@@ -297,6 +411,12 @@ class CollapseRestart(RestartHook):
     """
 
     default_name = "collapse"
+
+    def out_of_restarts(self, reason: str) -> None:
+        """Stops training: every attempt collapsed, and more steps would not change that."""
+        trainer = self.trainer
+        if trainer.gave_up is None:
+            trainer.gave_up = trainer.collapse_advice(reason)
 
     def reason(self, metrics: dict[str, float], logged: bool = True) -> str | None:
         trainer = self.trainer
@@ -635,8 +755,23 @@ class RepresentationTrainer(OfflineTrainer):
             )
         self.buffer = buffer
         self.buffer.set_rng(self.data_generator)
+        #: what a first pass over the play frames saw (None when nothing was left open)
+        self.scan = self.scan_play_frames() if self.config.counts_onehots() else None
+        if self.scan is None and self.config.encoder.map_stride is None:
+            self.scan = self.scan_play_frames()
+        #: the settings chosen from the env: field -> {"value", "why"}
+        self.config, self.chosen = choose_code_settings(self.config, self.scan)
+        if self.chosen:
+            self.logger.log_hparams(
+                {f"chosen.{k}": f"{c['value']} ({c['why']})" for k, c in self.chosen.items()}
+            )
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            record = {"chosen": self.chosen, "scan": self.scan.to_dict() if self.scan else None}
+            (self.out_dir / "chosen.json").write_text(json.dumps(record, indent=2) + "\n")
         self.attempt = 0
         self.inits = 1
+        #: why training stopped before its end (every attempt collapsed), else None
+        self.gave_up: str | None = None
         self.attempt_start = 0
         self.history_start = 0
         self.widths_hook = WidthOrder()
@@ -727,6 +862,7 @@ class RepresentationTrainer(OfflineTrainer):
             "inits": self.inits,
             "attempt_start": self.attempt_start,
             "history_start": self.history_start,
+            "gave_up": self.gave_up,
         }
 
     def load_extra_state(self, extra: dict[str, Any]) -> None:
@@ -748,6 +884,7 @@ class RepresentationTrainer(OfflineTrainer):
         fallback = restarts[-1]["step"] if restarts else 0
         self.attempt_start = int(extra.get("attempt_start", fallback))
         self.history_start = int(extra.get("history_start", fallback))
+        self.gave_up = extra.get("gave_up")
         if self.attempt:  # the weights to load belong to the restarted attempt's modules
             self._build(seed=self._attempt_seed(self.attempt))
 
@@ -782,6 +919,13 @@ class RepresentationTrainer(OfflineTrainer):
     def chosen_candidate(self) -> dict[str, Any] | None:
         """The highest-scoring candidate once screening has ended (else ``None``)."""
         return self.screening_hook.chosen
+
+    def scan_play_frames(self, count: int = 2048) -> FrameScan:
+        """:func:`~dorp_rl.data.scan_frames` of ``count`` evenly spaced stored play frames."""
+        stored = len(self.buffer)
+        index = torch.linspace(0, stored - 1, min(stored, count)).round().long()
+        pixels = self.buffer.storage[index]["pixels"]
+        return scan_frames(pixels.reshape(-1, *pixels.shape[-3:]), max_frames=count)
 
     def play_codes(self, count: int) -> torch.Tensor:
         """Codes int64 ``[n, C]`` of ``n = min(count, stored)`` evenly spaced stored play
@@ -841,12 +985,36 @@ class RepresentationTrainer(OfflineTrainer):
 
     @property
     def planned_steps(self) -> int:
+        """Screening and the last attempt; a restart moves the end to its step + num_steps."""
         cfg = self.config
         screened = (cfg.num_candidates - 1) * cfg.candidate_steps if cfg.num_candidates > 1 else 0
-        return cfg.num_steps + screened
+        if self.gave_up is not None:
+            return self.step
+        return max(cfg.num_steps + screened, self.attempt_start + cfg.num_steps)
 
     def done(self) -> bool:
+        if self.gave_up is not None:
+            return True
         return not self.screening and self.step - self.attempt_start >= self.config.num_steps
+
+    def collapse_advice(self, reason: str) -> str:
+        """Why training stops after every attempt collapsed, what was seen and what to change."""
+        cfg = self.config
+        seen = f"the play frames ({cfg.encoder.frame_shape[1]} x {cfg.encoder.frame_shape[2]}) " + (
+            f"show {self.scan.pieces} moving piece(s), the smallest {self.scan.smallest_piece} "
+            f"pixel(s) across, on {self.scan.foreground_share:.1%} of the pixels"
+            if self.scan is not None
+            else "were not scanned"
+        )
+        return (
+            f"the codes collapsed in all {len(self.restarts) + 1} attempts (the last at step "
+            f"{self.step}: {reason}); training stops here instead of running to step "
+            f"{self.attempt_start + cfg.num_steps}. Seen: {seen}. The codes learn what changes "
+            "between play frames a few steps apart; to change: more play data (num_frames) or "
+            "longer offsets (max_offset) where a step changes few pixels, frames rendered larger "
+            "where objects are a pixel or two, fewer codes per one-hot (encoder.code_sizes) "
+            "where objects take few places, or a set number of one-hots (num_onehots)."
+        )
 
     # ------------------------------------------------------------------ steps
     def _batch(self) -> TensorDict:
@@ -890,7 +1058,9 @@ class RepresentationTrainer(OfflineTrainer):
             )
         metrics = result["metrics"]
         final_reason = self.collapse_hook.reason(metrics) if metrics else None
-        if final_reason is not None:
+        if self.gave_up is not None:
+            warnings.warn(self.gave_up, RuntimeWarning, stacklevel=2)
+        elif final_reason is not None:
             warnings.warn(
                 f"representation still collapsed after {len(self.restarts)} restart(s): "
                 f"{final_reason}.",
@@ -904,6 +1074,8 @@ class RepresentationTrainer(OfflineTrainer):
             "candidates": self.candidates,
             "chosen_candidate": self.chosen_candidate,
             "collapsed": final_reason is not None,
+            "gave_up": self.gave_up,
+            "chosen": self.chosen,
             "diagnostics": result["evaluation"],
         }
 

@@ -1,5 +1,6 @@
 """Play data: collection into TorchRL replay buffers, pair and sequence samplers."""
 
+from dorp_rl.data.frame_scan import FrameScan, scan_frames
 from dorp_rl.data.play import (
     MATCH_FIELDS,
     PLAY_KEYS,
@@ -23,6 +24,8 @@ from dorp_rl.data.samplers import (
 )
 
 __all__ = [
+    "FrameScan",
+    "scan_frames",
     "EventWindowSampler",
     "FuturePairSampler",
     "SequenceSampler",

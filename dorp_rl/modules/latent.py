@@ -96,6 +96,15 @@ class LatentModelConfig(ConfigMixin):
     head learned (set by the trainer), so that a policy with another encoder of the same
     code sizes encodes decoded frames instead of reading these codes; None: unknown"""
 
+    @classmethod
+    def recipe(cls, **overrides: Any) -> LatentModelConfig:
+        """What the latent world model trainer builds unless told otherwise: a latent map
+        stepped by convolutions (what an object does in one place it does in another) and
+        an MLP decoder of 1024 units (several times faster to run than transposed
+        convolutions), measured on every env of the project."""
+        values = {"dynamics_kind": "conv", "decoder_kind": "mlp", "decoder_hidden": 1024}
+        return cls(**{**values, **overrides})
+
 
 class _SlotNorm(nn.Module):
     """A LayerNorm of each of ``slots`` slots of width ``width`` in a flat ``[*B, K * D]``."""

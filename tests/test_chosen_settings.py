@@ -1,0 +1,200 @@
+"""Settings the library chooses from the env (frames and play data), written to the run.
+
+A config built from a bare ``make_env`` leaves the number of one-hots, the map
+competition, the exclusivity weight, the maps' stride and the latent model's event share
+open; the trainers choose them from a scan of the play frames and the codes, and record
+what they chose and why (``chosen.json``, the checkpoint's config).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from dorp_rl.checkpoint import load_checkpoint
+from dorp_rl.data import scan_frames
+from dorp_rl.trainers import LatentWorldModelConfig, LatentWorldModelTrainer, RepresentationConfig
+from dorp_rl.trainers.representation import RepresentationTrainer, choose_code_settings
+
+#: three pieces of one colour that differ only in shape: an L, a bar and a square
+SHAPES = [
+    torch.tensor([[1, 0], [1, 0], [1, 1]]),
+    torch.tensor([[1, 1, 1, 1]]),
+    torch.tensor([[1, 1], [1, 1]]),
+]
+
+
+def one_colour_frames(count: int, height: int = 40, width: int = 52, seed: int = 0):
+    """uint8 ``[count, 3, height, width]`` frames of the three white pieces in random
+    places that never touch (each in its own band of rows)."""
+    g = torch.Generator().manual_seed(seed)
+    frames = torch.zeros(count, 3, height, width, dtype=torch.uint8)
+    band = height // 3
+    for i in range(count):
+        for k, shape in enumerate(SHAPES):
+            h, w = shape.shape
+            r = k * band + int(torch.randint(0, band - h, (1,), generator=g))
+            c = int(torch.randint(0, width - w, (1,), generator=g))
+            frames[i, :, r : r + h, c : c + w] = (shape * 255).to(torch.uint8)
+    return frames
+
+
+def test_scan_counts_pieces_of_one_colour_that_differ_in_shape():
+    scan = scan_frames(one_colour_frames(300))
+    assert scan.frame_shape == (3, 40, 52)
+    assert scan.pieces == 3 and scan.pieces_median == 3
+    assert scan.smallest_piece == 1  # the bar is one pixel high
+    # Two pieces in a frame: two counted, whatever their colour.
+    two = one_colour_frames(300)
+    two[:, :, 26:, :] = 0
+    assert scan_frames(two).pieces == 2
+
+
+def test_scan_refuses_what_is_not_a_batch_of_frames():
+    with pytest.raises(ValueError, match=r"frames \[N, C, H, W\] with N >= 2"):
+        scan_frames(torch.zeros(1, 3, 8, 8, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="uint8 or floats"):
+        scan_frames(torch.zeros(4, 3, 8, 8, dtype=torch.int32))
+
+
+def tiny_codes(env: str, tmp_path, **overrides) -> RepresentationConfig:
+    values = {
+        "num_frames": 512,
+        "num_envs": 4,
+        "batch_size": 16,
+        "num_steps": 4,
+        "diagnostics_every": 1000,
+        "dead_check_frames": 0,
+        "out_dir": str(tmp_path / "codes"),
+        "progress": False,
+        "encoder": {"channels": 4, "mlp_sizes": (16,)},
+        **overrides,
+    }
+    return RepresentationConfig(env=env, **values)
+
+
+def test_a_bare_make_env_gets_its_one_hots_counted_and_the_choices_written(tmp_path):
+    cfg = tiny_codes("push_blocks:make_env", tmp_path, trajectory_length=5)
+    assert cfg.counts_onehots() and cfg.exclusivity_weight is None
+    trainer = RepresentationTrainer(cfg)
+    # Two blocks move in the play frames: two one-hots, whose maps compete.
+    assert trainer.scan.pieces == 2
+    assert trainer.config.code_sizes == (32, 32)
+    assert trainer.encoder.code_sizes == (32, 32)
+    assert trainer.config.encoder.map_competition == "softmax"
+    assert trainer.config.exclusivity_weight == 3.0
+    assert trainer.config.encoder.map_stride == 1  # 24 x 32 frames keep every pixel
+    record = json.loads((tmp_path / "codes" / "chosen.json").read_text())
+    assert record["chosen"]["num_onehots"]["value"] == 2
+    assert "2 pieces move" in record["chosen"]["num_onehots"]["why"]
+    assert record["scan"]["pieces"] == 2
+    result = trainer.train()
+    assert result["chosen"] == trainer.chosen
+    # The checkpoint holds the resolved config: a resume builds the same encoder.
+    stored = load_checkpoint(tmp_path / "codes" / "checkpoints" / "last.pt")
+    assert stored["config"]["num_onehots"] == 2
+    assert stored["config"]["encoder"]["map_competition"] == "softmax"
+    again = RepresentationTrainer(cfg.replace(num_steps=6))
+    assert again.train(resume=True)["step"] == 6
+
+
+def test_settings_the_user_gave_are_kept(tmp_path):
+    cfg = tiny_codes(
+        "push_blocks:make_env",
+        tmp_path,
+        num_onehots=3,
+        exclusivity_weight=0.5,
+        encoder={"channels": 4, "mlp_sizes": (16,), "map_competition": "sigmoid"},
+    )
+    chosen_cfg, chosen = choose_code_settings(cfg.replace(encoder={"map_stride": 1}), None)
+    assert chosen_cfg.code_sizes == (32, 32, 32)
+    assert chosen_cfg.encoder.map_competition == "sigmoid"
+    assert chosen_cfg.exclusivity_weight == 0.5
+    assert chosen == {}
+    # One-hots to count but no scan: the error says what to give instead.
+    with pytest.raises(ValueError, match="num_onehots"):
+        choose_code_settings(tiny_codes("push_blocks:make_env", tmp_path), None)
+
+
+def test_a_training_that_learns_nothing_stops_early_and_says_why(tmp_path, monkeypatch):
+    cfg = tiny_codes(
+        "push_blocks:make_env",
+        tmp_path,
+        trajectory_length=5,
+        num_onehots=1,
+        num_steps=400,
+        collapse_check_after=5,
+        max_restarts=1,
+        log_every=1,
+    )
+    trainer = RepresentationTrainer(cfg)
+    # Every pair shows the same frame: the codes cannot tell pairs apart.
+    frame = trainer.buffer[:1]["pixels"][0]
+
+    def still_batch():
+        from tensordict import TensorDict
+
+        pixels = frame.expand(cfg.batch_size, *frame.shape).clone()
+        return TensorDict(pixels=pixels, future_pixels=pixels.clone(), batch_size=[cfg.batch_size])
+
+    monkeypatch.setattr(trainer, "_batch", still_batch)
+    with pytest.warns(RuntimeWarning, match="collapsed in all 2 attempts"):
+        result = trainer.train()
+    assert result["step"] < 40  # not the 400 steps planned
+    assert result["gave_up"] is not None and "num_frames" in result["gave_up"]
+    assert math.isclose(result["metrics"]["loss_cpc"], math.log(cfg.batch_size), abs_tol=0.1)
+
+
+def test_the_latent_model_chooses_its_event_share_from_the_codes(tmp_path):
+    codes = RepresentationTrainer(tiny_codes("push_blocks:make_env", tmp_path, num_onehots=2))
+    cfg = LatentWorldModelConfig(
+        env="push_blocks:make_env",
+        num_frames=256,
+        eval_frames=128,
+        eval_sequences=4,
+        num_envs=4,
+        horizon=3,
+        trajectory_length=4,
+        batch_size=4,
+        num_steps=2,
+        out_dir=str(tmp_path / "latent"),
+        progress=False,
+        model={"latent_channels": 4, "channels": 4, "hidden": 8, "decoder_hidden": 8},
+    )
+    assert cfg.event_share is None and cfg.pixel_weight == 10.0 and cfg.soft_targets
+    trainer = LatentWorldModelTrainer(cfg, encoder=codes.encoder)
+    share = trainer.config.event_share
+    assert share in (0.0, 0.25)
+    found = bool(trainer.transition_events(trainer.buffer.storage).any())
+    assert share == (0.25 if found else 0.0)
+    assert trainer.chosen["event_share"]["value"] == share
+    trainer.train()
+
+
+@pytest.mark.parametrize(
+    ("env", "objects", "competition", "exclusivity"),
+    [
+        ("rearrangement", 1, "sigmoid", 0.0),
+        ("rearrangement", 2, "softmax", 3.0),
+        ("rearrangement", 5, "softmax", 3.0),
+        ("key-wall", None, "sigmoid", 0.0),
+        ("key-corridor", None, "sigmoid", 0.0),
+    ],
+)
+def test_the_paper_settings_resolve_to_the_presets_they_were_measured_with(
+    env, objects, competition, exclusivity
+):
+    # The profiles no longer set these fields: the defaults choose what they set before.
+    cfg, _ = choose_code_settings(RepresentationConfig.for_env(env, objects), None)
+    assert cfg.encoder.map_competition == competition
+    assert cfg.exclusivity_weight == exclusivity
+    assert cfg.encoder.map_stride == 1  # 16 x 16 frames: every pixel
+    latent = LatentWorldModelConfig.for_env(env, objects)
+    assert (latent.pixel_weight, latent.soft_targets) == (10.0, True)
+    model = latent.model
+    assert (model.decoder_kind, model.decoder_hidden, model.dynamics_kind) == ("mlp", 1024, "conv")
+    assert model.latent_stride == (2 if objects and objects >= 3 else 4)
+    assert model.latent_channels == (16 if objects in (3, 4) else 32)
