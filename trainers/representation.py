@@ -25,7 +25,7 @@ from dorp_rl.data import (
     future_pairs,
     scan_frames,
 )
-from dorp_rl.envs import env_identity
+from dorp_rl.envs import env_identity, env_profile
 from dorp_rl.metrics.code_information import (
     code_dynamics,
     code_information,
@@ -55,6 +55,19 @@ _FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extra
 
 def _default_encoder() -> EncoderConfig:
     return EncoderConfig.small((32,))
+
+
+def _counted_then(values: dict[str, Any]) -> bool:
+    """Whether stored ``values`` would have their one-hots counted today: one code size
+    on an env without a layout (stored configs then meant one one-hot)."""
+    encoder = values.get("encoder")
+    sizes = encoder.get("code_sizes", (32,)) if isinstance(encoder, dict) else (32,)
+    if len(tuple(sizes)) != 1:
+        return False
+    try:
+        return env_profile(values.get("env", "rearrangement")).code_layout is None
+    except ValueError:
+        return True
 
 
 @dataclass
@@ -183,10 +196,6 @@ class RepresentationConfig(TrainerConfig):
         values = super().upgrade(values)
         # Configs stored before the dead one-hot check existed resume as they ran.
         values.setdefault("dead_check_frames", 0)
-        # ... and before the one-hots were counted: one number meant one one-hot.
-        values.setdefault("num_onehots", 1)
-        if isinstance(values.get("encoder"), dict):
-            values["encoder"] = EncoderConfig.upgrade(dict(values["encoder"]))
         flat = cls.pop_flat_fields(values, _FLAT_ENCODER_FIELDS, "encoder")
         if flat:
             preset = flat.get("encoder_preset", "small")
@@ -197,8 +206,14 @@ class RepresentationConfig(TrainerConfig):
                 (flat.get("code_size", 32),),
                 map_competition=flat.get("map_competition", "sigmoid"),
                 kernel_size=flat.get("extractor_kernel_size", 3),
+                map_stride=1,
             )
             values["encoder"] = encoder.to_dict()
+        # ... and before the one-hots were counted: one number meant one one-hot.
+        if "num_onehots" not in values and _counted_then(values):
+            values["num_onehots"] = 1
+        if isinstance(values.get("encoder"), dict):
+            values["encoder"] = EncoderConfig.upgrade(dict(values["encoder"]))
         return values
 
     def encoder_config(self) -> EncoderConfig:

@@ -9,8 +9,8 @@ scan rather than set by hand (:class:`~dorp_rl.trainers.RepresentationConfig`).
 The background is the per-pixel median over the scanned frames: whatever sits in one
 place in most frames (floor, walls, a door that is mostly closed). A pixel is in the
 foreground where any channel differs from it by more than ``tolerance``; pieces are
-8-connected foreground regions of one colour. Objects that touch in a frame are counted
-as one there, so the count is a high quantile over frames, not their mean.
+8-connected foreground regions. Objects that touch in a frame are counted as one there,
+so the count is a high quantile over frames, not their mean.
 """
 
 from __future__ import annotations
@@ -68,19 +68,16 @@ def _shift(x: torch.Tensor, dr: int, dc: int, fill: float) -> torch.Tensor:
     return padded[..., 1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w]
 
 
-def _label_pieces(values: torch.Tensor, foreground: torch.Tensor) -> torch.Tensor:
-    """Per pixel, the largest flat index of its piece (-1 on background), ``[N, H, W]``.
-
-    ``values [N, C, H, W]``: neighbours join a piece only where all channels are equal.
-    Labels spread by repeated 8-neighbour maxima until nothing changes.
+def _label_pieces(foreground: torch.Tensor) -> torch.Tensor:
+    """Per pixel, the largest flat index of its piece (-1 on background), ``[N, H, W]``:
+    8-connected foreground pixels form a piece (whatever their colours: a renderer's
+    anti-aliased edges shade one object in many). Labels spread by repeated 8-neighbour
+    maxima until nothing changes.
     """
-    n, _, h, w = values.shape
+    n, h, w = foreground.shape
     index = torch.arange(n * h * w, dtype=torch.float32).reshape(n, h, w)
     labels = torch.where(foreground, index, torch.full_like(index, -1.0))
-    same = []
-    for dr, dc in _NEIGHBOURS:
-        equal = (_shift(values.float(), dr, dc, -1.0) == values.float()).all(1)
-        same.append(equal & foreground & _shift(foreground.float(), dr, dc, 0.0).bool())
+    same = [foreground & _shift(foreground.float(), dr, dc, 0.0).bool() for dr, dc in _NEIGHBOURS]
     for _ in range(h * w):
         spread = labels
         for (dr, dc), joined in zip(_NEIGHBOURS, same, strict=True):
@@ -131,7 +128,7 @@ def scan_frames(
     values = _as_bytes(frames[index.to(frames.device)].cpu())
     background = values.median(dim=0).values
     foreground = (values - background).abs().amax(1) > tolerance
-    labels = _label_pieces(values, foreground)
+    labels = _label_pieces(foreground)
     n, h, w = labels.shape
     flat = labels.flatten(1)
     own = torch.arange(n * h * w).reshape(n, h * w)
