@@ -5,12 +5,13 @@ colours (a red 2 x 3 bar and a green 3 x 3 cross) on a 3 x 24 x 32 canvas; actio
 ``4 * shape + direction`` slides one shape one cell, unless it would leave the canvas or
 overlap the other. It is a stateless, batched TorchRL env that starts from given states
 on ``reset(td, set_state=True)``, which is all the library asks of it. Its profile
-(``PROFILE``) tells the pipeline its play trajectories, code preset, step limit and lower
-bound; nothing inside the library is edited. The same env runs through the command::
+(``PROFILE``) tells the pipeline how to build it and, for reporting, a task's lower bound
+and each shape's place; the library chooses everything else from the env's frames, and
+nothing inside it is edited. The same env runs through the command::
 
     PYTHONPATH=examples dorp evaluate --env own_environment:PROFILE --tasks 20
 
-Run: ``python examples/own_environment.py [--frames 40000] [--steps 1500] [--tasks 20]``;
+Run: ``python examples/own_environment.py [--frames N] [--steps N] [--tasks 20]``;
 with ``--low-level latent`` DORP plans through a latent world model trained here on the
 env's play data and the codes (``--latent-steps``), instead of the env's own dynamics.
 """
@@ -154,30 +155,14 @@ def make_env(batch_size=(8,), seed: int = 0, device=None) -> SlideShapesEnv:
     return SlideShapesEnv(batch_size, seed=seed, device=device)
 
 
-#: What the pipeline needs to know of this env, in one place.
+#: What the pipeline needs to know of this env, in one place: how to build it, and for
+#: reporting, a lower bound of a task's steps and each shape's place (the labels of the
+#: purity diagnostics). Everything else the library chooses from the env's frames (two
+#: moving pieces: two one-hots whose maps compete) and writes to the run's log.
 PROFILE = EnvProfile(
     name="slide-shapes",
     make_env=make_env,
-    play_trajectory_length=50,  # random walks: each shape wanders over the canvas
-    max_steps=300,
-    # One 24-code one-hot per shape; their maps compete for the pixels.
-    codes=lambda _: {
-        "encoder": {"code_sizes": (24, 24), "map_competition": "softmax"},
-        "exclusivity_weight": 3.0,
-        "num_frames": 40_000,
-        "num_steps": 1500,
-    },
-    # The latent world model of ``--low-level latent``: a latent map stepped by
-    # convolutions (the default stride 4: 6 x 8 cells; a shape slides alike anywhere on
-    # the canvas), the decoded frames weigh 10 times the default, the code head learns
-    # the encoder's probabilities, an MLP decoder.
-    latent_model=lambda _: {
-        "pixel_weight": 10.0,
-        "soft_targets": True,
-        "model": {"dynamics_kind": "conv", "decoder_kind": "mlp", "decoder_hidden": 1024},
-    },
     lower_bound=lambda env, state, goal: (state - goal).abs().flatten(-2).sum(-1),
-    # Each shape's place as one id: the labels of the purity diagnostics.
     objects=lambda state: state[..., 0] * WIDTH + state[..., 1],
     description="a red bar and a green cross sliding on a 3 x 24 x 32 canvas",
 )
@@ -185,8 +170,12 @@ PROFILE = EnvProfile(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=40_000, help="play transitions")
-    parser.add_argument("--steps", type=int, default=1500, help="code training steps")
+    parser.add_argument(
+        "--frames", type=int, default=None, help="play transitions (default: the library's)"
+    )
+    parser.add_argument(
+        "--steps", type=int, default=None, help="code training steps (default: the library's)"
+    )
     parser.add_argument("--tasks", type=int, default=20, help="seeded evaluation tasks")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="outputs/own_environment")
@@ -200,11 +189,18 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    # 1. Codes: the profile's preset, trained on random play data of the env.
+    # 1. Codes: the library's defaults, trained on random play data of the env; what it
+    # chose from the frames (the number of one-hots, ...) is printed and in chosen.json.
+    budgets = {"num_frames": args.frames, "num_steps": args.steps}
     config = RepresentationConfig.for_env(
-        PROFILE, num_frames=args.frames, num_steps=args.steps, seed=args.seed, out_dir=args.out
+        PROFILE,
+        seed=args.seed,
+        out_dir=args.out,
+        **{k: v for k, v in budgets.items() if v is not None},
     )
     trainer = RepresentationTrainer(config)
+    for field, choice in trainer.chosen.items():
+        print(f"chose {field} = {choice['value']}: {choice['why']}")
     trainer.train()
     diagnostics = trainer.evaluate()
     dynamics = diagnostics["code_dynamics"]  # label-free
@@ -245,7 +241,8 @@ def main() -> None:
         model = SlideShapesEnv(batch_size=(), batch_locked=False)
     policy = make_dorp_policy(env, encoder, graph, low_level=model, seed=args.seed)
     tasks = make_task_set(env, args.tasks, seed=args.seed, profile=PROFILE)
-    out = evaluate_policy(env, policy, tasks, max_steps=300, tasks_per_rollout=10, seed=0)
+    limit = PROFILE.task_limit(env=env)
+    out = evaluate_policy(env, policy, tasks, max_steps=limit, tasks_per_rollout=10, seed=0)
     bounds = tasks["lower_bound"].tolist()
     solved = [s / b for s, b, ok in zip(out["steps"], bounds, out["success"], strict=True) if ok]
     ratio = sum(solved) / max(len(solved), 1)

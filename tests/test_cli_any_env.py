@@ -77,6 +77,29 @@ def test_evaluate_an_env_given_by_import_path_through_every_stage(tmp_path):
     assert not (run / "pictures" / "code_map.png").exists()
 
 
+def test_a_minimal_profile_of_an_env_reading_step_count_through_every_stage(tmp_path):
+    # The profile gives make_env, a lower bound and object labels; the number of one-hots,
+    # the map competition, the exclusivity and the maps' stride are chosen and logged.
+    argv = ["evaluate", "--root", str(tmp_path), "--name", "cp", "--env", "counting_pieces:PROFILE"]
+    tiny = [a for a in TINY if a not in ("--gifs", "1")]
+    main([*argv, *tiny, "--codes.trajectory-length", "4"])
+    run = tmp_path / "cp"
+    stages = json.loads((run / "stages.json").read_text())
+    chosen = stages["codes"]["summary"]["chosen"]
+    assert chosen == {
+        "num_onehots": 2,
+        "encoder.map_competition": "softmax",
+        "exclusivity_weight": 3.0,
+        "encoder.map_stride": 1,
+    }
+    log = (run / "log.txt").read_text()
+    assert "codes: chose num_onehots = 2 (2 pieces move in a play frame" in log
+    assert len(stages["codes"]["summary"]["purity"]) == 2
+    # DORP planned through the env's own dynamics, which read step_count at every step.
+    row = stages["evaluate:dorp:gt"]["summary"]
+    assert row["tasks"] == 3 and all(s <= 5 for s in row["per_task"]["steps"])
+
+
 def test_a_gray_8x8_env_with_one_hot_actions_through_the_command(tmp_path):
     """A bare factory (no profile): the generic defaults, one one-hot of 32 codes."""
     main(
