@@ -98,8 +98,9 @@ def test_flat_configs_are_read_into_the_nested_ones(tmp_path, tiny_configs):
     wm = tiny_configs.world_model(tmp_path / "wm")
     assert WorldModelConfig.from_dict(flat_world_model_config(wm.out_dir)) == wm
     authors = flat_representation_config("x") | {"encoder_preset": "authors", "code_size": 16}
-    # ... with the independent maps and every pixel they were trained with.
-    stored_then = EncoderConfig.authors((16,), map_competition="sigmoid", map_stride=1)
+    # ... with the independent maps they were trained with (16 x 16 frames: the stride
+    # left open is 1).
+    stored_then = EncoderConfig.authors((16,), map_competition="sigmoid")
     assert RepresentationConfig.from_dict(authors).encoder == stored_then
     with pytest.raises(ValueError, match="both 'encoder' and"):
         RepresentationConfig.from_dict(rep.to_dict() | {"code_size": 8})

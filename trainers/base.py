@@ -451,6 +451,11 @@ class OfflineTrainer:
         torch.set_rng_state(payload["rng"]["torch"])
         self.data_generator.set_state(payload["rng"]["data"])
 
+    def in_current_terms(self, config: Any) -> Any:
+        """A checkpoint's config as this trainer would have resolved it (settings a subclass
+        chooses from the env filled in the same way); as is by default."""
+        return config
+
     def check_resume_config(self, stored: dict[str, Any], path: Path) -> None:
         """Refuses to resume with a config that changes the result; warns about taken changes.
 
@@ -459,7 +464,7 @@ class OfflineTrainer:
                 :attr:`resume_adjustable_fields`) whose value differs from the checkpoint's.
         """
         try:  # compare in this version's terms (older key-room configs stored num_objects=3)
-            stored = type(self.config).from_dict(stored).to_dict()
+            stored = self.in_current_terms(type(self.config).from_dict(stored)).to_dict()
         except (ValueError, TypeError) as err:
             raise ValueError(
                 f"cannot resume from {path}: its config cannot be read ({err})."

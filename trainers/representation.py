@@ -206,7 +206,6 @@ class RepresentationConfig(TrainerConfig):
                 (flat.get("code_size", 32),),
                 map_competition=flat.get("map_competition", "sigmoid"),
                 kernel_size=flat.get("extractor_kernel_size", 3),
-                map_stride=1,
             )
             values["encoder"] = encoder.to_dict()
         # ... and before the one-hots were counted: one number meant one one-hot.
@@ -902,6 +901,11 @@ class RepresentationTrainer(OfflineTrainer):
         self.gave_up = extra.get("gave_up")
         if self.attempt:  # the weights to load belong to the restarted attempt's modules
             self._build(seed=self._attempt_seed(self.attempt))
+
+    def in_current_terms(self, config: RepresentationConfig) -> RepresentationConfig:
+        """A stored config with what it left open chosen as this trainer chose it (flat
+        configs of the first versions, 16 x 16 frames only, left the stride open)."""
+        return choose_code_settings(config, self.scan)[0]
 
     def check_checkpoint_config(self, stored: dict[str, Any]) -> None:
         stored_sizes = RepresentationConfig.from_dict(stored).code_sizes
