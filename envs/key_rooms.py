@@ -384,7 +384,8 @@ def _key_room_profile(
         max_steps=env_type.DEFAULT_MAX_STEPS,
         code_layout=lambda size, _: (size, 2),
         codes=lambda _: {
-            "encoder": {"code_sizes": (agent_codes,)},
+            # Measured on the frames as they are (walls and door included).
+            "encoder": {"code_sizes": (agent_codes,), "subtract_background": False},
             "num_frames": num_frames,
             **KEY_ROOM_RECIPE,
         },

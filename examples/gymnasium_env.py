@@ -202,7 +202,12 @@ def make_env(
 #: codes change more often along play goes to the 16-code one-hot (``order_widths_at``),
 #: and a heavier code-usage term spreads the agent over its codes.
 CODES = {
-    "encoder": {"code_sizes": (16, 4), "kernel_size": 1, "map_competition": "softmax"},
+    "encoder": {
+        "code_sizes": (16, 4),
+        "kernel_size": 1,
+        "map_competition": "softmax",
+        "subtract_background": False,  # measured on the frames as they are
+    },
     "max_offset": 4,
     "motion_weight": 1.0,
     "sparsity_weight": 5.0,

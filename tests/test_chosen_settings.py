@@ -198,3 +198,35 @@ def test_the_paper_settings_resolve_to_the_presets_they_were_measured_with(
     assert (model.decoder_kind, model.decoder_hidden, model.dynamics_kind) == ("mlp", 1024, "conv")
     assert model.latent_stride == (2 if objects and objects >= 3 else 4)
     assert model.latent_channels == (16 if objects in (3, 4) else 32)
+
+
+def test_a_static_background_that_is_not_black_is_subtracted(tmp_path):
+    frames = one_colour_frames(64)
+    # grey walls along the border and a floor of another shade: static, not black
+    frames[:, 1, :, :] = torch.where(frames[:, 1] == 0, 40, frames[:, 1])
+    frames[:, :, 0, :] = frames[:, :, -1, :] = 128
+    scan = scan_frames(frames)
+    assert scan.pieces == 3 and not scan.plain_background
+    assert scan.background[:, 0, 5].tolist() == [128] * 3 and int(scan.background[1, 10, 10]) == 40
+    assert scan_frames(one_colour_frames(64)).plain_background
+    cfg = tiny_codes("push_blocks:make_env", tmp_path, num_onehots=3)
+    chosen_cfg, chosen = choose_code_settings(cfg, scan)
+    assert chosen_cfg.encoder.subtract_background is True
+    assert "not black" in chosen["encoder.subtract_background"]["why"]
+    # The encoder sees the frame less its background: a frame of background alone is zero.
+    from dorp_rl.modules import DiscreteCodeEncoder
+
+    config = chosen_cfg.encoder_config().replace(frame_shape=(3, 40, 52))
+    encoder = DiscreteCodeEncoder(config).eval()
+    encoder.set_background(scan.background)
+    empty = scan.background.expand(2, 3, 40, 52)
+    zero_encoder = DiscreteCodeEncoder(config.replace(subtract_background=False)).eval()
+    zero_encoder.load_state_dict(
+        {k: v for k, v in encoder.state_dict().items() if k != "background"}
+    )
+    with torch.no_grad():
+        torch.testing.assert_close(
+            encoder.object_maps(empty), zero_encoder.object_maps(torch.zeros_like(empty))
+        )
+    with pytest.raises(ValueError, match="subtract_background=True"):
+        zero_encoder.set_background(scan.background)

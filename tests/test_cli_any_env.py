@@ -90,6 +90,7 @@ def test_a_minimal_profile_of_an_env_reading_step_count_through_every_stage(tmp_
         "num_onehots": 2,
         "encoder.map_competition": "softmax",
         "exclusivity_weight": 3.0,
+        "encoder.subtract_background": False,  # black background: nothing to subtract
         "encoder.map_stride": 1,
     }
     log = (run / "log.txt").read_text()

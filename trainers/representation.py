@@ -292,8 +292,9 @@ def choose_code_settings(
     :func:`~dorp_rl.data.scan_frames` scan counts), the map competition (softmax where
     several one-hots of more than 2 codes share the pixels), the exclusivity weight
     (3.0 with competing maps)
-    and the object maps' stride (:func:`~dorp_rl.modules.choose_map_stride`: maps at
-    least 16 cells a side, a cell no wider than the smallest piece).
+    the object maps' stride (:func:`~dorp_rl.modules.choose_map_stride`: maps at
+    least 16 cells a side, a cell no wider than the smallest piece) and whether the static
+    background is subtracted from the frames (where it is not black).
 
     Returns:
         the config with every open setting filled in, and per chosen field its
@@ -345,6 +346,16 @@ def choose_code_settings(
             "competing maps are kept on separate objects"
             if weight
             else "no competing maps to keep apart",
+        )
+    if config.encoder.subtract_background is None and scan is not None:
+        subtract = not scan.plain_background
+        config = config.replace(encoder={"subtract_background": subtract})
+        choose(
+            "encoder.subtract_background",
+            subtract,
+            "the play frames' static background is not black: only what moves is left"
+            if subtract
+            else "the play frames' background is black: nothing to subtract",
         )
     if config.encoder.map_stride is None:
         frame_shape = tuple(config.encoder.frame_shape)
@@ -770,9 +781,12 @@ class RepresentationTrainer(OfflineTrainer):
         self.buffer = buffer
         self.buffer.set_rng(self.data_generator)
         #: what a first pass over the play frames saw (None when nothing was left open)
-        self.scan = self.scan_play_frames() if self.config.counts_onehots() else None
-        if self.scan is None and self.config.encoder.map_stride is None:
-            self.scan = self.scan_play_frames()
+        open_settings = (
+            self.config.counts_onehots()
+            or self.config.encoder.map_stride is None
+            or self.config.encoder.subtract_background is not False
+        )
+        self.scan = self.scan_play_frames() if open_settings else None
         #: the settings chosen from the env: field -> {"value", "why"}
         self.config, self.chosen = choose_code_settings(self.config, self.scan)
         if self.chosen:
@@ -811,6 +825,8 @@ class RepresentationTrainer(OfflineTrainer):
         torch.manual_seed(seed)
         self.encoder = DiscreteCodeEncoder(cfg.encoder_config()).to(self.device)
         self.encoder.env_config = env_identity(self.env)
+        if cfg.encoder.subtract_background:
+            self.encoder.set_background(self.scan.background)
         sim_kwargs: dict[str, Any] = {}
         if cfg.similarity == "dddp":
             sim_kwargs = {"alpha": cfg.alpha, "sign": cfg.dddp_sign}

@@ -15,7 +15,7 @@ so the count is a high quantile over frames, not their mean.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, fields
 
 import torch
 import torch.nn.functional as F
@@ -39,6 +39,7 @@ class FrameScan:
         smallest_piece: the shorter bounding-box side, in pixels, of the smallest pieces
             (a low quantile over all pieces seen; 0 when nothing moved).
         foreground_share: share of pixels that differ from the background, mean over frames.
+        background: the per-pixel median frame, uint8 ``[C, H, W]``.
     """
 
     frame_shape: tuple[int, int, int]
@@ -47,9 +48,16 @@ class FrameScan:
     pieces_median: float
     smallest_piece: int
     foreground_share: float
+    background: torch.Tensor = field(repr=False, compare=False)
+
+    @property
+    def plain_background(self) -> bool:
+        """Whether the background is black everywhere (nothing to subtract)."""
+        return not bool(self.background.any())
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The scalar fields (not the background image)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "background"}
 
 
 def _as_bytes(frames: torch.Tensor) -> torch.Tensor:
@@ -155,4 +163,5 @@ def scan_frames(
         pieces_median=float(per_frame.median()),
         smallest_piece=smallest,
         foreground_share=float(foreground.float().mean()),
+        background=background.to(torch.uint8),
     )

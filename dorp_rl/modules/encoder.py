@@ -15,6 +15,7 @@ from torch import nn
 from dorp_rl.config import ConfigMixin, checked
 from dorp_rl.validation import (
     Choice,
+    Flag,
     Float,
     Int,
     Ints,
@@ -71,6 +72,11 @@ class EncoderConfig(ConfigMixin):
     map_stride x map_stride block of pixels before the convolutions); 1 keeps every pixel;
     None: :func:`choose_map_stride` of the frame size"""
 
+    subtract_background: bool | None = checked(None, Flag(optional=True))
+    """subtract the play frames' static background (their per-pixel median, set by the
+    trainer) from every frame, so that only what moves is left; None: no subtraction for
+    an encoder built alone, chosen from the play frames by the trainer"""
+
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
         """Configs stored before the stride and the automatic competition kept every pixel
@@ -78,16 +84,20 @@ class EncoderConfig(ConfigMixin):
         values = super().upgrade(values)
         values.setdefault("map_stride", 1)
         values.setdefault("map_competition", "sigmoid")
+        values.setdefault("subtract_background", False)
         return values
 
     def resolved(self) -> EncoderConfig:
-        """This config with ``map_competition="auto"`` and ``map_stride=None`` decided
-        (:func:`competing_maps`, :func:`choose_map_stride`)."""
+        """This config with ``map_competition="auto"``, ``map_stride=None`` and
+        ``subtract_background=None`` decided (:func:`competing_maps`,
+        :func:`choose_map_stride`, no subtraction)."""
         changes: dict[str, Any] = {}
         if self.map_competition == "auto":
             changes["map_competition"] = "softmax" if competing_maps(self.code_sizes) else "sigmoid"
         if self.map_stride is None:
             changes["map_stride"] = choose_map_stride(self.frame_shape)
+        if self.subtract_background is None:
+            changes["subtract_background"] = False
         return self.replace(**changes) if changes else self
 
     @classmethod
@@ -256,6 +266,9 @@ class DiscreteCodeEncoder(nn.Module):
                 f"map_stride {self.map_stride} is larger than the frames' shorter side "
                 f"{min(self.frame_shape[1:])} (frame_shape {self.frame_shape})."
             )
+        if config.subtract_background:
+            # the static background in [0, 1], [C, H, W] (set_background; zero: none)
+            self.register_buffer("background", torch.zeros(self.frame_shape))
         # (h, w) cells of the object maps: ceil(H / map_stride), ceil(W / map_stride)
         self.map_shape = tuple(math.ceil(d / self.map_stride) for d in self.frame_shape[1:])
         layers: list[nn.Module] = []
@@ -305,6 +318,22 @@ class DiscreteCodeEncoder(nn.Module):
             elif isinstance(module, (nn.BatchNorm2d, nn.LayerNorm)):
                 module.reset_parameters()
 
+    @torch.no_grad()
+    def set_background(self, background: torch.Tensor) -> None:
+        """Sets the static background subtracted from every frame: uint8 (or floats in
+        ``[0, 1]``) ``[C, H, W]``, e.g. :attr:`~dorp_rl.data.FrameScan.background`.
+
+        Raises:
+            ValueError: the encoder was built without ``subtract_background``, or the
+                background is not one frame of its shape.
+        """
+        if not self.config.subtract_background:
+            raise ValueError("set_background needs an encoder built with subtract_background=True.")
+        frame = check_pixels(background, "background", shape=self.frame_shape)
+        if frame.dim() != 3:
+            raise ValueError(f"background must be one frame {list(self.frame_shape)}.")
+        self.background.copy_(frame.to(self.background.device))
+
     def pool_to_maps(self, x: torch.Tensor, reduce: str = "mean") -> torch.Tensor:
         """``[N, C', H, W]`` frame-sized floats on the maps' cells, ``[N, C', h, w]``
         (:attr:`map_shape`): the mean (or with ``reduce="sum"`` the sum) of each cell's
@@ -327,6 +356,8 @@ class DiscreteCodeEncoder(nn.Module):
         x = check_pixels(pixels, shape=self.frame_shape)
         batch = x.shape[:-3]
         x = x.reshape(-1, *self.frame_shape)
+        if self.config.subtract_background:
+            x = x - self.background
         if self.map_stride > 1:
             # pool before scaling: the same up to rounding, on s^2 fewer values
             x = pool_blocks(x, self.map_stride, "mean")
