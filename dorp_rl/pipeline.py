@@ -739,8 +739,16 @@ class Run:
             reason = "it did not finish last time"
         elif record["config"] != config:
             old, new = _flatten(record["config"]), _flatten(config)
-            changed = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
-            shown = ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in changed[:6])
+            changed = [
+                k
+                for k in sorted(set(old) | set(new))
+                if old.get(k) != new.get(k) or (k in old) != (k in new)
+            ]
+
+            def show(values: dict[str, Any], key: str) -> str:
+                return repr(values[key]) if key in values else "(no such field)"
+
+            shown = ", ".join(f"{k} {show(old, k)} -> {show(new, k)}" for k in changed[:6])
             more = f" and {len(changed) - 6} more" if len(changed) > 6 else ""
             reason = f"changed: {shown}{more}"
         else:
