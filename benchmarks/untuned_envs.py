@@ -6,7 +6,10 @@ besides ``state``):
 
 - ``ONE_COLOUR``: three white pieces that differ only in shape (an L, a bar, a square) on
   3 x 20 x 28 frames;
-- ``LARGE_FRAMES``: a red square and a blue bar, 4 pixels a cell, on 3 x 64 x 64 frames.
+- ``LARGE_FRAMES``: a red square and a blue bar, 4 pixels a cell, on 3 x 64 x 64 frames;
+- ``FOUR_GREY``: four pieces in grey shades (two of them white, differing in shape) on a
+  12 x 12 grid drawn 3 pixels a cell, one-channel 1 x 36 x 36 frames;
+- ``MINIGRID_EMPTY``: MiniGrid's Empty-16x16 through ``GymGoalEnv``, 3 x 80 x 80 frames.
 
 Run one through every stage with the command::
 
@@ -31,6 +34,17 @@ def make_large_frames(batch_size=(8,), seed: int = 0, device=None) -> PiecesEnv:
     return PiecesEnv(shapes, colours, (16, 16), 4, batch_size, seed, device)
 
 
+def make_four_grey(batch_size=(8,), seed: int = 0, device=None) -> PiecesEnv:
+    shapes = [
+        cells_of(["##"]),
+        cells_of(["#", "#"]),
+        cells_of(["##", "##"]),
+        cells_of(["#.", "##"]),
+    ]
+    shades = [(255, 255, 255), (255, 255, 255), (150, 150, 150), (90, 90, 90)]
+    return PiecesEnv(shapes, shades, (12, 12), 3, batch_size, seed, device, channels=1)
+
+
 def _objects(width: int):
     return lambda state: state[..., 0] * width + state[..., 1]
 
@@ -40,6 +54,12 @@ ONE_COLOUR = EnvProfile(
     make_env=make_one_colour,
     lower_bound=manhattan,
     objects=_objects(28),
+)
+FOUR_GREY = EnvProfile(
+    name="four-grey",
+    make_env=make_four_grey,
+    lower_bound=manhattan,
+    objects=_objects(12),
 )
 LARGE_FRAMES = EnvProfile(
     name="large-frames",

@@ -55,15 +55,20 @@ class PiecesEnv(EnvBase):
         seed: int = 0,
         device=None,
         batch_locked: bool = True,
+        channels: int = 3,
     ):
         super().__init__(batch_size=torch.Size(batch_size), device=device)
+        if channels not in (1, 3):
+            raise ValueError(
+                f"channels must be 1 (grey, a colour's first entry) or 3, got {channels}."
+            )
         self.__dict__["_batch_locked"] = bool(batch_locked)
         self.shapes, self.grid, self.scale = shapes, tuple(grid), int(scale)
-        self.colours = torch.tensor(colours, dtype=torch.uint8)
+        self.colours = torch.tensor(colours, dtype=torch.uint8)[:, :channels]
         self.span = torch.stack([s.max(0).values + 1 for s in shapes])  # [K, 2]
         k, (h, w) = len(shapes), self.grid
         b = self.batch_size
-        image = Bounded(0, 255, (*b, 3, h * self.scale, w * self.scale), dtype=torch.uint8)
+        image = Bounded(0, 255, (*b, channels, h * self.scale, w * self.scale), dtype=torch.uint8)
         cells = Unbounded((*b, k, 2), dtype=torch.int64)
         self.observation_spec = Composite(
             pixels=image,
@@ -97,9 +102,10 @@ class PiecesEnv(EnvBase):
     def render(self, state: torch.Tensor) -> torch.Tensor:
         masks = self.occupied(state)
         h, w = self.grid
-        frames = torch.zeros(*state.shape[:-2], 3, h, w, dtype=torch.uint8)
+        c = self.colours.shape[1]
+        frames = torch.zeros(*state.shape[:-2], c, h, w, dtype=torch.uint8)
         for k in range(len(self.shapes)):
-            frames = torch.where(masks[..., k, None, :, :], self.colours[k].view(3, 1, 1), frames)
+            frames = torch.where(masks[..., k, None, :, :], self.colours[k].view(c, 1, 1), frames)
         if self.scale > 1:
             frames = frames.repeat_interleave(self.scale, -2).repeat_interleave(self.scale, -1)
         return frames
