@@ -127,5 +127,6 @@ MINIGRID_EMPTY = EnvProfile(
     name="minigrid-empty-16",
     make_env=make_empty_room,
     draw_tasks=_draw_reachable,
-    objects=lambda state: (state[..., 0] * 100 + state[..., 1] * 10 + state[..., 2])[..., None],
+    # the agent's pose (column, row, direction) as one id
+    objects=lambda state: (state[..., 0] * 10_000 + state[..., 1] * 100 + state[..., 2])[..., None],
 )
