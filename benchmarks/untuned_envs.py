@@ -130,3 +130,34 @@ MINIGRID_EMPTY = EnvProfile(
     # the agent's pose (column, row, direction) as one id
     objects=lambda state: (state[..., 0] * 10_000 + state[..., 1] * 100 + state[..., 2])[..., None],
 )
+
+
+def main() -> None:
+    """Held-out selectivity and purity of a run's codes on one of these envs:
+    ``python benchmarks/untuned_envs.py MINIGRID_EMPTY runs/minigrid-empty``."""
+    import argparse
+
+    import torch
+
+    from dorp_rl.data import collect_play_data
+    from dorp_rl.eval import play_object_diagnostics
+    from dorp_rl.trainers import load_encoder
+
+    parser = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    parser.add_argument("profile", help="ONE_COLOUR, LARGE_FRAMES, FOUR_GREY or MINIGRID_EMPTY")
+    parser.add_argument("run", help="the run folder of `dorp evaluate`")
+    parser.add_argument("--frames", type=int, default=20_000, help="held-out play transitions")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    profile = globals()[args.profile]
+    env = profile.build(batch_size=(8,))
+    encoder = load_encoder(f"{args.run}/codes/checkpoints/last.pt", env)
+    length = profile.play_trajectory_length
+    play = collect_play_data(env, args.frames, seed=1, trajectory_length=length, progress=False)
+    out = play_object_diagnostics(play, encoder, profile.objects)
+    purity = ", ".join(f"{p:.3f}" for p in out["purity"])
+    print(f"{args.profile}: selectivity {out['selectivity']:.3f}, purity per one-hot {purity}")
+
+
+if __name__ == "__main__":
+    main()
