@@ -90,6 +90,16 @@ def test_a_changed_field_reruns_its_stage_and_the_dependants(tmp_path, dorp) -> 
     assert "codes: running (changed: encoder.code_sizes [8] -> [4])" in out
 
 
+def test_a_field_the_stored_stage_config_lacks_is_named(tmp_path, dorp) -> None:
+    dorp(tmp_path, "train-encoder", *dorp.CODES)
+    stages_path = tmp_path / "run" / "stages.json"
+    stages = json.loads(stages_path.read_text())
+    del stages["codes"]["config"]["encoder"]["subtract_background"]  # a field added later
+    stages_path.write_text(json.dumps(stages))
+    out = dorp(tmp_path, "train-encoder", *dorp.CODES)
+    assert "codes: running (changed: encoder.subtract_background (no such field) -> None)" in out
+
+
 def test_stages_recorded_with_the_older_flat_configs_are_still_skipped(tmp_path, dorp) -> None:
     dorp(tmp_path, "build-graph", *dorp.CODES)
     stages_path = tmp_path / "run" / "stages.json"
