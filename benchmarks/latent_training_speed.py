@@ -1,7 +1,7 @@
 """The latent world model's training cost per frame size, as a ratio to 16 x 16 frames.
 
-One step of the recipe's model (:meth:`~dorp_rl.modules.LatentModelConfig.recipe`): encode
-32 frames, 14 imagined steps each decoded to a frame, a loss on the decoded frames,
+One step of the recipe's model (:meth:`~dorp_rl.modules.LatentModelConfig.recipe`, its
+``frame_stride`` chosen from the frame size): encode 32 frames, 14 imagined steps each decoded to a frame, a loss on the decoded frames,
 backward and an Adam step; random uint8 frames of 16, 32, 64 and 84 pixels a side, timed
 interleaved (median of ``--repeats`` rounds after one untimed round) in one process::
 

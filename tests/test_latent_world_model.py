@@ -782,3 +782,34 @@ def test_event_windows_of_the_latent_trainer_are_rare_code_changes(tmp_path):
     first, after = encoder(windows["pixels"])[0], encoder(windows["next", "pixels"])[0]
     assert (first[..., 1] != after[..., 1]).any(-1).all()
     assert trainer.evaluate()["event_num_sequences"] == len(windows)
+
+
+def test_large_frames_are_modelled_at_a_stride_chosen_from_their_size():
+    torch.manual_seed(0)
+    config = LatentModelConfig.recipe(frame_shape=(3, 64, 70), code_sizes=(4, 4))
+    model = LatentWorldModel(5, config)
+    # 64 x 70 frames: 4 x 4 blocks, a partial block at the right edge
+    assert model.frame_stride == 4 and model.model_frame_shape == (3, 16, 18)
+    assert model.config.frame_stride == 4
+    frames = torch.randint(0, 256, (2, 3, 64, 70), dtype=torch.uint8)
+    decoded = model.decode(model.encode(frames))
+    assert decoded.shape == (2, 3, 64, 70)
+    # each 4 x 4 block of a decoded frame is one value
+    blocks = decoded[..., :64, :68].unflatten(-1, (17, 4)).unflatten(-3, (16, 4))
+    assert torch.equal(blocks.amax((-1, -3)), blocks.amin((-1, -3)))
+    # a frame upscaled 4-fold reads as the small frame does
+    small = torch.randint(0, 256, (2, 3, 16, 16), dtype=torch.uint8)
+    big_model = LatentWorldModel(
+        5, LatentModelConfig.recipe(frame_shape=(3, 64, 64), code_sizes=(4,))
+    )
+    small_model = LatentWorldModel(
+        5, LatentModelConfig.recipe(frame_shape=(3, 16, 16), code_sizes=(4,), frame_stride=1)
+    )
+    small_model.load_state_dict(big_model.state_dict())
+    big = small.repeat_interleave(4, -2).repeat_interleave(4, -1)
+    torch.testing.assert_close(big_model.encode(big), small_model.encode(small))
+    # small frames keep every pixel; stored configs without the field read as stride 1
+    assert LatentWorldModel(5, LatentModelConfig.recipe(frame_shape=(3, 24, 32))).frame_stride == 1
+    stored = LatentWorldModelConfig().to_dict()
+    del stored["model"]["frame_stride"]
+    assert LatentWorldModelConfig.from_dict(stored).model.frame_stride == 1

@@ -18,6 +18,7 @@ from dorp_rl.data import SequenceSampler, play_segment_length, rare_code_changes
 from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.integrity import state_digest
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
+from dorp_rl.modules.encoder import choose_map_stride
 from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel, check_latent_model
 from dorp_rl.objectives.latent import LatentWorldModelLoss
 from dorp_rl.trainers.base import TrainerConfig
@@ -116,7 +117,12 @@ class LatentWorldModelConfig(TrainerConfig):
         for name, before in (("pixel_weight", 1.0), ("soft_targets", False), ("event_share", 0.0)):
             values.setdefault(name, before)
         if isinstance(values.get("model"), dict):  # fields stored before the recipe existed
-            model = {"dynamics_kind": "mlp", "decoder_kind": "conv", "decoder_hidden": 256}
+            model = {
+                "dynamics_kind": "mlp",
+                "decoder_kind": "conv",
+                "decoder_hidden": 256,
+                "frame_stride": 1,
+            }
             values["model"] = {**model, **values["model"]}
         return values
 
@@ -197,11 +203,16 @@ class LatentWorldModelTrainer(WindowTrainer):
                 )
             encoder = load_encoder(config.encoder_checkpoint, env)
         frame_shape = frame_shape_of(env)
+        stride = config.model.frame_stride
+        if stride is None:  # the encoder's map stride (its smallest piece counted), or by size
+            stride = getattr(encoder, "map_stride", None) or choose_map_stride(frame_shape)
         config = config.replace(
             model={
                 "frame_shape": frame_shape,
                 "code_sizes": tuple(encoder.code_sizes),
                 "encoder_digest": state_digest(encoder),
+                # the frame size decides it; written to the checkpoint's config
+                "frame_stride": int(stride),
             }
         )
         super().__init__(config, env, buffer, eval_buffer, logger)

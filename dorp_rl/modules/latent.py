@@ -15,6 +15,7 @@ parts as torchrl's :class:`~torchrl.modules.WorldModel` (TensorDict modules over
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +26,7 @@ from torch import nn
 from torchrl.modules import WorldModel
 
 from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.modules.encoder import choose_map_stride, pool_blocks
 from dorp_rl.validation import Choice, Flag, Int, Ints, Text, frames_to_unit_float
 
 __all__ = ["LatentModelConfig", "LatentWorldModel"]
@@ -68,6 +70,11 @@ class LatentModelConfig(ConfigMixin):
     latent_channels: int = checked(32, Int(low=1))
     """channels of the latent map and of the convolutions stepping it (dynamics_kind
     'conv'; their cost grows with its square, so keep it small)"""
+    frame_stride: int | None = checked(None, Int(low=1, optional=True))
+    """the model reads frames averaged over s x s blocks and decodes frames of that
+    resolution, repeated back to the frame's (each s x s block one value); 1 keeps every
+    pixel; None: :func:`~dorp_rl.modules.choose_map_stride` of the frame size (1 up to
+    31 pixels a side)"""
     latent_stride: int = checked(4, Choice((1, 2, 4)))
     """downsampling of the latent map against the frame (dynamics_kind 'conv')"""
     dynamics_channels: int | None = checked(None, Int(low=1, optional=True))
@@ -242,7 +249,15 @@ class LatentWorldModel(nn.Module):
         self.config = config
         self.num_actions = int(num_actions)
         self.code_sizes = tuple(config.code_sizes)
-        c, h, w = config.frame_shape
+        if config.frame_stride is None:
+            config = config.replace(frame_stride=choose_map_stride(tuple(config.frame_shape)))
+            self.config = config
+        #: frames are averaged over frame_stride x frame_stride blocks before the encoder
+        self.frame_stride = int(config.frame_stride)
+        c, full_h, full_w = config.frame_shape
+        h, w = (math.ceil(d / self.frame_stride) for d in (full_h, full_w))
+        #: (C, h, w) of the frames the model reads and decodes
+        self.model_frame_shape = (c, h, w)
         self.discrete = config.latent_groups > 0
         #: slots of the latent (one per one-hot), 0 for one latent vector
         self.slots = len(self.code_sizes) if config.slot_dim > 0 else 0
@@ -342,6 +357,7 @@ class LatentWorldModel(nn.Module):
         """The frame encoder's output ``[*B, D]`` before normalisation or quantisation."""
         lead = pixels.shape[:-3]
         x = frames_to_unit_float(pixels).reshape(-1, *pixels.shape[-3:])
+        x = pool_blocks(x, self.frame_stride)
         # channels-last: oneDNN runs these small convolutions faster on a CPU
         x = x.contiguous(memory_format=torch.channels_last)
         return self.frame_encoder(x).reshape(*lead, -1)
@@ -407,15 +423,26 @@ class LatentWorldModel(nn.Module):
             )
         lead = latent.shape[:-1]
         x = self.decoder_input(latent.reshape(-1, latent.shape[-1]))
-        c, h, w = self.frame_shape
+        c, h, w = self.model_frame_shape
         # the sigmoid in float32, whatever the layers ran in (bfloat16 has 8 bits of
         # mantissa: too few for 256 levels)
         if self.config.decoder_kind == "mlp":
-            return torch.sigmoid(self.frame_decoder(x).float()).reshape(*lead, c, h, w)
-        x = self.frame_decoder(x.reshape(-1, *self._feature_shape))
-        if tuple(x.shape[-2:]) != (h, w):
-            x = nn.functional.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
-        return torch.sigmoid(x.float()).reshape(*lead, c, h, w)
+            frames = torch.sigmoid(self.frame_decoder(x).float()).reshape(-1, c, h, w)
+        else:
+            x = self.frame_decoder(x.reshape(-1, *self._feature_shape))
+            if tuple(x.shape[-2:]) != (h, w):
+                x = nn.functional.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
+            frames = torch.sigmoid(x.float())
+        return self._full_size(frames).reshape(*lead, *self.frame_shape)
+
+    def _full_size(self, frames: torch.Tensor) -> torch.Tensor:
+        """Decoded ``[N, C, h, w]`` frames repeated back to ``[N, *frame_shape]``."""
+        s = self.frame_stride
+        if s == 1:
+            return frames
+        _, height, width = self.frame_shape
+        full = frames.repeat_interleave(s, -2).repeat_interleave(s, -1)
+        return full[..., :height, :width]
 
     def decode_uint8(self, latent: torch.Tensor) -> torch.Tensor:
         """:meth:`decode` as uint8 frames (rounded to 0..255)."""
