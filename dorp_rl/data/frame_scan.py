@@ -22,9 +22,6 @@ import torch.nn.functional as F
 
 __all__ = ["FrameScan", "scan_frames"]
 
-#: 8 neighbours of a pixel as (row, column) shifts
-_NEIGHBOURS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr, dc) != (0, 0)]
-
 
 @dataclass(frozen=True)
 class FrameScan:
@@ -69,33 +66,23 @@ def _as_bytes(frames: torch.Tensor) -> torch.Tensor:
     raise ValueError(f"frames must be uint8 or floats in [0, 1], got {frames.dtype}.")
 
 
-def _shift(x: torch.Tensor, dr: int, dc: int, fill: float) -> torch.Tensor:
-    """``x [..., H, W]`` moved so that pixel (r, c) holds what (r + dr, c + dc) held."""
-    h, w = x.shape[-2:]
-    padded = F.pad(x, (1, 1, 1, 1), value=fill)
-    return padded[..., 1 + dr : 1 + dr + h, 1 + dc : 1 + dc + w]
-
-
 def _label_pieces(foreground: torch.Tensor) -> torch.Tensor:
     """Per pixel, the largest flat index of its piece (-1 on background), ``[N, H, W]``:
     8-connected foreground pixels form a piece (whatever their colours: a renderer's
-    anti-aliased edges shade one object in many). Labels spread by repeated 8-neighbour
-    maxima until nothing changes.
+    anti-aliased edges shade one object in many). Labels spread by repeated 3 x 3 maxima
+    (background is -1, below every label) until nothing changes.
     """
     n, h, w = foreground.shape
-    index = torch.arange(n * h * w, dtype=torch.float32).reshape(n, h, w)
-    labels = torch.where(foreground, index, torch.full_like(index, -1.0))
-    same = [foreground & _shift(foreground.float(), dr, dc, 0.0).bool() for dr, dc in _NEIGHBOURS]
+    index = torch.arange(n * h * w, dtype=torch.float32).reshape(n, 1, h, w)
+    mask = foreground.unsqueeze(1)
+    background = torch.full_like(index, -1.0)
+    labels = torch.where(mask, index, background)
     for _ in range(h * w):
-        spread = labels
-        for (dr, dc), joined in zip(_NEIGHBOURS, same, strict=True):
-            spread = torch.where(
-                joined, torch.maximum(spread, _shift(labels, dr, dc, -1.0)), spread
-            )
+        spread = torch.where(mask, F.max_pool2d(labels, 3, stride=1, padding=1), background)
         if torch.equal(spread, labels):
             break
         labels = spread
-    return labels.long()
+    return labels.squeeze(1).long()
 
 
 @torch.no_grad()
