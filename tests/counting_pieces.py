@@ -22,3 +22,9 @@ PROFILE = EnvProfile(
     lower_bound=manhattan,
     objects=lambda state: state[..., 0] * 16 + state[..., 1],
 )
+
+
+def make_large_env(batch_size=(4,), seed=0, device=None) -> PiecesEnv:
+    """The same two pieces drawn 4 pixels a cell: 3 x 48 x 64 frames."""
+    shapes = [cells_of(["##", "#."]), cells_of(["###"])]
+    return PiecesEnv(shapes, [(255, 255, 255)] * 2, (12, 16), 4, batch_size, seed, device)

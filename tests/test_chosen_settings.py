@@ -230,3 +230,33 @@ def test_a_static_background_that_is_not_black_is_subtracted(tmp_path):
         )
     with pytest.raises(ValueError, match="subtract_background=True"):
         zero_encoder.set_background(scan.background)
+
+
+def test_large_frames_train_codes_and_a_latent_model_at_the_chosen_stride(tmp_path):
+    codes = RepresentationTrainer(tiny_codes("counting_pieces:make_large_env", tmp_path))
+    # 48 x 64 frames, pieces 4 pixels a cell: maps of 16 x 22 cells
+    assert codes.config.encoder.map_stride == 3 and codes.encoder.map_shape == (16, 22)
+    assert codes.config.code_sizes == (32, 32)
+    codes.train()
+    cfg = LatentWorldModelConfig(
+        env="counting_pieces:make_large_env",
+        num_frames=256,
+        eval_frames=128,
+        eval_sequences=4,
+        num_envs=4,
+        horizon=3,
+        trajectory_length=4,
+        batch_size=4,
+        num_steps=2,
+        out_dir=str(tmp_path / "latent"),
+        progress=False,
+        model={"latent_channels": 4, "channels": 4, "hidden": 8, "decoder_hidden": 8},
+    )
+    latent = LatentWorldModelTrainer(cfg, encoder=codes.encoder)
+    # the encoder's stride: the model reads and decodes 16 x 22 frames
+    assert latent.config.model.frame_stride == 3
+    assert latent.model.model_frame_shape == (3, 16, 22)
+    result = latent.train()
+    assert len(result["evaluation"]["code_accuracy"]) == 3
+    frames = latent.buffer[:2]["pixels"]
+    assert latent.model.decode(latent.model.encode(frames)).shape == (2, 3, 48, 64)
