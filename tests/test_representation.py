@@ -782,3 +782,45 @@ def test_the_width_hook_reorders_once_per_attempt_and_resumes_with_its_record(tm
         ):
             trainer.train()
         assert measure.call_count == expected_calls and permute.call_count == 0
+
+
+def test_out_of_restarts_training_goes_on_from_the_least_entangled_attempt(tmp_path):
+    cfg = _tiny_config(
+        tmp_path,
+        num_steps=12,
+        log_every=1,
+        max_restarts=2,
+        entanglement_check_after=6,
+        entanglement_threshold=0.0,  # every attempt counts as entangled
+        num_objects=2,
+        encoder={"code_sizes": (8, 8)},
+        exclusivity_weight=1.0,  # map_entanglement is logged with the exclusivity term
+    )
+    trainer = RepresentationTrainer(cfg)
+    hook = trainer.entanglement_hook
+    # attempt 1 is the least entangled: 0.5, then 0.1, then 0.3 for the last attempt
+    values = {0: 0.5, 1: 0.1, 2: 0.3}
+    real = hook.entanglement_reason
+
+    def staged(attempt_steps):
+        reason = real(attempt_steps)
+        if reason is not None:
+            hook._value = values[trainer.attempt]
+        return reason
+
+    hook.entanglement_reason = staged
+    with pytest.warns(RuntimeWarning, match="going on from attempt 1"):
+        result = trainer.train()
+    assert [a["attempt"] for a in hook.attempts] == [0, 1]
+    assert hook.kept == {"attempt": 1, "entanglement": 0.1}
+    saved = load_checkpoint(hook.attempts[1]["path"])["state"]["encoder"]
+    assert result["attempt"] == trainer.attempt == 1
+    # the kept attempt trains on from its checkpoint for the rest of its num_steps
+    steps_in = hook.attempts[1]["attempt_steps"]
+    assert result["step"] == 3 * steps_in + cfg.num_steps - steps_in
+    kept = trainer.encoder.state_dict()
+    assert any(not torch.equal(kept[k], saved[k]) for k in saved)  # it trained on
+    # and a resumed run keeps the same choice
+    again = RepresentationTrainer(cfg)
+    again.train(resume=True)
+    assert again.entanglement_hook.kept == hook.kept and again.attempt == 1

@@ -405,6 +405,7 @@ class RestartHook(TrainerHook):
         if len(trainer.restarts) >= trainer.config.max_restarts:
             self.out_of_restarts(reason)
             return False
+        self.before_restart(reason)
         trainer.new_init()
         self.restarts.append({"step": trainer.step, "attempt": trainer.attempt, "reason": reason})
         count = len(trainer.restarts)
@@ -416,6 +417,9 @@ class RestartHook(TrainerHook):
         )
         trainer.logger.log_scalar("restart", float(count), step=trainer.step)
         return True
+
+    def before_restart(self, reason: str) -> None:
+        """The attempt failed and is about to be replaced by a new one (default: nothing)."""
 
     def out_of_restarts(self, reason: str) -> None:
         """The attempt failed with no restart left (default: it trains on)."""
@@ -472,15 +476,71 @@ class EntanglementRestart(RestartHook):
     After ``entanglement_check_after`` steps of an attempt, if the mean
     ``map_entanglement`` of its last five logged steps is above
     ``entanglement_threshold``: some object map follows several objects or none.
+
+    Each restarted attempt is saved (``<out_dir>/checkpoints/attempt<i>.pt``) with its
+    entanglement. When the last attempt is entangled too, training goes on from the least
+    entangled of them all (the restarts then act as a screening of initialisations):
+    with four or more objects every attempt can stay above the threshold at the check,
+    and the last one is not the best more often than any other. The state is the
+    restarts, the saved attempts and the attempt kept.
     """
 
     default_name = "entanglement"
+
+    def __init__(self) -> None:
+        super().__init__()
+        #: restarted attempts: attempt, entanglement, steps into it, checkpoint path
+        self.attempts: list[dict[str, Any]] = []
+        #: the attempt training went on from once restarts ran out (None: not yet)
+        self.kept: dict[str, Any] | None = None
+        self._value = math.nan
 
     def reason(self, metrics: dict[str, float], logged: bool) -> str | None:
         if not logged:
             return None
         trainer = self.trainer
         return self.entanglement_reason(trainer.step - trainer.attempt_start)
+
+    def before_restart(self, reason: str) -> None:
+        trainer = self.trainer
+        path = trainer.checkpoint_path.with_name(f"attempt{trainer.attempt}.pt")
+        trainer.save(path)
+        self.attempts.append(
+            {
+                "attempt": trainer.attempt,
+                "entanglement": self._value,
+                "attempt_steps": trainer.step - trainer.attempt_start,
+                "path": str(path),
+            }
+        )
+
+    def out_of_restarts(self, reason: str) -> None:
+        """Goes on from the least entangled attempt, once (this one where it is the least)."""
+        trainer = self.trainer
+        if self.kept is not None:
+            return
+        current = {"attempt": trainer.attempt, "entanglement": self._value}
+        best = min([*self.attempts, current], key=lambda a: a["entanglement"])
+        self.kept = {"attempt": best["attempt"], "entanglement": best["entanglement"]}
+        if best is current:
+            return
+        warnings.warn(
+            f"representation: every attempt stayed entangled; going on from attempt "
+            f"{best['attempt']} (map_entanglement {best['entanglement']:.3f}, the least; "
+            f"this attempt's {self._value:.3f}).",
+            RuntimeWarning,
+            stacklevel=6,
+        )
+        trainer.continue_attempt(best["attempt"], best["path"], best["attempt_steps"])
+        trainer.logger.log_scalar("kept_attempt", float(best["attempt"]), step=trainer.step)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "attempts": list(self.attempts), "kept": self.kept}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        self.attempts = list(state.get("attempts", []))
+        self.kept = state.get("kept")
 
     def entanglement_reason(self, attempt_steps: int) -> str | None:
         """Why the object maps look entangled (``None`` if they do not or it is too early)."""
@@ -493,7 +553,7 @@ class EntanglementRestart(RestartHook):
         ]
         if attempt_steps < cfg.entanglement_check_after or len(recent) < 5:
             return None
-        value = sum(recent) / len(recent)
+        value = self._value = sum(recent) / len(recent)
         if value > cfg.entanglement_threshold:
             return (
                 f"the object maps are still entangled (map_entanglement {value:.3f} > "
@@ -668,18 +728,7 @@ class CandidateScreening(TrainerHook):
             trainer.new_init()
             return
         best = self.chosen
-        if best["attempt"] != trainer.attempt:
-            trainer.attempt = best["attempt"]
-            trainer._build(seed=trainer._attempt_seed(trainer.attempt))
-            payload = load_checkpoint(
-                best["path"],
-                kind=trainer.kind,
-                env_config=env_identity(trainer.env),
-                state_keys=trainer.state_keys,
-            )
-            trainer.load_state_dict(payload["state"])
-        trainer.attempt_start = trainer.step - trainer.config.candidate_steps
-        trainer.history_start = trainer.step
+        trainer.continue_attempt(best["attempt"], best["path"], trainer.config.candidate_steps)
 
     def state_dict(self) -> dict[str, Any]:
         return {"candidates": list(self.candidates)}
@@ -726,7 +775,8 @@ class RepresentationTrainer(OfflineTrainer):
     - ``"entanglement"`` (:class:`EntanglementRestart`): after
       ``entanglement_check_after`` steps of an attempt, if the mean ``map_entanglement``
       of the last five logged steps is above ``entanglement_threshold``, the attempt is
-      restarted the same way.
+      restarted the same way; when the last attempt is entangled too, training goes on
+      from the least entangled attempt.
     - ``"dead"`` (:class:`DeadOneHotRestart`): at an attempt's last step, if a one-hot
       (a two-code key bit included) gives all of ``dead_check_frames`` evenly spaced
       play frames one code, a new attempt of ``num_steps`` starts the same way.
@@ -1017,6 +1067,20 @@ class RepresentationTrainer(OfflineTrainer):
         self.inits += 1
         self._build(seed=self._attempt_seed(self.attempt))
         self.attempt_start = self.history_start = self.step
+
+    def continue_attempt(self, attempt: int, path: str, attempt_steps: int) -> None:
+        """Goes on from an earlier ``attempt`` saved at ``path`` ``attempt_steps`` steps into
+        it (its weights and optimiser; the step count runs on): its remaining steps end
+        training."""
+        if attempt != self.attempt:
+            self.attempt = attempt
+            self._build(seed=self._attempt_seed(attempt))
+            payload = load_checkpoint(
+                path, kind=self.kind, env_config=env_identity(self.env), state_keys=self.state_keys
+            )
+            self.load_state_dict(payload["state"])
+        self.attempt_start = self.step - attempt_steps
+        self.history_start = self.step
 
     @property
     def planned_steps(self) -> int:
