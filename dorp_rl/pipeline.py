@@ -29,8 +29,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
+import tyro
 from torchrl.envs import EnvBase
 
+from dorp_rl.config import checked
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.eval import (
@@ -49,7 +51,7 @@ from dorp_rl.eval import (
 )
 from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_bytes
 from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
-from dorp_rl.policies import DORP_RECIPE
+from dorp_rl.policies import DORP_RECIPE, DORPConfig
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
     LatentWorldModelTrainer,
@@ -61,6 +63,7 @@ from dorp_rl.trainers import (
     WorldModelTrainer,
     load_encoder,
 )
+from dorp_rl.validation import Int
 from dorp_rl.viz import plot_results
 
 SettingName = Literal[
@@ -200,6 +203,29 @@ class LatentModelOptions:
             )
 
 
+#: DORPConfig fields that are the planners' shape on the command line: --candidates and
+#: --planning-horizon, the same for every method
+PLANNER_SHAPE = ("num_candidates", "planning_horizon")
+
+
+@dataclass
+class DORPOptions(DORPConfig):
+    """DORP's settings (``--dorp.<field>``), by default those of the env's profile; the
+    planners' shape is ``--candidates`` / ``--planning-horizon``, as for every method."""
+
+    planning_horizon: tyro.conf.Suppress[int] = checked(14, Int(low=1))
+    num_candidates: tyro.conf.Suppress[int] = checked(1000, Int(low=1))
+
+    def overrides(self) -> dict[str, Any]:
+        """Every field but the planners' shape, as plain values (``EvalSpec.dorp``)."""
+        values = self.to_dict()
+        return {k: v for k, v in values.items() if k not in PLANNER_SHAPE}
+
+
+def _dorp_default() -> DORPOptions:
+    return DORPOptions(**DORPConfig.for_env("rearrangement", num_objects=2).to_dict())
+
+
 @dataclass
 class EvaluationOptions:
     """Which methods run on which seeded tasks, how they plan and where they run."""
@@ -225,10 +251,8 @@ class EvaluationOptions:
     """action sequences per plan"""
     planning_horizon: int = 14
     """steps per candidate sequence"""
-    dorp_planner: Literal["rs", "cem"] = "rs"
-    """DORP's low-level planner: random shooting or categorical CEM"""
-    waypoint_budget: int = 28
-    """DORP: steps to reach a waypoint code before its graph edge is removed"""
+    dorp: DORPOptions = field(default_factory=_dorp_default)
+    """DORP's settings (default: the env profile's; see dorp_rl.policies.DORPConfig)"""
     max_steps: int | None = None
     """step limit per task (default: the env's, 400 for 2 objects, 1400 for 5)"""
     workers: int = 1
@@ -255,7 +279,6 @@ class EvaluationOptions:
             "tasks_per_rollout",
             "candidates",
             "planning_horizon",
-            "waypoint_budget",
         ):
             if getattr(self, name) < 1:
                 raise UsageError(
@@ -287,7 +310,7 @@ class PaperOptions:
     paper: bool = False
     """the paper's Table 1 instead of one setting: every method of the table in each of
     --settings, one sub-run per setting (<name>/<setting>/), one table and timings.csv
-    in the run folder; --codes.* / --world-model.* changes apply to every setting"""
+    in the run folder; --codes.* / --world-model.* / --dorp.* changes apply to every setting"""
     settings: tuple[SettingName, ...] = (
         "1obj", "2obj", "3obj", "5obj", "keywall", "keycorridor"
     )  # fmt: skip
@@ -416,6 +439,10 @@ def default_command(name: str, setting: str = "2obj") -> Any:
     if "latent_model" in fields:
         chosen = setting_of(setting)
         values["latent_model"] = LatentWorldModelConfig.for_env(chosen.env, chosen.num_objects)
+    if "dorp" in fields:
+        chosen = setting_of(setting)
+        suited = DORPConfig.for_env(chosen.profile, num_objects=chosen.num_objects)
+        values["dorp"] = DORPOptions(**suited.to_dict())
     return cls(**values)
 
 
@@ -1050,8 +1077,7 @@ def _policy(cmd: Evaluate | Reproduce, method: str, env: EnvBase, low_level: Any
         low_level="gt" if low_level is None else str(low_level),
         candidates=cmd.candidates,
         planning_horizon=cmd.planning_horizon,
-        dorp_planner=cmd.dorp_planner,
-        waypoint_budget=cmd.waypoint_budget,
+        dorp=cmd.dorp.overrides(),
         seed=cmd.seed,
     )
     return spec.make_policy(env)
@@ -1096,8 +1122,7 @@ def evaluate_stage(run: Run, cmd: Evaluate | Reproduce) -> list[dict[str, Any]]:
             )
         if dorp is not None:
             config.update(
-                planner=cmd.dorp_planner,
-                waypoint_budget=cmd.waypoint_budget,
+                dorp=cmd.dorp.overrides(),
                 graph=run.stages[dorp[2]]["config"],
                 policy_recipe=DORP_RECIPE,
             )

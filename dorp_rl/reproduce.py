@@ -267,13 +267,15 @@ def _setting_command(
     cmd: Reproduce, base: Reproduce, setting: str, run: Run, seed: int | None = None
 ) -> Reproduce:
     """The single-setting command of ``setting`` in ``--paper``: its presets with the
-    command line's ``--codes.*`` / ``--world-model.*`` / ``--latent-model.*`` changes,
+    command line's ``--codes.*`` / ``--world-model.*`` / ``--latent-model.*`` / ``--dorp.*``
+    changes,
     Table 1's methods, in the sub-run ``<setting>`` (or ``<setting>-seed<seed>``, whose
     codes, world models and planners use ``seed``)."""
     preset = default_command("reproduce", setting)
     codes = _carry_changes(preset.codes, cmd.codes, base.codes)
     world_model = _carry_changes(preset.world_model, cmd.world_model, base.world_model)
     latent_model = _carry_changes(preset.latent_model, cmd.latent_model, base.latent_model)
+    dorp = _carry_changes(preset.dorp, cmd.dorp, base.dorp)
     seeds: dict[str, Any] = {}
     if seed is not None:
         codes = dataclasses.replace(codes, seed=seed)
@@ -288,6 +290,7 @@ def _setting_command(
         codes=codes,
         world_model=world_model,
         latent_model=latent_model,
+        dorp=dorp,
         methods=_chosen_methods(cmd, setting),
         paper=False,
         paper_methods=(),
@@ -423,9 +426,9 @@ def reproduce_paper(run: Run, cmd: Reproduce) -> list[dict[str, Any]]:
     of ``cmd.paper_methods`` if it names any).
 
     Each setting is a sub-run ``<run>/<setting>/`` (its own play data, codes per
-    similarity, graphs, world model, results and pictures). ``--codes.*`` and
-    ``--world-model.*`` changes from the defaults of ``--setting`` are applied to every
-    setting's preset. Writes into the run folder ``results.csv`` / ``results.md``
+    similarity, graphs, world model, results and pictures). ``--codes.*``,
+    ``--world-model.*``, ``--latent-model.*`` and ``--dorp.*`` changes from the defaults
+    of ``--setting`` are applied to every setting's preset. Writes into the run folder ``results.csv`` / ``results.md``
     (:data:`~dorp_rl.eval.RESULT_COLUMNS` and the paper's figures,
     :data:`~dorp_rl.eval.results.PAPER_COLUMNS`, plus the table in Table 1's layout),
     ``success.png``, ``steps.png`` and ``timings.csv`` / ``timings.md`` (seconds per

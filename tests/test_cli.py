@@ -341,7 +341,8 @@ def test_threads_sets_torch_threads(tmp_path, dorp) -> None:
         (["collect", "--codes.env", "key-wall", "--codes.num-objects", "1"], "--setting"),
         (["evaluate", "--tasks", "0"], "--tasks must be >= 1"),
         (["evaluate", "--max-steps", "0"], "--max-steps must be >= 1"),
-        (["evaluate", "--waypoint-budget", "-3"], "--waypoint-budget must be >= 1"),
+        (["evaluate", "--dorp.waypoint-budget", "-3"], "waypoint_budget must be >= 1"),
+        (["evaluate", "--dorp.planner", "magic"], "planner must be one of"),
         (["reproduce", "--seed", "-1"], "--seed must be >= 0"),
         (["evaluate", "--task-seed", "-1"], "--task-seed must be >= 0"),
         (["collect", "--threads", "0"], "--threads must be >= 1"),
@@ -379,10 +380,55 @@ def test_python_m_dorp_rl_help_lists_every_field_with_its_default() -> None:
     assert sub.returncode == 0, sub.stderr
     for option in ("--threads", "--tasks", "--methods", "--low-level", "--codes.num-steps",
                    "--world-model.num-steps", "--root", "--name", "--codes.encoder.code-sizes",
-                   "--world-model.model.latent-dim"):  # fmt: skip
+                   "--world-model.model.latent-dim", "--dorp.goal-budget", "--dorp.planner",
+                   "--dorp.reenter"):  # fmt: skip
         assert option in sub.stdout
+    # the planners' shape is --candidates / --planning-horizon, for every method
+    assert "--dorp.num-candidates" not in sub.stdout
     assert "100x slower" in sub.stdout  # why threads defaults to 1
     assert "(default: 10)" in sub.stdout and "(default: 1500)" in sub.stdout
+
+
+def test_dorp_settings_default_to_the_env_profile_and_reach_every_evaluation(
+    monkeypatch,
+) -> None:
+    from dorp_rl import pipeline
+    from dorp_rl.cli import parse
+    from dorp_rl.reproduce import _setting_command
+
+    # the profile's DORP settings are the defaults: the key rooms re-enter codes
+    assert parse(["evaluate", "--setting", "keywall"])[1].dorp.reenter is True
+    assert parse(["evaluate", "--setting", "2obj"])[1].dorp.reenter is False
+    _, cmd = parse(["evaluate", "--setting", "keywall", "--dorp.planner", "cem",
+                    "--dorp.goal-budget", "50", "--candidates", "7"])  # fmt: skip
+    specs = []
+
+    class Recorder:
+        def __init__(self, *args, **kwargs) -> None:
+            specs.append(kwargs)
+
+        def make_policy(self, env):
+            return None
+
+    monkeypatch.setattr(pipeline, "EvalSpec", Recorder)
+    pipeline._policy(cmd, "dorp", None, low_level=None, dorp=("enc", "graph", "graph"))
+    (spec,) = specs
+    assert spec["dorp"]["planner"] == "cem" and spec["dorp"]["goal_budget"] == 50
+    assert spec["dorp"]["reenter"] is True and "num_candidates" not in spec["dorp"]
+    monkeypatch.undo()
+    kept = {k: v for k, v in spec.items() if k not in ("encoder", "graph")}
+    config = pipeline.EvalSpec("keywall", "random", **kept).dorp_config()
+    assert (config.planner, config.goal_budget, config.num_candidates) == ("cem", 50, 7)
+    # --paper carries the command line's --dorp.* changes into every setting's own config
+    _, paper = parse(["reproduce", "--paper", "--dorp.goal-budget", "50"])
+    base = pipeline.default_command("reproduce", paper.setting)
+
+    class FakeRun:
+        dir = Path("runs/paper")
+
+    for setting, reenter in (("keywall", True), ("2obj", False)):
+        sub = _setting_command(paper, base, setting, FakeRun())
+        assert sub.dorp.goal_budget == 50 and sub.dorp.reenter is reenter
 
 
 def test_torchrl_info_lines_are_held_back_while_bars_are_shown() -> None:

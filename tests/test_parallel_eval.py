@@ -271,6 +271,12 @@ def test_bad_arguments_get_clear_errors(dorp_spec, monkeypatch):
         EvalSpec("1obj", "dorp", encoder="oracle")
     with pytest.raises(ValueError, match="low_level must be 'gt' or a world-model checkpoint"):
         EvalSpec("1obj", "vf-rs", low_level="no/such/model.pt")
+    with pytest.raises(ValueError, match=r"names \['speed'\], which are no DORPConfig"):
+        EvalSpec("1obj", "random", dorp={"speed": 2})
+    with pytest.raises(ValueError, match=r"sets \['num_candidates'\]: the planners' shape"):
+        EvalSpec("1obj", "random", dorp={"num_candidates": 5})
+    with pytest.raises(ValueError, match="waypoint_budget must be >= 1"):
+        EvalSpec("1obj", "random", dorp={"waypoint_budget": 0})
 
 
 def test_cli_workers_give_the_one_process_results(tmp_path, capsys):

@@ -42,6 +42,7 @@ Backends:
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -100,8 +101,9 @@ class EvalSpec:
             checkpoint path.
         tasks_per_rollout: the env's batch size (tasks run side by side).
         candidates, planning_horizon: the planners' shape.
-        dorp_planner, waypoint_budget: DORP's low-level planner (``"rs"``/``"cem"``) and
-            waypoint budget.
+        dorp: DORP only: :class:`~dorp_rl.policies.DORPConfig` fields over the setting's
+            (:meth:`dorp_config`), e.g. ``{"planner": "cem", "waypoint_budget": 40}``;
+            ``candidates`` and ``planning_horizon`` size its planners.
         seed: the planners' construction seed (:func:`evaluate_parallel` reseeds them per
             chunk) and the env's seed.
         env_kwargs: more arguments of the env (e.g. ``{"max_steps": 100}``).
@@ -124,8 +126,7 @@ class EvalSpec:
     tasks_per_rollout: int = 1
     candidates: int = 1000
     planning_horizon: int = 14
-    dorp_planner: str = "rs"
-    waypoint_budget: int = 28
+    dorp: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     planner_kwargs: dict[str, Any] = field(default_factory=dict)
@@ -134,10 +135,11 @@ class EvalSpec:
     def __post_init__(self) -> None:
         setting_of(self.setting)  # a setting or an env profile, else named
         check_choice("method", self.method, METHODS)
-        check_choice("dorp_planner", self.dorp_planner, ("rs", "cem"))
-        for name in ("tasks_per_rollout", "candidates", "planning_horizon", "waypoint_budget"):
+        for name in ("tasks_per_rollout", "candidates", "planning_horizon"):
             check_int(name, getattr(self, name), low=1)
         check_seed(self.seed)
+        if self.dorp:
+            self.dorp_config()  # names the field that is wrong
         if self.method == "dorp" and (self.encoder is None or self.graph is None):
             raise ValueError(
                 "method 'dorp' needs encoder ('oracle', a checkpoint path or an encoder) and "
@@ -157,11 +159,24 @@ class EvalSpec:
 
     def dorp_config(self) -> DORPConfig:
         """The :class:`~dorp_rl.policies.DORPConfig` of the setting's env profile for its
-        object count (rearrangement's differ from 5 blocks on)."""
+        object count (rearrangement's differ from 5 blocks on), with :attr:`dorp` over it
+        and :attr:`candidates` / :attr:`planning_horizon` as its planners' shape."""
         from dorp_rl.policies import DORPConfig
 
         setting = setting_of(self.setting)
-        return DORPConfig.for_env(setting.profile, num_objects=setting.num_objects)
+        shape = {"num_candidates": self.candidates, "planning_horizon": self.planning_horizon}
+        unknown = sorted(set(self.dorp) - {f.name for f in dataclasses.fields(DORPConfig)})
+        if unknown:
+            raise ValueError(f"EvalSpec.dorp names {unknown}, which are no DORPConfig fields.")
+        shaped = sorted(set(self.dorp) & set(shape))
+        if shaped:
+            raise ValueError(
+                f"EvalSpec.dorp sets {shaped}: the planners' shape is EvalSpec's candidates "
+                "and planning_horizon (the same for every method)."
+            )
+        return DORPConfig.for_env(
+            setting.profile, num_objects=setting.num_objects, **{**self.dorp, **shape}
+        )
 
     def make_policy(self, env: EnvBase) -> Policy:
         """The policy of :attr:`method` for ``env`` (``env.rand_action`` for random)."""
@@ -186,10 +201,6 @@ class EvalSpec:
                 self.dorp_config(),
                 **self.planner_kwargs,
                 low_level=self.low_level,
-                planner=self.dorp_planner,
-                planning_horizon=self.planning_horizon,
-                num_candidates=self.candidates,
-                waypoint_budget=self.waypoint_budget,
                 seed=self.seed,
             )
         return VisualForesightPolicy(
