@@ -50,7 +50,7 @@ from dorp_rl.eval import (
     write_task_records,
 )
 from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_bytes
-from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
+from dorp_rl.planners import CodeGraph, coupled_groups, encode_transitions, encoder_fingerprint
 from dorp_rl.policies import DORP_RECIPE, DORPConfig
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
@@ -977,12 +977,17 @@ def graph_stage(
         key = (codes_variant, encoder_fingerprint(encoder))
         if key not in run.encoded:
             run.encoded[key] = encode_transitions(buffer, encoder, progress=run.progress)
+        chosen = groups
+        if isinstance(groups, str) and groups == "auto":
+            choice = coupled_groups(*run.encoded[key])
+            chosen = choice.groups
+            say_chosen(run, "graph", {"groups": {"value": list(chosen), "why": choice.why}})
         graph = setting_of(setting).make_graph(
-            buffer, encoder, groups, transitions=run.encoded[key], num_actions=num_actions
+            buffer, encoder, chosen, transitions=run.encoded[key], num_actions=num_actions
         )
         graph.save(path)
         nodes = [graph.num_nodes(g) for g in range(graph.num_groups)]
-        return graph, {"nodes": nodes}
+        return graph, {"nodes": nodes, "groups": [list(g) for g in graph.groups]}
 
     def load():
         return CodeGraph.load(path, encoder=encoder, env_config=env_config)

@@ -104,8 +104,9 @@ class EnvProfile:
         world_model: overrides of :class:`~dorp_rl.trainers.WorldModelConfig`, likewise.
         latent_model: overrides of :class:`~dorp_rl.trainers.LatentWorldModelConfig`,
             likewise (its play windows default to the world model's).
-        groups: the code graph's groups (``"onehot"``, ``"full"`` or tuples of one-hot
-            indices), a value or a function of ``num_objects``.
+        groups: the code graph's groups (``"auto"``: read from the play data's codes,
+            :func:`~dorp_rl.planners.coupled_groups`; ``"onehot"``, ``"full"`` or tuples
+            of one-hot indices), a value or a function of ``num_objects``.
         graph_completion: whether the pipeline completes the code graphs of groups of
             several one-hots (:meth:`~dorp_rl.planners.CodeGraph.completed`): true when
             the one-hots of a group are objects that move independently (blocks), false
@@ -144,7 +145,7 @@ class EnvProfile:
     codes: Callable[[int], Mapping[str, Any]] | None = None
     world_model: Callable[[int], Mapping[str, Any]] | None = None
     latent_model: Callable[[int], Mapping[str, Any]] | None = None
-    groups: Any = "onehot"
+    groups: Any = "auto"
     graph_completion: bool = False
     dorp: Mapping[str, Any] | Callable[[int], Mapping[str, Any]] = field(default_factory=dict)
     draw_tasks: Callable[[EnvBase, int, int], TensorDictBase] | None = None

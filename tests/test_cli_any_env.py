@@ -96,6 +96,10 @@ def test_a_minimal_profile_of_an_env_reading_step_count_through_every_stage(tmp_
     log = (run / "log.txt").read_text()
     assert "codes: chose num_onehots = 2 (2 pieces move in a play frame" in log
     assert len(stages["codes"]["summary"]["purity"]) == 2
+    # the graph's groups are read from the play data's codes, logged and recorded
+    assert "graph: chose groups = " in log
+    groups = stages["graph"]["summary"]["groups"]
+    assert sorted(i for g in groups for i in g) == [0, 1]
     # DORP planned through the env's own dynamics, which read step_count at every step.
     row = stages["evaluate:dorp:gt"]["summary"]
     assert row["tasks"] == 3 and all(s <= 5 for s in row["per_task"]["steps"])

@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
-from dorp_rl.planners import CodeGraph, encode_transitions, encoder_fingerprint
+from dorp_rl.planners import CodeGraph, coupled_groups, encode_transitions, encoder_fingerprint
 
 
 def random_walk_codes(num_onehots: int, size: int, steps: int, seed: int = 0):
@@ -150,6 +150,31 @@ def test_key_room_group_joins_agent_and_key_bit():
     assert graph.shortest_path(0, without_key, with_key[0]) != []
 
 
+def test_auto_groups_join_the_agent_and_the_key_it_takes_and_keep_blocks_apart():
+    # Key-wall: the key is taken only where the agent stands, so one group of both.
+    env = KeyWallEnv(batch_size=(8,), seed=0)
+    oracle = OracleCodeEncoder(env)
+    graph = CodeGraph.from_play_data(collect_play_data(env, 40_000, seed=0), oracle, groups="auto")
+    assert graph.groups == [[0, 1]]
+    # Blocks move whatever the others' codes: one graph each.
+    blocks = ObjectRearrangementEnv(num_objects=3, batch_size=(8,), seed=0)
+    codes, next_codes = encode_transitions(
+        collect_play_data(blocks, 8000, seed=0), OracleCodeEncoder(blocks, cell_size=4)
+    )
+    choice = coupled_groups(codes, next_codes)
+    assert choice.groups == ((0,), (1,), (2,)) and float(choice.dependence.max()) < 0.01
+    assert "one graph each" in choice.why
+    # Two one-hots of one object (a copy of a block's code) change together.
+    doubled = coupled_groups(
+        torch.cat([codes, codes[:, :1]], 1), torch.cat([next_codes, next_codes[:, :1]], 1)
+    )
+    assert doubled.groups == ((0, 3), (1,), (2,)) and float(doubled.co_change[0, 3]) == 1.0
+    with pytest.raises(ValueError, match="dependence must be"):
+        coupled_groups(codes, next_codes, dependence=0.0)
+    with pytest.raises(ValueError, match=r"one shape \[N, C\]"):
+        coupled_groups(codes, next_codes[:5])
+
+
 def test_save_load_round_trip_and_refusals(tmp_path):
     env = ObjectRearrangementEnv(num_objects=2, batch_size=(8,), seed=0)
     encoder = DiscreteCodeEncoder(EncoderConfig.small((8, 8)))
@@ -178,7 +203,7 @@ def test_save_load_round_trip_and_refusals(tmp_path):
         ([(0, 1), (1, 2)], "one-hot 1 is in group 0 and group 1"),
         ([(0, 1, 2, 3)], "names one-hot 3"),
         ([(0, 1, 2), ()], "group 1 .* is empty"),
-        ("pairs", "must be 'onehot', 'full'"),
+        ("pairs", "must be 'onehot', 'full', 'auto'"),
     ],
 )
 def test_bad_groups_are_refused(groups, message):

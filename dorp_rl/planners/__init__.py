@@ -10,7 +10,8 @@ that write a per-step cost ``[B, N, H]``; they compose with :class:`CostSequence
 and :class:`WeightedCostSum`. What a planning env and a cost declare to take the fast
 path (``imagine_candidates``, ``forward_lazy``) is in ``base.py``'s docstring.
 :class:`CodeGraph` (``code_graph.py``) holds which codes follow each other in play data
-and finds DORP's shortest paths over them.
+and finds DORP's shortest paths over them; :func:`coupled_groups` (``coupling.py``) reads
+from the play data which one-hots it plans together.
 """
 
 from dorp_rl.planners.base import (
@@ -44,6 +45,7 @@ from dorp_rl.planners.costs import (
     materialize_lazy,
     run_cost_lazy,
 )
+from dorp_rl.planners.coupling import GroupChoice, coupled_groups
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
 
 __all__ = [
@@ -54,6 +56,7 @@ __all__ = [
     "CodeMatchCost",
     "CostSequence",
     "FirstArrival",
+    "GroupChoice",
     "LatentGoalCost",
     "DiscreteMPCPlanner",
     "MissingRolloutKeyError",
@@ -65,6 +68,7 @@ __all__ = [
     "WeightedCostSum",
     "aggregate_steps",
     "check_step_aggregation",
+    "coupled_groups",
     "encode_transitions",
     "encoder_fingerprint",
     "finished_rows",

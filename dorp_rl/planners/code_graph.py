@@ -11,7 +11,10 @@ Groups
     ``groups="full"`` one graph over whole codes (the paper's full-graph ablation), and a
     sequence of index tuples, e.g. ``[(0, 1), (2, 3, 4)]``, one graph per group of
     one-hots (the paper's extended planning at 5 objects; agent plus key bit in the key
-    rooms). Groups must cover every one-hot exactly once.
+    rooms). Groups must cover every one-hot exactly once. ``groups="auto"`` reads them
+    from the play data (:func:`~dorp_rl.planners.coupled_groups`): one graph per one-hot,
+    except for one-hots whose changes depend on each other's codes (an agent and the key
+    it takes), which share one.
 
 Storage
     Every graph lives in fixed-shape tensors registered as buffers, so that torchrl's
@@ -46,6 +49,7 @@ from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.config import ConfigMixin, checked, config_differences, format_differences
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.modules.encoder import module_device
+from dorp_rl.planners.coupling import coupled_groups
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import Int, Ints, check_int
 
@@ -197,7 +201,10 @@ def resolve_groups(groups: str | Sequence[Sequence[int]], num_onehots: int) -> l
             return [[i] for i in range(num_onehots)]
         if groups == "full":
             return [list(range(num_onehots))]
-        raise ValueError(f"groups must be 'onehot', 'full' or index groups, got {groups!r}.")
+        raise ValueError(
+            f"groups must be 'onehot', 'full', 'auto' (with the play data's codes) or index "
+            f"groups, got {groups!r}."
+        )
     out: list[list[int]] = []
     seen: dict[int, int] = {}
     for g, group in enumerate(groups):
@@ -487,7 +494,8 @@ class CodeGraph(nn.Module):
             codes: int64 ``[N, C]``, the code of each transition's first frame.
             next_codes: int64 ``[N, C]``, the code of the frame after it (same trajectory).
             code_sizes: codes per one-hot.
-            groups: ``"onehot"``, ``"full"`` or index groups.
+            groups: ``"onehot"``, ``"full"``, ``"auto"`` (:func:`coupled_groups` of these
+                codes) or index groups.
             actions: int64 ``[N]`` (or ``[N, 1]``), the action of each transition; counted
                 per one-hot whose code it changed (``action_counts``). ``None``: unknown.
             num_actions: the env's number of actions (default: the largest action + 1).
@@ -514,6 +522,8 @@ class CodeGraph(nn.Module):
                 f"codes and next_codes must have the same shape, got {list(codes.shape)} "
                 f"and {list(next_codes.shape)}."
             )
+        if isinstance(groups, str) and groups == "auto":
+            groups = coupled_groups(codes, next_codes).groups
         resolved = resolve_groups(groups, len(sizes))
         node_keys, node_counts, node_offsets = [], [], [0]
         sources, targets, counts = [], [], []
@@ -583,7 +593,7 @@ class CodeGraph(nn.Module):
                 TensorDict ``[N]`` holding ``pixels`` and ``("next", "pixels")``.
             encoder: a :class:`~dorp_rl.modules.DiscreteCodeEncoder` (``encode`` and
                 ``code_sizes``), run in eval mode.
-            groups: ``"onehot"``, ``"full"`` or index groups.
+            groups: ``"onehot"``, ``"full"``, ``"auto"`` (module docstring) or index groups.
             chunk_size: transitions encoded at a time.
             progress: show a tqdm bar.
             dense_limit: see the class docstring.
