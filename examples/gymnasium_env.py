@@ -20,9 +20,12 @@ Two ways in:
 
     PYTHONPATH=examples dorp evaluate --env gymnasium_env:PROFILE --tasks 50
 
-Run: ``python examples/gymnasium_env.py [--frames 64000] [--steps 3000] [--tasks 50] [--tile 5]
-[--size 6] [--low-level latent] [--resume]``; with ``--low-level latent`` DORP plans through a latent
-world model trained here on the play data and the codes instead of MiniGrid itself.
+Both profiles tune nothing: the codes' settings and the code graph's groups are chosen
+from the play data, as for any env. Run: ``python examples/gymnasium_env.py [--frames N]
+[--steps N] [--tasks 50] [--tile 5] [--size 6] [--low-level latent] [--resume]``
+(``--frames`` / ``--steps``: the library's defaults unless given); with ``--low-level
+latent`` DORP plans through a latent world model trained here on the play data and the
+codes instead of MiniGrid itself.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from torchrl.envs import GymWrapper, PermuteTransform, SerialEnv, TransformedEnv
 
 from dorp_rl.envs import EnvProfile, GymGoalEnv, draw_reachable_tasks
 from dorp_rl.eval import evaluate_policy, format_failures, make_task_set, play_object_diagnostics
-from dorp_rl.planners import CodeGraph, encode_transitions
+from dorp_rl.planners import CodeGraph, coupled_groups, encode_transitions
 from dorp_rl.policies import make_dorp_policy
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
@@ -192,76 +195,26 @@ def make_env(
     )
 
 
-#: The key rooms' code recipe (4-step pairs, motion coverage, sparse maps, used codes)
-#: with DoorKey's own encoder: per-pixel object maps (1 x 1 convolutions) that compete
-#: for each pixel, so a map follows colours (the red agent; the yellow key and door),
-#: and exclusive map changes. The key object has 4 codes, one per key and door situation
-#: (lying and locked, carried and locked, closed, open): a 2-code bit is not a wide
-#: one-hot, so the motion term put the key's pixels under the agent's map instead.
-#: Which map takes which colour is up to the initialisation: 200 steps in, the map whose
-#: codes change more often along play goes to the 16-code one-hot (``order_widths_at``),
-#: and a heavier code-usage term spreads the agent over its codes.
-CODES = {
-    "encoder": {
-        "code_sizes": (16, 4),
-        "kernel_size": 1,
-        "map_competition": "softmax",
-        "subtract_background": False,  # measured on the frames as they are
-    },
-    "max_offset": 4,
-    "motion_weight": 1.0,
-    "sparsity_weight": 5.0,
-    "usage_weight": 4.0,
-    "order_widths_at": 200,
-    "exclusivity_weight": 1.0,
-    "collapse_check_after": 500,
-    # a 4-code key one-hot counts among the wide ones: a collapse is 2 codes or fewer
-    "collapse_min_codes": 2,
-    # no entanglement restarts (each would start training over)
-    "entanglement_check_after": 100_000,
-    "num_frames": 64_000,
-    "num_steps": 3000,
-}
-
-
 def agent_pose(state: torch.Tensor) -> torch.Tensor:
     """One id per agent cell and direction of :func:`door_key_state` states ``[..., 5]``."""
     return state[..., 0] * 100 + state[..., 1] * 10 + state[..., 2]
 
 
-#: DoorKey through GymWrapper: play data, codes and graph only.
+#: DoorKey through GymWrapper: play data, codes and graph only. Every reset is the same
+#: layout and start, so each play trajectory walks 100 random steps from it.
 GYM_PROFILE = EnvProfile(
     name="minigrid-doorkey-gym",
     make_env=make_gym_wrapper_env,
     play_trajectory_length=100,
-    codes=lambda _: CODES,
-    groups=((0, 1),),
     description="MiniGrid DoorKey (SIZE x SIZE cells) through torchrl's GymWrapper",
 )
 
 #: DoorKey as a goal-conditioned env: every stage, DORP with MiniGrid as true dynamics.
+#: Nothing is tuned: the codes' settings and the graph's groups (one graph for the
+#: agent, key and door, whose changes depend on each other) are chosen from the play data.
 PROFILE = EnvProfile(
     name="minigrid-doorkey",
     make_env=make_env,
-    # short walks from starts half of which have the key lying (DoorKeyEnv): a pickup
-    # every ~65 play transitions instead of ~1,600 with 100-step walks from uniform starts
-    play_trajectory_length=20,
-    max_steps=200,
-    codes=lambda _: CODES,
-    groups=((0, 1),),
-    # As in the key rooms: re-enter a code another way, replan after a miss, no pixel
-    # term in the waypoint cost (it ignores the walls).
-    dorp={"reenter": True, "replan_on_miss": True, "waypoint_goal_weight": 0.0},
-    # The latent world model of ``--low-level latent``, as the example env's, with half
-    # of its windows holding a key or door event (1.4% of play transitions) and 20-step
-    # play walks (7 windows of 14 steps each instead of 3 in 16-step walks).
-    latent_model=lambda _: {
-        "event_share": 0.5,
-        "trajectory_length": 20,
-        "pixel_weight": 10.0,
-        "soft_targets": True,
-        "model": {"decoder_kind": "mlp", "decoder_hidden": 1024},
-    },
     draw_tasks=draw_reachable_tasks,
     # objects: the agent's pose, and the key (carried or not) with the door's state.
     objects=lambda s: torch.stack([agent_pose(s), s[..., 3] * 3 + s[..., 4]], -1),
@@ -275,24 +228,10 @@ def door_key_events(state: torch.Tensor) -> torch.Tensor:
     return torch.stack([agent_pose(state), state[..., 3], state[..., 4]], -1)
 
 
-def key_gates(labelled: dict) -> dict:
-    """The key-room gates from :func:`door_key_events` diagnostics (one-hot 0 the agent's,
-    1 the key's): how often each one-hot changed on key events, and on door events."""
-    keys, doors = labelled["moves_per_object"][1:3]
-    on_keys, on_doors = labelled["change_matrix"][1], labelled["change_matrix"][2]
-    return {
-        "key_events": keys,
-        "key_bit_on_key_events": on_keys[1] / keys if keys else float("nan"),
-        "agent_onehot_on_key_events": on_keys[0] / keys if keys else float("nan"),
-        "door_events": doors,
-        "key_onehot_on_door_events": on_doors[1] / doors if doors else float("nan"),
-    }
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=64_000, help="play transitions")
-    parser.add_argument("--steps", type=int, default=3000, help="code training steps")
+    parser.add_argument("--frames", type=int, default=None, help="play transitions")
+    parser.add_argument("--steps", type=int, default=None, help="code training steps")
     parser.add_argument("--tasks", type=int, default=50, help="seeded goal images")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tile", type=int, default=TILE_SIZE, help="pixels per grid cell")
@@ -324,20 +263,18 @@ def main() -> None:
     globals()["SIZE"] = args.size
     extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
 
+    sizes = {"num_frames": args.frames, "num_steps": args.steps}
     config = RepresentationConfig.for_env(
         PROFILE,
-        num_frames=args.frames,
-        num_steps=args.steps,
         seed=args.seed,
         out_dir=args.out,
+        **{k: v for k, v in sizes.items() if v is not None},
         **extra,
     )
     trainer = RepresentationTrainer(config)
     trainer.train(resume=args.resume)
-    for reorder in trainer.hooks["widths"].reorders:
-        print(
-            f"one-hot widths at step {reorder['step']}: change rates {reorder['change_rate']}, order {reorder['order']}"
-        )
+    for name, choice in trainer.chosen.items():
+        print(f"chose {name} = {choice['value']} ({choice['why']})")
     encoder = trainer.encoder.eval()
     diagnostics = trainer.evaluate()
     print(f"frames {encoder.frame_shape}, codes used {diagnostics['code_dynamics']['codes_used']}")
@@ -346,15 +283,21 @@ def main() -> None:
     purity = play_object_diagnostics(
         trainer.buffer, encoder, PROFILE.objects, transitions=transitions
     )["purity"]
-    print(f"purity (agent pose, key and door): {[round(p, 3) for p in purity]}")
+    print(f"purity per one-hot (agent pose; key and door): {[round(p, 3) for p in purity]}")
     labelled = play_object_diagnostics(
         trainer.buffer, encoder, door_key_events, transitions=transitions
     )
+    pickups, toggles = labelled["moves_per_object"][1:3]
     print(
-        f"key gates: {key_gates(labelled)}; agent codes: {diagnostics['code_dynamics']['codes_used'][0]}"
+        f"one-hots changed by the {pickups} pickups: {labelled['change_matrix'][1]}, by the "
+        f"{toggles} toggles: {labelled['change_matrix'][2]}"
     )
-    graph = CodeGraph.from_play_data(trainer.buffer, encoder, PROFILE.groups)
-    print(f"graph nodes: {graph.num_nodes(0)}")
+    choice = coupled_groups(*transitions)
+    print(f"graph groups {choice.groups} ({choice.why})")
+    graph = CodeGraph.from_play_data(
+        trainer.buffer, encoder, choice.groups, transitions=transitions
+    )
+    print(f"graph nodes: {[graph.num_nodes(g) for g in range(graph.num_groups)]}")
 
     # DORP through MiniGrid itself, or through a latent world model of the codes.
     low_level = "gt"

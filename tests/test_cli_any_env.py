@@ -215,11 +215,11 @@ def test_a_minigrid_env_through_torchrl_gym_wrapper_to_codes_and_graph(tmp_path,
     encoder = load_encoder(tmp_path / "mg" / "codes" / "checkpoints" / "last.pt")
     import gymnasium_env
 
-    # The example's code recipe: its one-hots, the agent's 16 codes first.
-    wanted = tuple(gymnasium_env.CODES["encoder"]["code_sizes"])
+    # No recipe in the profile: one-hots of the default 32 codes, as many as were chosen.
+    chosen = stages["codes"]["summary"]["chosen"]
     side = gymnasium_env.SIZE * gymnasium_env.TILE_SIZE
-    assert encoder.frame_shape == (3, side, side) and tuple(encoder.code_sizes) == wanted
-    assert wanted[0] == 16
+    assert encoder.frame_shape == (3, side, side)
+    assert tuple(encoder.code_sizes) == (32,) * chosen["num_onehots"]
     from dorp_rl.data import load_play_data
 
     play = load_play_data(tmp_path / "mg" / "play")[:400]
@@ -281,12 +281,14 @@ def test_dorp_on_minigrid_through_the_command(tmp_path, monkeypatch):
     row = stages["evaluate:dorp:gt"]["summary"]
     # Exact lower bounds by breadth-first search over MiniGrid's own dynamics.
     assert row["tasks"] == 3 and all(b >= 1 for b in row["per_task"]["lower_bound"])
-    assert len(stages["codes"]["summary"]["purity"]) == 2  # from the profile's objects
+    # purity of every one-hot by the profile's objects
+    encoder = load_encoder(tmp_path / "dk" / "codes" / "checkpoints" / "last.pt")
+    assert len(stages["codes"]["summary"]["purity"]) == len(encoder.code_sizes)
 
 
-def test_minigrid_key_gates_count_pickups_and_toggles_apart(monkeypatch):
-    """The example's gates: a pickup is a key event, a toggle a door event; each reports
-    the share of its events that changed the key one-hot (and, for pickups, the agent's)."""
+def test_minigrid_door_key_events_count_pickups_and_toggles_apart(monkeypatch):
+    """The example's events: a pickup is a key event, a toggle a door event; the example
+    prints which one-hots each kind of event changed."""
     from dorp_rl.metrics.diagnostics import object_diagnostics
 
     door_key = _door_key(monkeypatch)
@@ -300,10 +302,9 @@ def test_minigrid_key_gates_count_pickups_and_toggles_apart(monkeypatch):
     labelled = object_diagnostics(
         codes, next_codes, door_key.door_key_events(state), door_key.door_key_events(nxt)
     )
-    gates = door_key.key_gates(labelled)
-    assert gates["key_events"] == 1 and gates["door_events"] == 2
-    assert gates["key_bit_on_key_events"] == 1.0 and gates["agent_onehot_on_key_events"] == 1.0
-    assert gates["key_onehot_on_door_events"] == 0.5
+    assert labelled["moves_per_object"][1:3] == [1, 2]  # one pickup, two toggles
+    assert list(labelled["change_matrix"][1]) == [1, 1]  # the pickup changed both one-hots
+    assert list(labelled["change_matrix"][2]) == [0, 1]  # one toggle changed the key one-hot
     # The profile's objects put the key and the door on one object of 4 situations.
     situations = door_key.PROFILE.objects(torch.cat([state, nxt]))[:, 1]
     assert sorted(set(situations.tolist())) == [0, 3, 4, 5]
