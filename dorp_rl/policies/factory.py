@@ -58,6 +58,10 @@ _CEM_ONLY = frozenset(
     ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
 )
 _CONFIG_FIELDS = frozenset(f.name for f in dataclasses.fields(DORPConfig))
+#: the goal term's blur widths when none are given: DORPConfig's, the one default
+DEFAULT_GOAL_BLUR_SIGMAS = next(
+    f.default for f in dataclasses.fields(DORPConfig) if f.name == "goal_blur_sigmas"
+)
 
 
 def make_waypoint_cost(
@@ -66,7 +70,7 @@ def make_waypoint_cost(
     waypoint_goal_weight: float = 0.0,
     step_penalty: float = 0.0,
     first_arrival: bool = False,
-    goal_blur_sigmas: Sequence[float] = (1.0, 2.0, 4.0),
+    goal_blur_sigmas: Sequence[float] | None = None,
     cache_size: int = 2**18,
     code_key: NestedKey | None = None,
     latent_model: Any = None,
@@ -86,7 +90,8 @@ def make_waypoint_cost(
     predicts (``("next", "code")`` of a latent world model), read instead of encoding
     predicted frames. ``latent_model``: the goal term is the distance of the imagined
     latents to the goal image's (:class:`~dorp_rl.planners.LatentGoalCost`) instead of
-    the pixel distance, so that no frame is decoded.
+    the pixel distance, so that no frame is decoded. ``goal_blur_sigmas``: the goal
+    term's blur widths (None: :class:`DORPConfig`'s default).
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
@@ -115,9 +120,8 @@ def make_waypoint_cost(
         if latent_model is not None:
             parts.append(LatentGoalCost(latent_model, out_key="waypoint_goal_cost"))
         else:
-            parts.append(
-                PixelDistanceCost(out_key="waypoint_goal_cost", blur_sigmas=goal_blur_sigmas)
-            )
+            sigmas = DEFAULT_GOAL_BLUR_SIGMAS if goal_blur_sigmas is None else goal_blur_sigmas
+            parts.append(PixelDistanceCost(out_key="waypoint_goal_cost", blur_sigmas=sigmas))
         weights["waypoint_goal_cost"] = float(waypoint_goal_weight)
     total = "waypoint_cost" if first_arrival else "cost"
     parts.append(WeightedCostSum(weights, out_key=total, step_aggregation="min"))
