@@ -141,7 +141,7 @@ def main() -> None:
 
     from dorp_rl.data import collect_play_data
     from dorp_rl.eval import play_object_diagnostics
-    from dorp_rl.trainers import load_encoder
+    from dorp_rl.trainers import RepresentationConfig, load_encoder
 
     parser = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
     parser.add_argument("profile", help="ONE_COLOUR, LARGE_FRAMES, FOUR_GREY or MINIGRID_EMPTY")
@@ -152,7 +152,7 @@ def main() -> None:
     profile = globals()[args.profile]
     env = profile.build(batch_size=(8,))
     encoder = load_encoder(f"{args.run}/codes/checkpoints/last.pt", env)
-    length = profile.play_trajectory_length
+    length = RepresentationConfig.for_env(profile).play_trajectory_length
     play = collect_play_data(env, args.frames, seed=1, trajectory_length=length, progress=False)
     out = play_object_diagnostics(play, encoder, profile.objects)
     purity = ", ".join(f"{p:.3f}" for p in out["purity"])

@@ -891,8 +891,13 @@ def play_stage(run: Run, codes: RepresentationConfig):
         )
 
     def build():
+        length, why = codes.play_length_choice()
+        summary: dict[str, Any] = {}
+        if why is not None:  # chosen from the env's resets
+            say_chosen(run, "play", {"trajectory_length": {"value": length, "why": why}})
+            summary["chosen"] = {"trajectory_length": length}
         buffer = collect(run.progress)
-        return buffer, {"frames": len(buffer)}
+        return buffer, {"frames": len(buffer), **summary}
 
     return run.stage(
         "play", _play_config(codes), [directory], build, lambda: collect(progress=False)

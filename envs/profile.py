@@ -93,7 +93,9 @@ class EnvProfile:
         default_num_objects: objects when a config does not say.
         env_type: the class of the env ``make_env`` builds, so :func:`profile_of` finds
             the profile of an env object (``None``: only found by name).
-        play_trajectory_length: steps of each random play trajectory.
+        play_trajectory_length: steps of each random play trajectory (``None``: chosen
+            from the env's resets, :func:`~dorp_rl.data.choose_play_length`: 1 when
+            they start in varied frames, else random walks of 100 steps).
         max_steps: step limit of a task, or a function of ``num_objects`` (``None``: the
             env's ``max_steps`` attribute, else 200).
         code_layout: one-hot sizes of the codes from one number and ``num_objects``
@@ -139,7 +141,7 @@ class EnvProfile:
     counts_objects: bool = False
     default_num_objects: int = 1
     env_type: type | None = None
-    play_trajectory_length: int = 1
+    play_trajectory_length: int | None = None
     max_steps: int | Callable[[int], int] | None = None
     code_layout: Callable[[int, int], tuple[int, ...]] | None = None
     codes: Callable[[int], Mapping[str, Any]] | None = None
@@ -161,7 +163,8 @@ class EnvProfile:
                 f"EnvProfile {self.name!r}: make_env must be a function that builds the env, "
                 f"got {type(self.make_env).__name__}."
             )
-        if int(self.play_trajectory_length) < 1 or int(self.default_num_objects) < 1:
+        length = 1 if self.play_trajectory_length is None else self.play_trajectory_length
+        if int(length) < 1 or int(self.default_num_objects) < 1:
             raise ValueError(
                 f"EnvProfile {self.name!r}: play_trajectory_length and default_num_objects "
                 f"must be >= 1, got {self.play_trajectory_length} and {self.default_num_objects}."

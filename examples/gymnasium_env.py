@@ -201,11 +201,11 @@ def agent_pose(state: torch.Tensor) -> torch.Tensor:
 
 
 #: DoorKey through GymWrapper: play data, codes and graph only. Every reset is the same
-#: layout and start, so each play trajectory walks 100 random steps from it.
+#: layout and start, so the library has each play trajectory walk 100 random steps from
+#: it (chosen from the env's resets).
 GYM_PROFILE = EnvProfile(
     name="minigrid-doorkey-gym",
     make_env=make_gym_wrapper_env,
-    play_trajectory_length=100,
     description="MiniGrid DoorKey (SIZE x SIZE cells) through torchrl's GymWrapper",
 )
 

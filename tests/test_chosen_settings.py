@@ -13,9 +13,13 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint
-from dorp_rl.data import scan_frames
+from dorp_rl.data import choose_play_length, scan_frames
+from dorp_rl.data.play import PLAY_WALK_LENGTH
 from dorp_rl.trainers import LatentWorldModelConfig, LatentWorldModelTrainer, RepresentationConfig
 from dorp_rl.trainers.representation import RepresentationTrainer, choose_code_settings
 
@@ -260,3 +264,75 @@ def test_large_frames_train_codes_and_a_latent_model_at_the_chosen_stride(tmp_pa
     assert len(result["evaluation"]["code_accuracy"]) == 3
     frames = latent.buffer[:2]["pixels"]
     assert latent.model.decode(latent.model.encode(frames)).shape == (2, 3, 48, 64)
+
+
+class DotEnv(EnvBase):
+    """A dot on a 1 x 10 x 12 canvas that moves right or down; its resets start at the top
+    left (``random_starts=False``) or anywhere."""
+
+    def __init__(
+        self, batch_size=(4,), random_starts: bool = False, seed: int = 0, device=None
+    ) -> None:
+        super().__init__(batch_size=torch.Size(batch_size), device=device)
+        self.random_starts = random_starts
+        self.rng = torch.Generator().manual_seed(seed)
+        shape = self.batch_size
+        self.observation_spec = Composite(
+            pixels=Unbounded((*shape, 1, 10, 12), dtype=torch.uint8),
+            place=Unbounded((*shape, 2), dtype=torch.int64),
+            shape=shape,
+        )
+        self.action_spec = Categorical(2, shape=(*shape, 1))
+        self.reward_spec = Unbounded((*shape, 1))
+
+    def _draw(self, place: torch.Tensor) -> torch.Tensor:
+        frames = torch.zeros(*place.shape[:-1], 1, 10, 12, dtype=torch.uint8)
+        flat = frames.view(-1, 10, 12)
+        for i, (r, c) in enumerate(place.reshape(-1, 2).tolist()):
+            flat[i, r, c] = 255
+        return frames
+
+    def _reset(self, td=None):
+        n = self.batch_size.numel()
+        place = torch.zeros(n, 2, dtype=torch.int64)
+        if self.random_starts:
+            place = torch.stack(
+                [
+                    torch.randint(0, 10, (n,), generator=self.rng),
+                    torch.randint(0, 12, (n,), generator=self.rng),
+                ],
+                -1,
+            )
+        place = place.reshape(*self.batch_size, 2)
+        return TensorDict(
+            pixels=self._draw(place), place=place, done=torch.zeros(*self.batch_size, 1, dtype=torch.bool),
+            terminated=torch.zeros(*self.batch_size, 1, dtype=torch.bool), batch_size=self.batch_size,
+        )  # fmt: skip
+
+    def _step(self, td):
+        move = torch.nn.functional.one_hot(td["action"].reshape(*self.batch_size), 2)
+        place = (td["place"] + move).clamp(max=torch.tensor([9, 11]))
+        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
+        return TensorDict(
+            pixels=self._draw(place), place=place, reward=torch.zeros(*self.batch_size, 1),
+            done=done, terminated=done.clone(), batch_size=self.batch_size,
+        )  # fmt: skip
+
+    def _set_seed(self, seed):
+        self.rng.manual_seed(int(seed or 0))
+
+
+def test_play_walks_from_resets_that_always_start_alike():
+    # every reset the same frame: one-step play would never leave the start
+    fixed = RepresentationConfig(env="test_chosen_settings:DotEnv")
+    length, why = fixed.play_length_choice()
+    assert length == PLAY_WALK_LENGTH and "only 1 distinct frame(s) in 16 resets" in why
+    assert fixed.play_trajectory_length == PLAY_WALK_LENGTH
+    # varied starts: each transition from a fresh reset
+    assert choose_play_length(DotEnv((16,), random_starts=True))[0] == 1
+    # a length the config or the profile gives is kept, and nothing is chosen
+    assert RepresentationConfig(
+        env="test_chosen_settings:DotEnv", trajectory_length=7
+    ).play_length_choice() == (7, None)
+    with pytest.raises(ValueError, match="walk_length must be >= 1"):
+        choose_play_length(DotEnv((16,)), walk_length=0)

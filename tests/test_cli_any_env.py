@@ -126,6 +126,10 @@ def test_a_gray_8x8_env_with_one_hot_actions_through_the_command(tmp_path):
     assert all(b != b for b in row["per_task"]["lower_bound"])  # nan
     encoder = load_encoder(tmp_path / "gray" / "codes" / "checkpoints" / "last.pt")
     assert encoder.frame_shape == (1, 8, 8)
+    # the play length was chosen from the env's resets, and said
+    log = (tmp_path / "gray" / "log.txt").read_text()
+    assert "play: chose trajectory_length = " in log
+    assert stages["play"]["summary"]["chosen"]["trajectory_length"] in (1, 100)
 
 
 @pytest.mark.parametrize(

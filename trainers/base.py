@@ -168,13 +168,36 @@ class TrainerConfig(ConfigMixin):
 
     @property
     def play_trajectory_length(self) -> int:
-        """Steps of each play trajectory: ``trajectory_length`` or the env's default."""
-        return self.trajectory_length or self.profile.play_trajectory_length
+        """Steps of each play trajectory: ``trajectory_length``, else the profile's, else
+        chosen from the env's resets (:meth:`play_length_choice`)."""
+        return self.play_length_choice()[0]
+
+    def play_length_choice(self) -> tuple[int, str | None]:
+        """``(length, why)`` of :attr:`play_trajectory_length`: ``why`` is None when the
+        config or the profile gives the length, else the reason it was chosen
+        (:func:`~dorp_rl.data.choose_play_length`, once per env and object count)."""
+        if self.trajectory_length:
+            return int(self.trajectory_length), None
+        profile = self.profile
+        if profile.play_trajectory_length is not None:
+            return int(profile.play_trajectory_length), None
+        key = (profile.name, id(profile.make_env), self.num_objects)
+        if key not in _CHOSEN_PLAY_LENGTHS:
+            from dorp_rl.data import RESET_PROBES, choose_play_length
+
+            env = self.make_env(batch_size=(RESET_PROBES,), seed=0)
+            _CHOSEN_PLAY_LENGTHS[key] = choose_play_length(env)
+            env.close()
+        return _CHOSEN_PLAY_LENGTHS[key]
 
     def make_env(self, **kwargs: Any) -> EnvBase:
         """The environment this config trains on (``kwargs``, such as ``batch_size``, go to
         the profile's factory, :meth:`~dorp_rl.envs.EnvProfile.build`)."""
         return self.profile.build(self.num_objects, device=self.device, **kwargs)
+
+
+#: play lengths chosen from an env's resets, by (profile name, factory, object count)
+_CHOSEN_PLAY_LENGTHS: dict[tuple[Any, ...], tuple[int, str]] = {}
 
 
 class TrainerHook(TrainerHookBase):

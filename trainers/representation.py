@@ -256,7 +256,10 @@ class RepresentationConfig(TrainerConfig):
                     f"num_objects={self.num_objects}: its layout is like {expected} (for one "
                     f"number {sizes[0]}); give sizes of that form, or one number."
                 )
-        if not self.min_offset <= self.max_offset <= self.play_trajectory_length:
+        # (a length chosen from the env is looked up only when an offset could exceed it)
+        if not self.min_offset <= self.max_offset or (
+            self.max_offset > 1 and self.max_offset > self.play_trajectory_length
+        ):
             raise ValueError(
                 "offsets must satisfy 1 <= min_offset <= max_offset <= the play trajectory "
                 f"length ({self.play_trajectory_length} for env={self.env!r}, "

@@ -169,6 +169,45 @@ def play_env(env: EnvBase, trajectory_length: int | None = None) -> EnvBase:
     return out
 
 
+#: parallel resets :func:`choose_play_length` draws to judge an env's starts
+RESET_PROBES = 16
+#: steps of a play walk from starts that are (nearly) always the same
+PLAY_WALK_LENGTH = 100
+
+
+def choose_play_length(env: EnvBase, walk_length: int = PLAY_WALK_LENGTH) -> tuple[int, str]:
+    """How long each play trajectory of ``env`` lasts when nothing says: 1 (every
+    transition from a fresh reset) when its resets start in varied frames, else
+    ``walk_length`` random steps from its starts, so that play reaches beyond the first
+    step. ``env`` is reset once, whole batch at once (:data:`RESET_PROBES` rows is
+    enough); starts are varied when at least half of them differ.
+
+    Returns:
+        ``(length, why)``, the length and the reason, for the run's log.
+
+    Examples:
+        >>> from dorp_rl.envs import KeyWallEnv
+        >>> choose_play_length(KeyWallEnv(batch_size=(16,), seed=0))[0]
+        1
+    """
+    walk_length = check_int("walk_length", walk_length, low=1)
+    frames = env.reset().get("pixels", None)
+    if frames is None:
+        raise ValueError(
+            f"{type(env).__name__}'s reset gives no 'pixels'; play data need an image "
+            "observation 'pixels' (rename another key with a torchrl RenameTransform)."
+        )
+    rows = frames.reshape(-1, *frames.shape[-3:]).flatten(1)
+    starts = rows.shape[0]
+    distinct = int(torch.unique(rows, dim=0).shape[0])
+    if 2 * distinct >= starts:
+        return 1, f"{distinct} of {starts} resets start in different frames: each from a reset"
+    return walk_length, (
+        f"only {distinct} distinct frame(s) in {starts} resets: random walks of "
+        f"{walk_length} steps from them"
+    )
+
+
 def play_keys(env: EnvBase) -> tuple:
     """The :data:`PLAY_KEYS` that ``env`` has: ``state`` only when it observes one."""
     observed = set(env.full_observation_spec.keys(True, True))
