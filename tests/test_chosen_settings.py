@@ -336,3 +336,38 @@ def test_play_walks_from_resets_that_always_start_alike():
     ).play_length_choice() == (7, None)
     with pytest.raises(ValueError, match="walk_length must be >= 1"):
         choose_play_length(DotEnv((16,)), walk_length=0)
+
+
+def test_a_counted_one_hot_too_many_may_code_nothing_without_a_restart(tmp_path):
+    # The number of one-hots is a count of moving pieces: one too many may die.
+    counted = RepresentationTrainer(
+        tiny_codes("push_blocks:make_env", tmp_path, trajectory_length=5, dead_check_frames=3)
+    )
+    assert counted.surplus_may_die
+    one_narrow = {"min_codes_in_batch": 1.0, "max_codes_in_batch": 9.0, "loss_cpc": 2.0}
+    assert counted.collapse_hook.collapse_reason(one_narrow, 10**6) is None
+    all_narrow = {"min_codes_in_batch": 1.0, "max_codes_in_batch": 2.0, "loss_cpc": 2.0}
+    reason = counted.collapse_hook.collapse_reason(all_narrow, 10**6)
+    assert "every one-hot uses at most 2" in reason
+    # Given one-hots are each meant for an object: one that settles on a code is a collapse.
+    given = RepresentationTrainer(
+        tiny_codes(
+            "push_blocks:make_env",
+            tmp_path / "given",
+            trajectory_length=5,
+            dead_check_frames=3,
+            encoder={"channels": 4, "mlp_sizes": (16,), "code_sizes": (32, 32)},
+        )
+    )
+    assert not given.surplus_may_die
+    assert "only 1 code" in given.collapse_hook.collapse_reason(one_narrow, 10**6)
+    # At the end of an attempt: one dead one-hot of a counted set is no reason to restart,
+    # one of a given set is; every one-hot of a counted set dead is.
+    for trainer, codes, restarts in (
+        (counted, [[0, 1], [0, 2], [0, 3]], False),
+        (given, [[0, 1], [0, 2], [0, 3]], True),
+        (counted, [[0, 1], [0, 1], [0, 1]], True),
+    ):
+        trainer.play_codes = lambda n, codes=codes: torch.tensor(codes)
+        trainer.step = trainer.attempt_start + trainer.config.num_steps
+        assert (trainer.dead_hook.reason({}) is not None) is restarts

@@ -439,7 +439,10 @@ class CollapseRestart(RestartHook):
 
     After ``collapse_check_after`` steps of an attempt: a one-hot using at most
     ``collapse_min_codes`` codes on a batch, or a loss still within
-    ``collapse_loss_margin`` of ``log B`` (nothing learned).
+    ``collapse_loss_margin`` of ``log B`` (nothing learned). When the number of one-hots
+    was counted from the play frames (:attr:`RepresentationTrainer.surplus_may_die`) a
+    one-hot the count gave too many may settle on few codes: then only every one-hot
+    using that few is a collapse.
     """
 
     default_name = "collapse"
@@ -459,7 +462,13 @@ class CollapseRestart(RestartHook):
         cfg = self.trainer.config
         if attempt_steps < cfg.collapse_check_after:
             return None
-        if metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
+        if self.trainer.surplus_may_die:
+            most = metrics.get("max_codes_in_batch", metrics["min_codes_in_batch"])
+            if most <= cfg.collapse_min_codes:
+                return (
+                    f"every one-hot uses at most {int(most)} code(s) in a batch of {cfg.batch_size}"
+                )
+        elif metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
             return (
                 f"a one-hot uses only {int(metrics['min_codes_in_batch'])} code(s) in a batch "
                 f"of {cfg.batch_size}"
@@ -566,7 +575,8 @@ class EntanglementRestart(RestartHook):
 
 
 class DeadOneHotRestart(RestartHook):
-    """Restarts an attempt that ends with a one-hot coding every play frame alike (dead).
+    """Restarts an attempt that ends with a one-hot coding every play frame alike (dead)
+    (every one-hot, when their number was counted from the play frames).
 
     At the attempt's last step the encoder codes ``dead_check_frames`` evenly spaced
     stored play frames; a one-hot giving all of them one code carries nothing about play
@@ -589,7 +599,7 @@ class DeadOneHotRestart(RestartHook):
         if codes.shape[0] < 2:
             return None
         dead = [i for i in range(codes.shape[1]) if bool((codes[:, i] == codes[0, i]).all())]
-        if not dead:
+        if not dead or (trainer.surplus_may_die and len(dead) < codes.shape[1]):
             return None
         return (
             f"one-hot(s) {dead} give every one of {codes.shape[0]} evenly spaced play "
@@ -1098,6 +1108,13 @@ class RepresentationTrainer(OfflineTrainer):
         if self.gave_up is not None:
             return True
         return not self.screening and self.step - self.attempt_start >= self.config.num_steps
+
+    @property
+    def surplus_may_die(self) -> bool:
+        """Whether the number of one-hots was counted from the play frames (a count of
+        pieces that move, which can exceed the objects a plan needs): a one-hot too many
+        may then code nothing without the training having collapsed."""
+        return "num_onehots" in self.chosen
 
     def collapse_advice(self, reason: str) -> str:
         """Why training stops after every attempt collapsed, what was seen and what to change."""

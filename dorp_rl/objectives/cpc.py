@@ -154,8 +154,8 @@ class CPCLoss(LossModule):
     ``loss_usage``, ``loss_exclusivity``, ``loss_sparsity`` and ``loss_motion`` when
     enabled) and detached metrics: ``accuracy`` (share of anchors whose best-scoring candidate is their own
     future), ``mi_lower_bound`` (``log B - loss_cpc``), ``codes_in_batch`` (distinct anchor
-    codes per one-hot, averaged), ``min_codes_in_batch`` (the fewest on a one-hot of more
-    than 2 codes), ``similarity_scale``, ``gumbel_temperature``, ``map_mass`` (summed
+    codes per one-hot, averaged), ``min_codes_in_batch`` / ``max_codes_in_batch`` (the
+    fewest / most on a one-hot of more than 2 codes), ``similarity_scale``, ``gumbel_temperature``, ``map_mass`` (summed
     object-map values per one-hot, averaged) and, with the exclusivity term,
     ``map_entanglement`` (its unweighted value: near 0 when each map follows one object).
 
@@ -279,6 +279,7 @@ class CPCLoss(LossModule):
             codes_in_batch=used.mean(),
             # 2-way one-hots (key bits) cannot show a collapse: judge the larger ones.
             min_codes_in_batch=used[self._wide_onehots].min(),
+            max_codes_in_batch=used[self._wide_onehots].max(),
             gumbel_temperature=torch.tensor(self.gumbel_temperature),
             similarity_scale=self.similarity.matrix().diagonal().mean().detach(),
             batch_size=[],
