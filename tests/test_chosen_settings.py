@@ -345,10 +345,18 @@ def test_a_counted_one_hot_too_many_may_code_nothing_without_a_restart(tmp_path)
     )
     assert counted.surplus_may_die
     one_narrow = {"min_codes_in_batch": 1.0, "max_codes_in_batch": 9.0, "loss_cpc": 2.0}
-    assert counted.collapse_hook.collapse_reason(one_narrow, 10**6) is None
+    hook = counted.collapse_hook
+    # restarted while restarts are left (a screening of initialisations) ...
+    narrow = hook.collapse_reason(one_narrow, 10**6)
+    assert "only 1 code" in narrow and hook.partial(narrow)
+    # ... but out of restarts, training goes on instead of giving up
+    hook.out_of_restarts(narrow)
+    assert counted.gave_up is None
     all_narrow = {"min_codes_in_batch": 1.0, "max_codes_in_batch": 2.0, "loss_cpc": 2.0}
-    reason = counted.collapse_hook.collapse_reason(all_narrow, 10**6)
-    assert "every one-hot uses at most 2" in reason
+    reason = hook.collapse_reason(all_narrow, 10**6)
+    assert "every one-hot uses at most 2" in reason and not hook.partial(reason)
+    hook.out_of_restarts(reason)
+    assert counted.gave_up is not None
     # Given one-hots are each meant for an object: one that settles on a code is a collapse.
     given = RepresentationTrainer(
         tiny_codes(
@@ -360,7 +368,8 @@ def test_a_counted_one_hot_too_many_may_code_nothing_without_a_restart(tmp_path)
         )
     )
     assert not given.surplus_may_die
-    assert "only 1 code" in given.collapse_hook.collapse_reason(one_narrow, 10**6)
+    narrow = given.collapse_hook.collapse_reason(one_narrow, 10**6)
+    assert "only 1 code" in narrow and not given.collapse_hook.partial(narrow)
     # At the end of an attempt: one dead one-hot of a counted set is no reason to restart,
     # one of a given set is; every one-hot of a counted set dead is.
     for trainer, codes, restarts in (

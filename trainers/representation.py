@@ -441,17 +441,32 @@ class CollapseRestart(RestartHook):
     ``collapse_min_codes`` codes on a batch, or a loss still within
     ``collapse_loss_margin`` of ``log B`` (nothing learned). When the number of one-hots
     was counted from the play frames (:attr:`RepresentationTrainer.surplus_may_die`) a
-    one-hot the count gave too many may settle on few codes: then only every one-hot
-    using that few is a collapse.
+    one-hot the count gave too many may settle on few codes: such an attempt is still
+    restarted while restarts are left (another initialisation often codes every piece),
+    but once they run out training goes on; only every one-hot that narrow, or a flat
+    loss, gives training up.
     """
 
     default_name = "collapse"
 
     def out_of_restarts(self, reason: str) -> None:
-        """Stops training: every attempt collapsed, and more steps would not change that."""
+        """Stops training: every attempt collapsed, and more steps would not change that
+        (goes on when only a one-hot of a counted set is narrow)."""
         trainer = self.trainer
+        if self.partial(reason):
+            return
         if trainer.gave_up is None:
             trainer.gave_up = trainer.collapse_advice(reason)
+
+    def partial(self, reason: str | None) -> bool:
+        """Whether ``reason`` is one narrow one-hot of a counted set (no collapse of the
+        whole code)."""
+        return (
+            reason is not None and self.trainer.surplus_may_die and reason.startswith(self.NARROW)
+        )
+
+    #: how a reason of one narrow one-hot starts
+    NARROW = "a one-hot uses only"
 
     def reason(self, metrics: dict[str, float], logged: bool = True) -> str | None:
         trainer = self.trainer
@@ -462,15 +477,14 @@ class CollapseRestart(RestartHook):
         cfg = self.trainer.config
         if attempt_steps < cfg.collapse_check_after:
             return None
-        if self.trainer.surplus_may_die:
+        if metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
             most = metrics.get("max_codes_in_batch", metrics["min_codes_in_batch"])
             if most <= cfg.collapse_min_codes:
                 return (
                     f"every one-hot uses at most {int(most)} code(s) in a batch of {cfg.batch_size}"
                 )
-        elif metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
             return (
-                f"a one-hot uses only {int(metrics['min_codes_in_batch'])} code(s) in a batch "
+                f"{self.NARROW} {int(metrics['min_codes_in_batch'])} code(s) in a batch "
                 f"of {cfg.batch_size}"
             )
         loss = self.trainer.recent_loss(metrics)
@@ -1177,6 +1191,8 @@ class RepresentationTrainer(OfflineTrainer):
             )
         metrics = result["metrics"]
         final_reason = self.collapse_hook.reason(metrics) if metrics else None
+        if self.collapse_hook.partial(final_reason):
+            final_reason = None  # a surplus one-hot of a counted set: listed as dead above
         if self.gave_up is not None:
             warnings.warn(self.gave_up, RuntimeWarning, stacklevel=2)
         elif final_reason is not None:
