@@ -479,7 +479,7 @@ class CollapseRestart(RestartHook):
             return None
         if metrics["min_codes_in_batch"] <= cfg.collapse_min_codes:
             most = metrics.get("max_codes_in_batch", metrics["min_codes_in_batch"])
-            if most <= cfg.collapse_min_codes:
+            if self.trainer.surplus_may_die and most <= cfg.collapse_min_codes:
                 return (
                     f"every one-hot uses at most {int(most)} code(s) in a batch of {cfg.batch_size}"
                 )
