@@ -49,6 +49,7 @@ from dorp_rl.eval import (
     write_results,
     write_task_records,
 )
+from dorp_rl.eval.parallel import PLANNER_SHAPE
 from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_bytes
 from dorp_rl.planners import CodeGraph, coupled_groups, encode_transitions, encoder_fingerprint
 from dorp_rl.policies import DORP_RECIPE, DORPConfig
@@ -201,11 +202,6 @@ class LatentModelOptions:
                 "--latent-model.encoder-checkpoint is set by the run: the latent world "
                 "model learns the run's codes (codes/checkpoints/last.pt)."
             )
-
-
-#: DORPConfig fields that are the planners' shape on the command line: --candidates and
-#: --planning-horizon, the same for every method
-PLANNER_SHAPE = ("num_candidates", "planning_horizon")
 
 
 @dataclass

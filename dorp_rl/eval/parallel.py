@@ -73,6 +73,10 @@ from dorp_rl.eval.tasks import (
 from dorp_rl.progress import progress_bar
 from dorp_rl.validation import check_choice, check_int, check_seed, derive_seed
 
+#: DORPConfig fields that EvalSpec sets from its ``candidates`` and ``planning_horizon``
+#: (the planners' shape, the same for every method)
+PLANNER_SHAPE = ("num_candidates", "planning_horizon")
+
 if TYPE_CHECKING:  # for annotations; the policies are imported where used (make_policy)
     from dorp_rl.policies import DORPConfig
 
@@ -164,7 +168,7 @@ class EvalSpec:
         from dorp_rl.policies import DORPConfig
 
         setting = setting_of(self.setting)
-        shape = {"num_candidates": self.candidates, "planning_horizon": self.planning_horizon}
+        shape = dict(zip(PLANNER_SHAPE, (self.candidates, self.planning_horizon), strict=True))
         unknown = sorted(set(self.dorp) - {f.name for f in dataclasses.fields(DORPConfig)})
         if unknown:
             raise ValueError(f"EvalSpec.dorp names {unknown}, which are no DORPConfig fields.")

@@ -104,7 +104,10 @@ def coupled_groups(
     p_change = changed.mean(0)  # [C]
     h_change = _entropy_bits(p_change)  # [C]
     shared = torch.zeros(c, c, dtype=torch.float64)
-    together = torch.zeros(c, c, dtype=torch.float64)
+    # the share of the rarer one-hot's changes that come with the other's
+    both = changed.T @ changed / n  # [C, C]
+    rarer = torch.minimum(p_change[:, None], p_change[None, :])
+    together = torch.where(rarer > 0, both / rarer.clamp_min(1e-30), 0.0)
     for j in range(c):
         values, index = torch.unique(codes[:, j], return_inverse=True)
         p_code = torch.bincount(index, minlength=len(values)).double() / n  # [V]
@@ -116,9 +119,6 @@ def coupled_groups(
         bias = (len(values) - 1) / (2 * n * math.log(2))
         info = (h_change - h_given - bias).clamp_min(0.0)
         shared[:, j] = torch.where(h_change > 0, info / h_change.clamp_min(1e-30), 0.0)
-        both = (changed * changed[:, j : j + 1]).mean(0)  # [C]
-        rarer = torch.minimum(p_change, p_change[j])
-        together[:, j] = torch.where(rarer > 0, both / rarer.clamp_min(1e-30), 0.0)
     shared.fill_diagonal_(0.0)
     together.fill_diagonal_(0.0)
     joined = (shared >= dependence) | (together >= co_change)
