@@ -42,6 +42,7 @@ from typing import Annotated, Any
 
 import torch
 
+from dorp_rl.envs.paper import DEFAULT_SETTING
 from dorp_rl.eval import SETTINGS, format_table, setting_of
 from dorp_rl.integrity import DirectoryLockedError
 from dorp_rl.pipeline import (
@@ -176,10 +177,10 @@ def _scan(argv: Sequence[str]) -> tuple[str | None, str]:
         try:
             setting_of(env)
         except ValueError:
-            return command, "2obj"
+            return command, DEFAULT_SETTING
         return command, env
     setting = _option(argv, "setting")
-    return command, setting if setting in SETTINGS else "2obj"
+    return command, setting if setting in SETTINGS else DEFAULT_SETTING
 
 
 def parse(argv: Sequence[str]) -> tuple[str, Any]:

@@ -35,6 +35,7 @@ from torchrl.envs import EnvBase
 from dorp_rl.config import checked
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.envs.paper import DEFAULT_SETTING, TABLE_1_SETTINGS
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     SETTINGS,
@@ -67,10 +68,8 @@ from dorp_rl.trainers import (
 from dorp_rl.validation import Int
 from dorp_rl.viz import plot_results
 
-SettingName = Literal[
-    "1obj", "2obj", "3obj", "5obj", "6obj", "3obj-full", "5obj-full", "6obj-full",
-    "keywall", "keycorridor",
-]  # fmt: skip
+#: the paper's settings by name (dorp_rl.eval.SETTINGS), as the command's choices
+SettingName = Literal.__getitem__(tuple(SETTINGS))  # type: ignore[misc]
 Method = Literal[
     "dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem", "random"
 ]
@@ -124,7 +123,7 @@ class RunOptions:
     oversubscribed threads made a training step about 100x slower."""
     progress: bool = True
     """show progress bars on long stages"""
-    setting: SettingName = "2obj"
+    setting: SettingName = DEFAULT_SETTING
     """environment, code preset and graph groups (dorp_rl.eval.SETTINGS); the codes and
     world-model fields below default to this setting's presets"""
     env: str | None = None
@@ -149,16 +148,21 @@ class RunOptions:
             raise UsageError(f"--threads must be >= 1, got {self.threads}.")
 
 
+def _default_setting() -> tuple[str, int]:
+    setting = SETTINGS[DEFAULT_SETTING]
+    return setting.env, setting.num_objects
+
+
 def _codes_default() -> RepresentationConfig:
-    return RepresentationConfig.for_env("rearrangement", 2)
+    return RepresentationConfig.for_env(*_default_setting())
 
 
 def _world_model_default() -> WorldModelConfig:
-    return WorldModelConfig.for_env("rearrangement", 2)
+    return WorldModelConfig.for_env(*_default_setting())
 
 
 def _latent_model_default() -> LatentWorldModelConfig:
-    return LatentWorldModelConfig.for_env("rearrangement", 2)
+    return LatentWorldModelConfig.for_env(*_default_setting())
 
 
 @dataclass
@@ -219,7 +223,8 @@ class DORPOptions(DORPConfig):
 
 
 def _dorp_default() -> DORPOptions:
-    return DORPOptions(**DORPConfig.for_env("rearrangement", num_objects=2).to_dict())
+    env, num_objects = _default_setting()
+    return DORPOptions(**DORPConfig.for_env(env, num_objects=num_objects).to_dict())
 
 
 @dataclass
@@ -307,9 +312,7 @@ class PaperOptions:
     """the paper's Table 1 instead of one setting: every method of the table in each of
     --settings, one sub-run per setting (<name>/<setting>/), one table and timings.csv
     in the run folder; --codes.* / --world-model.* / --dorp.* changes apply to every setting"""
-    settings: tuple[SettingName, ...] = (
-        "1obj", "2obj", "3obj", "5obj", "keywall", "keycorridor"
-    )  # fmt: skip
+    settings: tuple[SettingName, ...] = TABLE_1_SETTINGS
     """with --paper: the settings to run"""
     paper_methods: tuple[Method, ...] = ()
     """with --paper: run only these of each setting's Table 1 methods (empty: all of them);
@@ -416,13 +419,15 @@ COMMANDS: dict[str, type] = {
 }
 
 
-def default_command(name: str, setting: str = "2obj") -> Any:
+def default_command(name: str, setting: str = DEFAULT_SETTING) -> Any:
     """The defaults of subcommand ``name`` under ``setting`` (its presets filled in): a
     paper setting, or an env profile's name or import path (given as ``--env``)."""
     cls = COMMANDS[name]
     # A setting that is no paper setting is an env profile: --env.
     values: dict[str, Any] = (
-        {"setting": setting} if setting in SETTINGS else {"setting": "2obj", "env": setting}
+        {"setting": setting}
+        if setting in SETTINGS
+        else {"setting": DEFAULT_SETTING, "env": setting}
     )
     fields = {f.name for f in dataclasses.fields(cls)}
     if "codes" in fields:

@@ -14,6 +14,7 @@ from dorp_rl.envs.gymnasium_envs import GymnasiumGridEnv, register_gymnasium_env
 from dorp_rl.envs.gymnasium_goals import GymGoalEnv, draw_reachable_tasks
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
 from dorp_rl.envs.latent_planning import LatentModelEnv, planning_dtype
+from dorp_rl.envs.paper import DEFAULT_ENV
 from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
 from dorp_rl.envs.profile import (
     EnvProfile,
@@ -29,6 +30,7 @@ from dorp_rl.envs.spec import DiscreteActions, env_device, env_identity
 register_gymnasium_envs()
 
 __all__ = [
+    "DEFAULT_ENV",
     "DEFAULT_MAX_STEPS",
     "DIRECTIONS",
     "DiscreteActions",

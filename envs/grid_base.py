@@ -13,14 +13,13 @@ from __future__ import annotations
 import copy
 import weakref
 from collections.abc import Sequence
-from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from dorp_rl.frames import check_frames
 from dorp_rl.validation import (
     BatchShapeError,
     MissingKeyError,
@@ -28,7 +27,6 @@ from dorp_rl.validation import (
     check_batch_size,
     check_bool,
     check_device,
-    check_frames,
     check_int,
     check_seed,
     check_state_layout,
@@ -136,48 +134,6 @@ class _EmittedTensors:
 
     def __reduce__(self):
         return (_EmittedTensors, (self.size,))
-
-
-def check_viewable_frames(frames: Any, name: str = "frames") -> torch.Tensor:
-    """Frames people can look at: uint8 ``[..., 3, H, W]`` (RGB) or ``[..., 1, H, W]`` (gray)."""
-    shape = getattr(frames, "shape", None)
-    if shape is not None and (len(shape) < 3 or shape[-3] not in (1, 3)):
-        raise ValueError(
-            f"{name} must have shape [..., 3, H, W] (RGB) or [..., 1, H, W] (gray), got "
-            f"{list(shape)}."
-        )
-    return check_frames(frames, name, lead="...")
-
-
-def upscale_frames(frames: torch.Tensor, scale: int = 8) -> torch.Tensor:
-    """Blows each pixel up to a ``scale x scale`` square: uint8 ``[..., C, H*s, W*s]``
-    (``C`` 3 for RGB frames, 1 for gray ones).
-
-    Examples:
-        >>> import torch
-        >>> from dorp_rl.viz import upscale_frames
-        >>> upscale_frames(torch.zeros(2, 3, 16, 16, dtype=torch.uint8), scale=4).shape
-        torch.Size([2, 3, 64, 64])
-    """
-    frames = check_viewable_frames(frames)
-    scale = check_int("scale", scale, low=1)
-    return frames.repeat_interleave(scale, dim=-2).repeat_interleave(scale, dim=-1)
-
-
-def frames_to_rgb_array(frames: torch.Tensor, scale: int = 8) -> np.ndarray:
-    """Upscaled channel-last numpy image(s), uint8 ``[..., H*s, W*s, 3]`` (gymnasium's
-    rgb_array); gray frames ``[..., 1, H, W]`` are shown in three equal channels.
-
-    Examples:
-        >>> import torch
-        >>> from dorp_rl.viz import frames_to_rgb_array
-        >>> frames_to_rgb_array(torch.zeros(3, 16, 16, dtype=torch.uint8)).shape
-        (128, 128, 3)
-    """
-    big = upscale_frames(frames, scale)
-    if big.shape[-3] == 1:
-        big = big.expand(*big.shape[:-3], 3, *big.shape[-2:])
-    return big.movedim(-3, -1).cpu().numpy().copy()
 
 
 class GridWorldEnv(CheckedRolloutLength, EnvBase):
@@ -435,7 +391,7 @@ class GridWorldEnv(CheckedRolloutLength, EnvBase):
 
         Reads the values (a device synchronisation): the policies and planners call it
         once per call on the goal and current frames, through
-        :func:`dorp_rl.validation.check_task_frames`.
+        :func:`dorp_rl.frames.check_task_frames`.
         """
         frames = check_frames(frames, name, shape=(3, self.grid_size, self.grid_size))
         bad = self.invalid_frames(frames)

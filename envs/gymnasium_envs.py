@@ -10,9 +10,10 @@ import torch
 from gymnasium import spaces
 from tensordict import TensorDict
 
-from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv, frames_to_rgb_array
+from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
 from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyWallEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
+from dorp_rl.frames import frames_to_rgb_array
 from dorp_rl.validation import check_int, check_seed
 
 ENV_CLASSES: dict[str, type[GridWorldEnv]] = {

@@ -33,7 +33,7 @@ from torchrl.envs import EnvBase
 from dorp_rl.envs.grid_base import CheckedRolloutLength
 from dorp_rl.envs.planning import distinct_rows
 from dorp_rl.envs.spec import qualified_name
-from dorp_rl.validation import frames_to_uint8
+from dorp_rl.frames import frames_to_uint8
 
 __all__ = ["GymGoalEnv", "draw_reachable_tasks"]
 

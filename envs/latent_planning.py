@@ -21,8 +21,9 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.envs.model_based import WorldModelEnv as TorchRLWorldModelEnv
 
+from dorp_rl.frames import frames_to_uint8
 from dorp_rl.integrity import state_digest
-from dorp_rl.validation import check_device, frames_to_uint8
+from dorp_rl.validation import check_device
 
 __all__ = ["LatentModelEnv", "planning_dtype"]
 

@@ -56,14 +56,13 @@ from dorp_rl.envs.grid_base import (
     foreign_colours,
 )
 from dorp_rl.envs.spec import DiscreteActions
+from dorp_rl.frames import check_frames, frames_to_uint8
 from dorp_rl.validation import (
     MissingKeyError,
     check_action,
     check_device,
-    check_frames,
     check_int,
     check_state_layout,
-    frames_to_uint8,
 )
 
 _FRAME = (3, GRID_SIZE, GRID_SIZE)

@@ -30,11 +30,11 @@ from dorp_rl.data import (
 from dorp_rl.envs import DiscreteActions, env_identity
 from dorp_rl.envs.spec import qualified_name
 from dorp_rl.eval import play_code_dynamics
+from dorp_rl.frames import frame_shape_of
 from dorp_rl.modules import DDDPSimilarity, DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners import CodeGraph
 from dorp_rl.planners.code_graph import play_actions
-from dorp_rl.validation import frame_shape_of
 
 
 @pytest.mark.parametrize(

@@ -3,7 +3,7 @@
 Goal images and current frames given to :class:`RandomShootingPlanner`,
 :class:`CategoricalCEMPlanner` (through their cost's goal), :class:`VisualForesightPolicy`
 and the DORP policy (:func:`make_dorp_policy`) go through
-:func:`dorp_rl.validation.check_task_frames`: frames no state of the planning env draws
+:func:`dorp_rl.frames.check_task_frames`: frames no state of the planning env draws
 (another environment, another number of objects), all-black frames, NaN frames and float
 frames in 0..255 are refused with a message naming the key and the cause; uint8 frames
 and float frames of any precision in ``[0, 1]`` are planned with, and give the same plan.
@@ -22,6 +22,7 @@ from dorp_rl.envs import (
     ObjectRearrangementEnv,
     WorldModelEnv,
 )
+from dorp_rl.frames import check_task_frames, frames_to_uint8
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel
 from dorp_rl.planners import (
@@ -31,7 +32,6 @@ from dorp_rl.planners import (
     RandomShootingPlanner,
 )
 from dorp_rl.policies import VisualForesightPolicy, make_dorp_policy
-from dorp_rl.validation import check_task_frames, frames_to_uint8
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -20,6 +20,7 @@ from torchrl.trainers import TrainerHookBase
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
 from dorp_rl.config import ConfigMixin, checked, config_differences, format_differences
 from dorp_rl.envs import (
+    DEFAULT_ENV,
     EnvProfile,
     env_identity,
     env_profile,
@@ -68,22 +69,21 @@ class TrainerConfig(ConfigMixin):
     ``num_objects=1``.
     """
 
-    #: objects of a rearrangement config that does not say
+    #: objects of a config that does not say, on an env that counts them
     default_num_objects: ClassVar[int] = 2
 
     # environment and play data
-    env: str = checked("rearrangement", EnvName())
-    """environment: a registered profile (rearrangement, key-wall, key-corridor) or an
+    env: str = checked(DEFAULT_ENV, EnvName())
+    """environment: a registered profile (dorp_rl.envs.registered_profiles()) or an
     import path 'package.module:attribute' (an EnvProfile or a function building the env)"""
     num_objects: int | None = checked(None, Int(low=1, high=MAX_OBJECTS, optional=True))
-    """objects of an env that counts them, such as rearrangement (None: the config's
-    default; 1 for the others)"""
+    """objects of an env that counts them (None: the config's default; 1 for the others)"""
     num_frames: int = checked(100_000, Int(low=1))
     """play transitions to collect"""
     num_envs: int = checked(64, Int(low=1))
     """envs collecting play data side by side"""
     trajectory_length: int | None = checked(None, Int(low=1, optional=True))
-    """steps per play trajectory (None: the env profile's, 1 for rearrangement)"""
+    """steps per play trajectory (None: the env profile's, else chosen from its resets)"""
     data_dir: str | None = checked(None, Text(optional=True))
     """folder of the play data (None: kept in memory)"""
     # bookkeeping
@@ -117,8 +117,12 @@ class TrainerConfig(ConfigMixin):
 
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
-        if values.get("env", "rearrangement") in ("key-wall", "key-corridor"):
-            values["num_objects"] = 1  # it never had an effect on key rooms
+        try:
+            counts = env_profile(values.get("env", DEFAULT_ENV)).counts_objects
+        except ValueError:  # an env that cannot be found: left to the checks to name
+            return values
+        if not counts:
+            values["num_objects"] = 1  # it never had an effect there
         return values
 
     @classmethod

@@ -16,6 +16,7 @@ from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
 from dorp_rl.data import SequenceSampler, play_segment_length, rare_code_changes
 from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.frames import frame_shape_of
 from dorp_rl.integrity import state_digest
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
 from dorp_rl.modules.encoder import choose_map_stride
@@ -25,7 +26,7 @@ from dorp_rl.trainers.base import TrainerConfig
 from dorp_rl.trainers.representation import load_encoder
 from dorp_rl.trainers.windows import WindowTrainer
 from dorp_rl.trainers.world_model import WorldModelTrainer, load_video_model
-from dorp_rl.validation import Flag, Float, Int, Text, check_device, frame_shape_of
+from dorp_rl.validation import Flag, Float, Int, Text, check_device
 
 __all__ = [
     "LatentWorldModelConfig",

@@ -25,7 +25,8 @@ from dorp_rl.data import (
     future_pairs,
     scan_frames,
 )
-from dorp_rl.envs import env_identity, env_profile
+from dorp_rl.envs import DEFAULT_ENV, env_identity, env_profile
+from dorp_rl.frames import frame_shape_of
 from dorp_rl.metrics.code_information import (
     code_dynamics,
     code_information,
@@ -38,16 +39,7 @@ from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.code_graph import encode_transitions
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
-from dorp_rl.validation import (
-    Choice,
-    Float,
-    Floats,
-    Int,
-    Text,
-    check_device,
-    derive_seed,
-    frame_shape_of,
-)
+from dorp_rl.validation import Choice, Float, Floats, Int, Text, check_device, derive_seed
 
 #: Flat fields of older representation configs that now live in ``encoder``.
 _FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extractor_kernel_size")
@@ -65,7 +57,7 @@ def _counted_then(values: dict[str, Any]) -> bool:
     if len(tuple(sizes)) != 1:
         return False
     try:
-        return env_profile(values.get("env", "rearrangement")).code_layout is None
+        return env_profile(values.get("env", DEFAULT_ENV)).code_layout is None
     except ValueError:
         return True
 

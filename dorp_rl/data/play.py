@@ -34,6 +34,7 @@ from torchrl.envs import EnvBase, StepCounter, TransformedEnv
 
 from dorp_rl.config import config_differences, format_differences
 from dorp_rl.envs.spec import DiscreteActions, env_device, env_identity
+from dorp_rl.frames import frame_shape_of
 from dorp_rl.integrity import (
     DirectoryLock,
     IntegrityError,
@@ -42,7 +43,7 @@ from dorp_rl.integrity import (
     verify_manifest,
 )
 from dorp_rl.progress import progress_bar
-from dorp_rl.validation import check_device, check_int, check_seed, derive_seed, frame_shape_of
+from dorp_rl.validation import check_device, check_int, check_seed, derive_seed
 
 #: Keys kept for every transition of the play data.
 PLAY_KEYS = (

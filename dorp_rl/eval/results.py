@@ -2,9 +2,9 @@
 
 :func:`result_row` turns one evaluation into a flat row with :data:`RESULT_COLUMNS`;
 :func:`write_results` writes rows as ``results.csv`` and a markdown ``results.md``.
-:data:`PAPER_TABLE` holds the paper's Table 1 (and its key-room figures);
-:func:`add_paper_figures` puts them beside a row (:data:`PAPER_COLUMNS`) and
-:func:`format_paper_table` lays rows out as Table 1. :func:`write_timings` writes the
+:func:`paper_figures` reads the paper's Table 1 (and its key-room figures,
+:data:`dorp_rl.envs.paper.PAPER_TABLE`); :func:`add_paper_figures` puts them beside a row
+(:data:`PAPER_COLUMNS`) and :func:`format_paper_table` lays rows out as Table 1. :func:`write_timings` writes the
 wall-clock of each stage of a run and :func:`format_time_by_kind` what dominates it.
 """
 
@@ -18,6 +18,8 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+
+from dorp_rl.envs.paper import PAPER_TABLE, PAPER_THROUGH_VIDEO_MODEL
 
 #: the columns of a result table, in order
 RESULT_COLUMNS: tuple[str, ...] = (
@@ -35,36 +37,6 @@ RESULT_COLUMNS: tuple[str, ...] = (
 #: the paper's figures beside ours, in ``dorp reproduce --paper`` tables
 PAPER_COLUMNS: tuple[str, ...] = ("paper_success_rate", "paper_steps")
 
-#: The paper's Table 1 per (setting, method): success rate and steps (mean +- std over
-#: its tasks; "max": every task hit the step limit, 1400 at 5 objects). The methods run
-#: through the paper's SV2P video model. Key rooms: DORP with the true dynamics (37 of
-#: 40 key-wall, 33 of 40 key-corridor tasks; key-wall through SV2P: 9 of 10), no steps.
-PAPER_TABLE: dict[tuple[str, str], tuple[float | None, str]] = {
-    ("1obj", "dorp"): (1.00, "25 ± 15"),
-    ("2obj", "dorp"): (1.00, "49 ± 22"),
-    ("3obj", "dorp"): (1.00, "75 ± 28"),
-    ("5obj", "dorp"): (0.87, "1091 ± 1010"),
-    ("1obj", "dorp-arbitrary"): (0.92, "26 ± 19"),
-    ("2obj", "dorp-arbitrary"): (0.58, "52 ± 16"),
-    ("3obj", "dorp-arbitrary"): (0.26, "52 ± 16"),
-    ("1obj", "dorp-identity"): (1.00, "34 ± 12"),
-    ("2obj", "dorp-identity"): (0.94, "18 ± 7"),
-    ("3obj", "dorp-identity"): (0.48, "83 ± 23"),
-    ("1obj", "dorp-full"): (1.00, "25 ± 15"),
-    ("2obj", "dorp-full"): (1.00, "56 ± 17"),
-    ("3obj", "dorp-full"): (1.00, "76 ± 26"),
-    ("5obj", "dorp-full"): (0.00, "max"),
-    ("1obj", "vf-rs"): (0.83, "19 ± 19"),
-    ("2obj", "vf-rs"): (0.58, "53 ± 25"),
-    ("3obj", "vf-rs"): (0.25, "93 ± 24"),
-    ("5obj", "vf-rs"): (0.00, "max"),
-    ("1obj", "vf-cem"): (1.00, "12 ± 15"),
-    ("2obj", "vf-cem"): (0.60, "47 ± 25"),
-    ("3obj", "vf-cem"): (0.30, "89 ± 27"),
-    ("5obj", "vf-cem"): (0.10, "max"),
-    ("keywall", "dorp"): (37 / 40, ""),
-    ("keycorridor", "dorp"): (33 / 40, ""),
-}
 #: the paper's names of the methods (rows of Table 1)
 PAPER_METHOD_NAMES: dict[str, str] = {
     "dorp": "DORP",
@@ -80,7 +52,8 @@ PAPER_METHOD_NAMES: dict[str, str] = {
 def paper_figures(setting: str, method: str, low_level: str = "gt") -> tuple[float | None, str]:
     """The paper's (success rate, steps) for ``method`` in ``setting`` (``(None, "")``:
     not reported). ``3obj-full``/``5obj-full`` with ``dorp`` are the full-graph rows;
-    key-wall through a video model is the paper's 9 of 10 with SV2P.
+    through a learned model (``low_level`` not ``gt``/``none``), the paper's figures
+    through its video model where they differ (key-wall: 9 of 10 with SV2P).
 
     Examples:
         >>> from dorp_rl.eval.results import paper_figures
@@ -91,8 +64,8 @@ def paper_figures(setting: str, method: str, low_level: str = "gt") -> tuple[flo
     """
     if setting.endswith("-full") and method == "dorp":
         setting, method = setting.removesuffix("-full"), "dorp-full"
-    if (setting, method) == ("keywall", "dorp") and low_level not in ("gt", "none"):
-        return 0.9, ""
+    if low_level not in ("gt", "none") and (setting, method) in PAPER_THROUGH_VIDEO_MODEL:
+        return PAPER_THROUGH_VIDEO_MODEL[setting, method]
     return PAPER_TABLE.get((setting, method), (None, ""))
 
 

@@ -1,10 +1,11 @@
-"""The paper's planning settings: environment, object count, graph groups and paper figures.
+"""Planning settings: an env profile, its object count and the code graph's groups.
 
-One table that the ``dorp`` command (and any script) uses to build the same codes, graph
-and task set per setting (the code and world-model presets come from the env profile:
-``RepresentationConfig.for_env(setting.env, setting.num_objects)``): :data:`SETTINGS` maps a name (``"2obj"``, ``"keywall"``, ...)
-to a :class:`Setting`; :data:`PAPER_SUCCESS` holds the paper's success rates per setting
-and method, to draw next to ours.
+The ``dorp`` command (and any script) builds the same codes, graph and task set per
+setting (the code and world-model presets come from the env profile:
+``RepresentationConfig.for_env(setting.env, setting.num_objects)``). :data:`SETTINGS`
+holds the paper's named settings (``"2obj"``, ``"keywall"``, ...), declared beside its
+envs (:mod:`dorp_rl.envs.paper`); any other env profile is a setting of its own
+(:meth:`Setting.of_env`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,9 @@ from typing import Any
 from torchrl.envs import EnvBase
 
 from dorp_rl.envs import EnvProfile, env_profile
+from dorp_rl.envs.paper import PAPER_SETTINGS, PAPER_SUCCESS
+
+__all__ = ["PAPER_SUCCESS", "SETTINGS", "Setting", "paper_methods", "setting_of"]
 
 
 @dataclass(frozen=True)
@@ -27,6 +31,7 @@ class Setting:
         groups: graph groups (:meth:`~dorp_rl.planners.CodeGraph.from_play_data`):
             ``"onehot"``, ``"full"`` or tuples of one-hot indices.
         paper: the paper's figure for DORP, for comparison in result tables.
+        methods: the methods of the paper's Table 1 in this setting (``()``: none).
 
     Examples:
         >>> from dorp_rl.eval import SETTINGS
@@ -40,7 +45,8 @@ class Setting:
     env: str
     num_objects: int
     groups: Any
-    paper: str
+    paper: str = ""
+    methods: tuple[str, ...] = ()
 
     @classmethod
     def of_env(cls, env: str | EnvProfile, num_objects: int | None = None) -> Setting:
@@ -95,44 +101,18 @@ def setting_of(name: str) -> Setting:
         ) from None
 
 
-SETTINGS: dict[str, Setting] = {
-    "1obj": Setting("rearrangement", 1, "onehot", "1.00 in 25 steps"),
-    "2obj": Setting("rearrangement", 2, "onehot", "1.00 in 49 steps"),
-    "3obj": Setting("rearrangement", 3, "onehot", "1.00 in 75 steps"),
-    "5obj": Setting("rearrangement", 5, ((0, 1), (2, 3, 4)), "0.87 in 1091 steps"),
-    "3obj-full": Setting("rearrangement", 3, "full", "1.00 (full graph)"),
-    "5obj-full": Setting("rearrangement", 5, "full", "0.00 (full graph)"),
-    # Not in the paper: six blocks, planned in three pairs.
-    "6obj": Setting("rearrangement", 6, ((0, 1), (2, 3), (4, 5)), "not in the paper"),
-    "6obj-full": Setting("rearrangement", 6, "full", "not in the paper"),
-    "keywall": Setting("key-wall", 1, ((0, 1),), "37/40 (gt), 9/10 (SV2P)"),
-    "keycorridor": Setting("key-corridor", 1, ((0, 1),), "33/40 (gt)"),
-}
-
-#: The paper's success rates per setting and method: DORP with the true dynamics, VF-RS
-#: and VF-CEM through the paper's SV2P video model (the figures docs/RESULTS.md compares
-#: with). Settings or methods the paper did not report are absent.
-PAPER_SUCCESS: dict[str, dict[str, float]] = {
-    "1obj": {"dorp": 1.00, "vf-rs": 0.83, "vf-cem": 1.00},
-    "2obj": {"dorp": 1.00, "vf-rs": 0.58, "vf-cem": 0.60},
-    "3obj": {"dorp": 1.00, "vf-rs": 0.25, "vf-cem": 0.30},
-    "5obj": {"dorp": 0.87, "vf-rs": 0.00, "vf-cem": 0.10},
-    "3obj-full": {"dorp": 1.00},
-    "5obj-full": {"dorp": 0.00},
-    "keywall": {"dorp": 37 / 40},
-    "keycorridor": {"dorp": 33 / 40},
-}
+#: The paper's named settings (:data:`dorp_rl.envs.paper.PAPER_SETTINGS`).
+SETTINGS: dict[str, Setting] = {name: Setting(**spec) for name, spec in PAPER_SETTINGS.items()}
 
 
 def paper_methods(setting: str) -> tuple[str, ...]:
-    """The methods of the paper's Table 1 in ``setting``: every method at 1-3 objects; no
-    similarity ablations at 5 objects (the paper reports none); DORP only in key rooms.
-    Six objects (not in the paper): DORP, the full graph and VF-CEM (the stronger
-    baseline)."""
-    if SETTINGS[setting].env in ("key-wall", "key-corridor"):
-        return ("dorp",)
-    if SETTINGS[setting].num_objects >= 6:
-        return ("dorp", "dorp-full", "vf-cem")
-    if SETTINGS[setting].num_objects >= 5:
-        return ("dorp", "dorp-full", "vf-rs", "vf-cem")
-    return ("dorp", "dorp-arbitrary", "dorp-identity", "dorp-full", "vf-rs", "vf-cem")
+    """The methods of the paper's Table 1 in ``setting`` (one of :data:`SETTINGS`).
+
+    Examples:
+        >>> from dorp_rl.eval import paper_methods
+        >>> paper_methods("keywall")
+        ('dorp',)
+    """
+    if setting not in SETTINGS:
+        raise ValueError(f"{setting!r} is not one of the paper's settings {sorted(SETTINGS)}.")
+    return SETTINGS[setting].methods

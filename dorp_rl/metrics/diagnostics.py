@@ -39,7 +39,8 @@ import torch
 from dorp_rl.envs.grid_base import GRID_SIZE
 from dorp_rl.envs.key_rooms import KeyRoomEnv
 from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
-from dorp_rl.validation import check_frames, check_int, check_seed
+from dorp_rl.frames import check_frames
+from dorp_rl.validation import check_int, check_seed
 
 #: ``encode(pixels uint8 [N, 3, 16, 16]) -> int64 [N, C]``: one code index per one-hot.
 Encoder = Callable[[torch.Tensor], torch.Tensor]

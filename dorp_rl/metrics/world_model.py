@@ -8,8 +8,8 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
+from dorp_rl.frames import check_frames, frames_to_unit_float
 from dorp_rl.modules.video import VideoPredictionModel
-from dorp_rl.validation import check_frames, frames_to_unit_float
 
 
 @torch.no_grad()

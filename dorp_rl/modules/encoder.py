@@ -13,18 +13,8 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from dorp_rl.config import ConfigMixin, checked
-from dorp_rl.validation import (
-    Choice,
-    Flag,
-    Float,
-    Int,
-    Ints,
-    as_tensor,
-    check_choice,
-    check_int,
-    frame_shape_of,
-    frames_to_unit_float,
-)
+from dorp_rl.frames import frame_shape_of, frames_to_unit_float
+from dorp_rl.validation import Choice, Flag, Float, Int, Ints, as_tensor, check_choice, check_int
 
 
 @dataclass
@@ -168,7 +158,7 @@ def check_pixels(
     floats in ``[0, 1]``; with ``shape``, frames of another ``(C, H, W)`` are refused.
 
     Float frames outside ``[0, 1]`` (a forgotten ``/ 255``) are refused
-    (:func:`dorp_rl.validation.frames_to_unit_float`).
+    (:func:`dorp_rl.frames.frames_to_unit_float`).
     """
     return frames_to_unit_float(pixels, name, shape=shape)
 
@@ -305,7 +295,7 @@ class DiscreteCodeEncoder(nn.Module):
     ) -> DiscreteCodeEncoder:
         """An encoder of ``env``'s frames: ``config`` (default :meth:`EncoderConfig.small`)
         with ``frame_shape`` read off the observation spec of ``key``
-        (:func:`~dorp_rl.validation.frame_shape_of`)."""
+        (:func:`~dorp_rl.frames.frame_shape_of`)."""
         config = EncoderConfig.small() if config is None else config
         return cls(config.replace(frame_shape=frame_shape_of(env, key)))
 

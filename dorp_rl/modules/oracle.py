@@ -16,7 +16,8 @@ import torch
 from torch import nn
 
 from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
-from dorp_rl.validation import check_int, frames_to_uint8
+from dorp_rl.frames import frames_to_uint8
+from dorp_rl.validation import check_int
 
 
 class OracleCodeEncoder(nn.Module):

@@ -11,15 +11,10 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.objectives import LossModule
 
+from dorp_rl.frames import frames_to_unit_float
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.modules.latent import LatentWorldModel, check_latent_model
-from dorp_rl.validation import (
-    MissingKeyError,
-    check_bool,
-    check_float,
-    check_int,
-    frames_to_unit_float,
-)
+from dorp_rl.validation import MissingKeyError, check_bool, check_float, check_int
 
 __all__ = ["LatentWorldModelLoss"]
 

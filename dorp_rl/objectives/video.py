@@ -10,14 +10,9 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
+from dorp_rl.frames import check_frames
 from dorp_rl.modules.video import VideoPredictionModel
-from dorp_rl.validation import (
-    MissingKeyError,
-    check_choice,
-    check_float,
-    check_frames,
-    check_int,
-)
+from dorp_rl.validation import MissingKeyError, check_choice, check_float, check_int
 
 FEEDBACK_MODES = ("straight_through", "soft", "hard")
 

@@ -108,13 +108,14 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, TensorDictPrimer
 from torchrl.modules.planners import MPCPlannerBase
 
+from dorp_rl.frames import check_task_frames
 from dorp_rl.planners.costs import (
     STEP_AGGREGATIONS,
     MissingRolloutKeyError,
     check_step_aggregation,
     run_cost_lazy,
 )
-from dorp_rl.validation import MissingKeyError, check_bool, check_int, check_seed, check_task_frames
+from dorp_rl.validation import MissingKeyError, check_bool, check_int, check_seed
 
 __all__ = [
     "EXECUTIONS",
@@ -718,7 +719,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         return [k for k in dict.fromkeys(keys) if not (isinstance(k, tuple) and k[0] == "next")]
 
     def _checked_frames(self, flat: TensorDictBase) -> TensorDictBase:
-        """The acting rows with their frames checked (:func:`~dorp_rl.validation.check_task_frames`
+        """The acting rows with their frames checked (:func:`~dorp_rl.frames.check_task_frames`
         against the planning env) and float frames in ``[0, 1]`` turned into uint8.
 
         Once per call, before any rollout: a goal image of another environment, an

@@ -64,19 +64,14 @@ from torch import nn
 from torchrl.envs import Compose, TensorDictPrimer
 
 from dorp_rl.envs.spec import DiscreteActions
+from dorp_rl.frames import check_task_frames
 from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.policies.config import DORPConfig
 from dorp_rl.policies.recovery import NOOPS_KEY, RecoveryRule, recovery_rules
 from dorp_rl.policies.state import PolicyState, StateKey
-from dorp_rl.validation import (
-    MissingKeyError,
-    check_keywords,
-    check_seed,
-    check_task_frames,
-    derive_seed,
-)
+from dorp_rl.validation import MissingKeyError, check_keywords, check_seed, derive_seed
 
 __all__ = ["ENDINGS", "LOOP_FIELDS", "MODES", "GOAL_PRIOR_KEY", "PRIOR_KEY", "AbstractGoalPolicy"]
 
@@ -768,7 +763,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
 
     def _frames(self, td: TensorDictBase, key: str) -> torch.Tensor:
         """The frames under ``key`` as uint8 ``[rows, C, H, W]`` on the CPU, checked once per
-        call against the planning env (:func:`~dorp_rl.validation.check_task_frames`)."""
+        call against the planning env (:func:`~dorp_rl.frames.check_task_frames`)."""
         value = td.get(key, None)
         if value is None:
             raise MissingKeyError(

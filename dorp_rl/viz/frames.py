@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from dorp_rl.envs.grid_base import check_viewable_frames, frames_to_rgb_array, upscale_frames
+from dorp_rl.frames import check_viewable_frames, frames_to_rgb_array, upscale_frames
 
 __all__ = ["frame_grid", "frames_to_rgb_array", "save_frame_strip", "upscale_frames"]
 

@@ -42,7 +42,7 @@ def plot_success(
     rows: Sequence[dict[str, Any]], path: str | Path, paper: dict[str, dict[str, float]]
 ) -> Path:
     """Bars of each row's success rate, with the paper's beside it (``paper[setting][method]``,
-    else :data:`~dorp_rl.eval.results.PAPER_TABLE`)."""
+    else :func:`~dorp_rl.eval.results.paper_figures`)."""
     fig = Figure(figsize=(max(4.0, 1.2 * len(rows) + 1.5), 3.2))
     ax = fig.add_subplot()
     xs = range(len(rows))

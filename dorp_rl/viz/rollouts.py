@@ -26,7 +26,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 from tensordict import TensorDictBase
 
-from dorp_rl.envs.grid_base import frames_to_rgb_array
+from dorp_rl.frames import frames_to_rgb_array
 from dorp_rl.viz.code_maps import code_colours
 
 __all__ = [
