@@ -13,7 +13,7 @@ Settings: ``1obj``, ``2obj``, ``3obj`` (one graph per one-hot), ``5obj`` (groups
 full-graph ablation), ``keywall`` and ``keycorridor`` (agent and key bit in one group).
 Low levels: ``gt`` (the true dynamics) and ``video`` (a video model from
 ``--video-checkpoint``; train one with ``benchmarks/video_model_accuracy.py``).
-``--codes oracle`` swaps the learned codes for :class:`~dorp_rl.modules.OracleCodeEncoder`.
+``--codes oracle`` swaps the learned codes for :class:`~dorp_rl.envs.OracleCodeEncoder`.
 
     python benchmarks/dorp_planning.py --settings 1obj 2obj 3obj --low-level gt --threads 1
 """
@@ -30,9 +30,9 @@ from typing import Any
 import torch
 
 from dorp_rl.data import collect_play_data
+from dorp_rl.envs import OracleCodeEncoder
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.eval.settings import SETTINGS, Setting
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import make_dorp_policy
 from dorp_rl.trainers import (

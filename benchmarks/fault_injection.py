@@ -141,7 +141,8 @@ def load_dir(directory: Path) -> Any:
 
 
 def rep_config(**overrides: Any) -> RepresentationConfig:
-    base = RepresentationConfig.rearrangement(
+    base = RepresentationConfig.for_env(
+        "rearrangement",
         1,
         encoder={"code_sizes": (8,)},
         num_frames=256,
@@ -159,7 +160,8 @@ def rep_config(**overrides: Any) -> RepresentationConfig:
 
 
 def wm_config(**overrides: Any) -> WorldModelConfig:
-    base = WorldModelConfig.rearrangement(
+    base = WorldModelConfig.for_env(
+        "rearrangement",
         1,
         num_steps=4,
         num_frames=256,

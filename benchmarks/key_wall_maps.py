@@ -23,8 +23,7 @@ import argparse
 
 import torch
 
-from dorp_rl.envs import KeyWallEnv
-from dorp_rl.metrics.diagnostics import key_event_states, key_room_diagnostics
+from dorp_rl.envs import KeyWallEnv, key_event_states, key_room_diagnostics
 from dorp_rl.trainers.representation import load_encoder
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from dorp_rl.modules import OracleCodeEncoder
+from dorp_rl.envs import OracleCodeEncoder
 from dorp_rl.trainers import LatentWorldModelConfig, LatentWorldModelTrainer, load_encoder
 
 

@@ -63,7 +63,7 @@ def main() -> None:
     torch.manual_seed(0)
     extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
     env = ObjectRearrangementEnv(args.objects, batch_size=(args.rows,), seed=0)
-    codes = RepresentationConfig.rearrangement(args.objects)
+    codes = RepresentationConfig.for_env("rearrangement", args.objects)
     encoder = DiscreteCodeEncoder(codes.encoder.replace(code_sizes=codes.code_sizes)).eval()
 
     def model(**fields) -> LatentWorldModel:

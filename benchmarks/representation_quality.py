@@ -77,8 +77,8 @@ def settings(steps_scale: float) -> dict[str, list[tuple[str, RepresentationConf
         "keywall": [
             (
                 "keywall-dddp",
-                RepresentationConfig.key_wall(
-                    num_steps=steps(RepresentationConfig.key_wall().num_steps)
+                RepresentationConfig.for_env(
+                    "key-wall", num_steps=steps(RepresentationConfig.for_env("key-wall").num_steps)
                 ),
             ),
         ],

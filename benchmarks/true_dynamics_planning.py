@@ -48,8 +48,7 @@ import time
 import torch
 from tensordict import TensorDictBase
 
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
-from dorp_rl.modules import OracleCodeEncoder
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,

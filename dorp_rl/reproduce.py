@@ -24,14 +24,13 @@ from typing import Any
 
 import torch
 
+from dorp_rl.envs import EnvProfile
 from dorp_rl.eval import (
     PAPER_SUCCESS,
     RESULT_COLUMNS,
     SETTINGS,
     failure_section,
     paper_methods,
-    rearrangement_code_maps,
-    rearrangement_diagnostics,
     rollout_chunk,
     setting_of,
     tasks_to_draw,
@@ -51,7 +50,6 @@ from dorp_rl.eval.results import (
     write_timings,
 )
 from dorp_rl.eval.tasks import succeeded
-from dorp_rl.metrics.diagnostics import key_room_diagnostics
 from dorp_rl.pipeline import (
     DORP_VARIANTS,
     Evaluate,
@@ -66,7 +64,7 @@ from dorp_rl.pipeline import (
     task_set,
 )
 from dorp_rl.progress import BarMirror, progress_bar, relay_bars
-from dorp_rl.viz import plot_results, write_diagnostic_plots
+from dorp_rl.viz import plot_results
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
 
 __all__ = ["paper_methods", "pictures_stage", "reproduce_paper", "run_setting", "say_pictures"]
@@ -101,22 +99,25 @@ def _low_level_path(run: Run, cmd: EvaluationOptions) -> Path | None:
     return Path(cmd.low_level)
 
 
-def _diagnostic_pictures(env: Any, encoder: Any, directory: Path, num_samples: int):
-    """Code map and factorisation histogram of ``encoder`` into ``directory`` when ``env``
-    declares ground-truth diagnostics (``DIAGNOSTICS``); returns the waypoint maps
+def _diagnostic_pictures(
+    env: Any, profile: EnvProfile, encoder: Any, directory: Path, num_samples: int
+):
+    """The pictures of ``encoder``'s codes into ``directory`` when ``env``'s profile
+    declares code diagnostics (:attr:`~dorp_rl.envs.EnvProfile.diagnostics`); returns the waypoint maps
     (:func:`~dorp_rl.viz.rollouts.code_maps_for_waypoints`, ``None`` without them) and
     the files."""
     encode = encoder.encode
-    kind = getattr(env, "DIAGNOSTICS", None)
-    if kind is None:  # no labels: the GIFs are drawn without waypoint maps
+    diagnostics = profile.diagnostics
+    if diagnostics is None:  # no labels: the GIFs are drawn without waypoint maps
         return None, []
-    if kind == "key_room":
-        result = key_room_diagnostics(env, encode, with_steps=False)
-        maps: Any = result
-    else:
-        result = rearrangement_diagnostics(env, encode, num_samples=max(num_samples, 2))
-        maps = rearrangement_code_maps(env, encode) if env.num_objects == 1 else result
-    written = write_diagnostic_plots(env, encode, directory, result=result)
+    result = diagnostics.measure(env, encode, max(num_samples, 2), 0)
+    written: dict[str, Path] = {}
+    if diagnostics.pictures is not None:
+        directory.mkdir(parents=True, exist_ok=True)
+        written = diagnostics.pictures(env, encode, directory, result)
+    if diagnostics.waypoint_maps is None:
+        return None, list(written.values())
+    maps = diagnostics.waypoint_maps(env, encode, result)
     return code_maps_for_waypoints(maps, result["num_onehots"]), list(written.values())
 
 
@@ -151,7 +152,11 @@ def pictures_stage(run: Run, cmd: Evaluate | Reproduce) -> list[Path]:
             if sub not in maps:
                 loaded[method] = dorp_stages(run, cmd, method)
                 maps[sub], written = _diagnostic_pictures(
-                    env, loaded[method][0], directory / sub, cmd.codes.diagnostics_samples
+                    env,
+                    cmd.codes.profile,
+                    loaded[method][0],
+                    directory / sub,
+                    cmd.codes.diagnostics_samples,
                 )
                 files += written
         gifs, solved, drawn = _rollout_gifs(

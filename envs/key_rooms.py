@@ -12,6 +12,7 @@ from dorp_rl.envs.grid_base import (
     draw_grid_tasks,
     paint_layers,
 )
+from dorp_rl.envs.key_room_diagnostics import KEY_ROOM_DIAGNOSTICS
 from dorp_rl.envs.profile import EnvProfile, register_env_profile
 
 WALL_COLOUR = (128, 128, 128)  # grey
@@ -84,11 +85,8 @@ class KeyRoomEnv(GridWorldEnv):
         self.goal_cells = free.flatten().nonzero().squeeze(-1)
         self._frame_table = self._build_frame_table()
 
-    #: Which ground-truth code diagnostics fit this env (``dorp_rl.metrics.diagnostics``).
-    DIAGNOSTICS = "key_room"
-
     def oracle_layout(self) -> tuple[torch.Tensor, bool]:
-        """What :class:`~dorp_rl.modules.OracleCodeEncoder` codes: the agent by the
+        """What :class:`~dorp_rl.envs.OracleCodeEncoder` codes: the agent by the
         position of its colour, and a key bit (the key's colour gone from the frame)."""
         return torch.tensor([AGENT_COLOUR, KEY_COLOUR], dtype=torch.int64), True
 
@@ -407,6 +405,7 @@ def _key_room_profile(
             "goal_latent_weight": 0.0,
         },
         draw_tasks=draw_grid_tasks,
+        diagnostics=KEY_ROOM_DIAGNOSTICS,
         description=description,
     )
 

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from dorp_rl.envs.grid_base import GRID_SIZE, GridWorldEnv
+from dorp_rl.envs.spec import env_identity
 from dorp_rl.frames import frames_to_uint8
 from dorp_rl.validation import check_int
 
@@ -35,7 +36,7 @@ class OracleCodeEncoder(nn.Module):
     Examples:
         >>> import torch
         >>> from dorp_rl.envs import ObjectRearrangementEnv
-        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> from dorp_rl.envs import OracleCodeEncoder
         >>> env = ObjectRearrangementEnv(num_objects=2, seed=0)
         >>> oracle = OracleCodeEncoder(env, cell_size=4)
         >>> state = torch.tensor([[0, 0], [5, 9]])
@@ -60,6 +61,8 @@ class OracleCodeEncoder(nn.Module):
         self.side = side
         self.num_onehots = len(self.code_sizes)
         self.max_codes = max(self.code_sizes)
+        #: the env whose frames it reads (checked against play data and graphs)
+        self.env_config = env_identity(env)
         self.register_buffer("colours", colours)
 
     def forward(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

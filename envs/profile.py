@@ -17,6 +17,7 @@ import importlib
 import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -24,6 +25,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 __all__ = [
+    "CodeDiagnostics",
     "EnvProfile",
     "env_profile",
     "profile_of",
@@ -81,6 +83,44 @@ def reset_tasks(env: EnvBase, num_tasks: int, seed: int) -> TensorDict:
 
 
 @dataclass(frozen=True)
+class CodeDiagnostics:
+    """An env's own diagnostics of codes against its true states (:attr:`EnvProfile.diagnostics`).
+
+    ``encode`` is ``encode(uint8 [n, C, H, W]) -> int64 [n, K]``, one code index per
+    one-hot (an encoder's ``encode``).
+
+    Attributes:
+        measure: ``(env, encode, num_samples, seed) -> dict``: JSON-serialisable figures
+            with at least ``num_onehots``; the code trainer logs them as it evaluates.
+        pictures: ``(env, encode, out_dir, result) -> {name: path}``: the PNGs drawn from
+            ``result`` (what ``measure`` returned) into ``out_dir``; ``None``: none.
+        waypoint_maps: ``(env, encode, result) -> maps``: per one-hot code maps for the
+            rollout GIFs (:func:`~dorp_rl.viz.rollouts.code_maps_for_waypoints` takes them);
+            ``None``: the GIFs show codes as numbers only.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs import CodeDiagnostics
+        >>> def measure(env, encode, num_samples, seed):
+        ...     codes = encode(env.reset()["pixels"])
+        ...     return {"num_onehots": codes.shape[-1], "codes_used": len(codes.unique())}
+        >>> diagnostics = CodeDiagnostics(measure)
+    """
+
+    measure: Callable[[EnvBase, Callable, int, int], Mapping[str, Any]]
+    pictures: Callable[[EnvBase, Callable, Path, Mapping[str, Any]], dict[str, Path]] | None = None
+    waypoint_maps: Callable[[EnvBase, Callable, Mapping[str, Any]], Any] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("measure", "pictures", "waypoint_maps"):
+            value = getattr(self, name)
+            if not callable(value) and not (value is None and name != "measure"):
+                raise ValueError(
+                    f"CodeDiagnostics.{name} must be a function, got {type(value).__name__}."
+                )
+
+
+@dataclass(frozen=True)
 class EnvProfile:
     """One environment as the pipeline sees it: its name, factory, presets and task rules.
 
@@ -126,6 +166,9 @@ class EnvProfile:
             same place): the labels of the ground-truth code diagnostics
             (:func:`~dorp_rl.eval.object_diagnostics`: selectivity and purity per
             one-hot); ``None``: label-free diagnostics only.
+        diagnostics: the env's own code diagnostics over its true states
+            (:class:`CodeDiagnostics`: figures, pictures, code maps for the GIFs), beside
+            or instead of ``objects``; ``None``: none.
         description: one line for listings and messages.
 
     Examples:
@@ -153,6 +196,7 @@ class EnvProfile:
     draw_tasks: Callable[[EnvBase, int, int], TensorDictBase] | None = None
     lower_bound: Callable[[EnvBase, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
     objects: Callable[[torch.Tensor], torch.Tensor] | None = None
+    diagnostics: CodeDiagnostics | None = None
     description: str = ""
 
     def __post_init__(self) -> None:
@@ -162,6 +206,11 @@ class EnvProfile:
             raise ValueError(
                 f"EnvProfile {self.name!r}: make_env must be a function that builds the env, "
                 f"got {type(self.make_env).__name__}."
+            )
+        if self.diagnostics is not None and not isinstance(self.diagnostics, CodeDiagnostics):
+            raise ValueError(
+                f"EnvProfile {self.name!r}: diagnostics must be a CodeDiagnostics or None, got "
+                f"{type(self.diagnostics).__name__}."
             )
         length = 1 if self.play_trajectory_length is None else self.play_trajectory_length
         if int(length) < 1 or int(self.default_num_objects) < 1:

@@ -15,6 +15,7 @@ from dorp_rl.envs.grid_base import (
     paint_layers,
 )
 from dorp_rl.envs.profile import EnvProfile, register_env_profile
+from dorp_rl.envs.rearrangement_diagnostics import REARRANGEMENT_DIAGNOSTICS
 from dorp_rl.validation import check_int
 
 #: Block colours in object order (the authors' first five, then two more).
@@ -149,11 +150,8 @@ class ObjectRearrangementEnv(GridWorldEnv):
             raise ValueError(f"block sides must be in [1, {GRID_SIZE}], got {shapes.tolist()}.")
         return shapes
 
-    #: Which ground-truth code diagnostics fit this env (``dorp_rl.metrics.diagnostics``).
-    DIAGNOSTICS = "rearrangement"
-
     def oracle_layout(self) -> tuple[torch.Tensor, bool]:
-        """What :class:`~dorp_rl.modules.OracleCodeEncoder` codes: each block by the
+        """What :class:`~dorp_rl.envs.OracleCodeEncoder` codes: each block by the
         position of its colour (int64 ``[K, 3]``), no key bit."""
         return self.colours.to(torch.int64), False
 
@@ -445,6 +443,7 @@ REARRANGEMENT = register_env_profile(
         # is a move in the group's other joint codes too (CodeGraph.completed).
         graph_completion=True,
         draw_tasks=draw_grid_tasks,
+        diagnostics=REARRANGEMENT_DIAGNOSTICS,
         description="k coloured 2x4 blocks on a 16x16 grid, moved one cell at a time",
     )
 )

@@ -19,7 +19,7 @@ trains the video model (:class:`~dorp_rl.modules.VideoPredictionModel`, fresh or
 torchrl's hooks log DORP's success rate (``LogScalar``) and the losses to a CSV logger,
 and write a checkpoint (``torchrl.checkpoint.Checkpoint``) into ``--out-dir``.
 
-Codes are :class:`~dorp_rl.modules.OracleCodeEncoder` codes (read off the true
+Codes are :class:`~dorp_rl.envs.OracleCodeEncoder` codes (read off the true
 positions) unless ``--encoder`` names a representation checkpoint; the code graph is
 built from ``--play-frames`` random play frames. The open-loop accuracy of the model is
 printed before and after, on held-out windows of DORP rollouts: with the defaults (one
@@ -46,9 +46,9 @@ from torchrl.record.loggers import CSVLogger
 from torchrl.trainers import LogScalar, ReplayBufferTrainer, Trainer
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs import ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.eval import open_loop_accuracy
-from dorp_rl.modules import OracleCodeEncoder, VideoModelConfig, VideoPredictionModel
+from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
 from dorp_rl.modules.video import palette_from_frames
 from dorp_rl.objectives import VideoPredictionLoss
 from dorp_rl.planners import CodeGraph

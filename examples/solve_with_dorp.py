@@ -5,7 +5,7 @@
     python examples/solve_with_dorp.py --encoder runs/demo/codes/checkpoints/last.pt
 
 Builds a :class:`~dorp_rl.planners.CodeGraph` from random play data with the given codes
-(learned ones from a representation checkpoint, or :class:`~dorp_rl.modules.OracleCodeEncoder`
+(learned ones from a representation checkpoint, or :class:`~dorp_rl.envs.OracleCodeEncoder`
 codes read off the true positions), assembles :func:`~dorp_rl.policies.make_dorp_policy`
 with the true dynamics as the low level, and runs ``--tasks`` seeded tasks with
 ``env.rollout``. The first episode's frames go to ``<out-dir>/episode.png`` (goal last),
@@ -20,9 +20,8 @@ from pathlib import Path
 import torch
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs import ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.eval import evaluate_policy, make_task_set
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import MODES, make_dorp_policy
 from dorp_rl.trainers import load_encoder

@@ -22,7 +22,8 @@ from dorp_rl.viz import write_diagnostic_plots
 def make_config(args: argparse.Namespace) -> RepresentationConfig:
     common = {"seed": args.seed, "out_dir": str(args.out_dir)}
     if args.env == "rearrangement":
-        config = RepresentationConfig.rearrangement(
+        config = RepresentationConfig.for_env(
+            "rearrangement",
             args.num_objects,
             similarity=args.similarity,
             num_steps=args.steps or 800,
@@ -30,9 +31,9 @@ def make_config(args: argparse.Namespace) -> RepresentationConfig:
             **common,
         )
     elif args.env == "key-wall":
-        config = RepresentationConfig.key_wall(similarity=args.similarity, **common)
+        config = RepresentationConfig.for_env("key-wall", similarity=args.similarity, **common)
     else:
-        config = RepresentationConfig.key_corridor(similarity=args.similarity, **common)
+        config = RepresentationConfig.for_env("key-corridor", similarity=args.similarity, **common)
     if args.steps:
         config.num_steps = args.steps
         config.candidate_steps = min(config.candidate_steps, args.steps)

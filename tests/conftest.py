@@ -19,7 +19,8 @@ class TinyConfigs:
 
     @staticmethod
     def representation(out_dir: str | Path, **overrides: Any) -> RepresentationConfig:
-        base = RepresentationConfig.rearrangement(
+        base = RepresentationConfig.for_env(
+            "rearrangement",
             1,
             encoder={"code_sizes": (8,)},
             num_frames=256,
@@ -38,7 +39,8 @@ class TinyConfigs:
 
     @staticmethod
     def world_model(out_dir: str | Path, **overrides: Any) -> WorldModelConfig:
-        base = WorldModelConfig.rearrangement(
+        base = WorldModelConfig.for_env(
+            "rearrangement",
             1,
             num_steps=6,
             num_frames=256,

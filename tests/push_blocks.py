@@ -8,12 +8,14 @@ path), so the ``dorp`` command can take it as ``--env push_blocks:PUSH_BLOCKS`` 
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
-from dorp_rl.envs import DiscreteActions, EnvProfile
+from dorp_rl.envs import CodeDiagnostics, DiscreteActions, EnvProfile
 
 MOVES = torch.tensor([[-1, 0], [1, 0], [0, -1], [0, 1]])
 
@@ -144,4 +146,46 @@ PUSH_BLOCKS = EnvProfile(
     lower_bound=manhattan,
     objects=lambda state: state[..., 0] * 100 + state[..., 1],  # each block's cell
     description="two blocks of different shapes on a 3 x 24 x 32 canvas",
+)
+
+
+def block_diagnostics(env, encode, num_samples, seed):
+    """The env's own code diagnostics: states drawn by its reset, each one-hot matched to
+    the block whose cell best predicts it, its purity and its code map over that block's
+    cells."""
+    from dorp_rl.metrics import best_assignment, encode_states, majority_codes
+
+    env.set_seed(seed)
+    states = torch.cat([env.reset()["state"] for _ in range(-(-num_samples // 4))])
+    codes = encode_states(env, encode, states)  # [N, K]
+    _, h, w = env.frame_shape
+    cells = states[..., 0] * w + states[..., 1]  # [N, 2]
+    purity = torch.tensor(
+        [[majority_codes(cells[:, b], codes[:, k], h * w)[1] for k in range(codes.shape[1])]
+         for b in range(2)]
+    )  # fmt: skip
+    assignment = best_assignment(purity)
+    maps = [None] * codes.shape[1]
+    for block, onehot in enumerate(assignment):
+        maps[onehot] = majority_codes(cells[:, block], codes[:, onehot], h * w)[0].view(h, w)
+    return {
+        "num_onehots": codes.shape[1],
+        "block_purity": [float(purity[b, k]) for b, k in enumerate(assignment)],
+        "code_maps": [None if m is None else m.tolist() for m in maps],
+    }
+
+
+def block_pictures(env, encode, out_dir, result):
+    from dorp_rl.viz import plot_code_maps
+
+    return {"code_map": plot_code_maps(result, out_dir / "code_map.png")}
+
+
+#: The same env with diagnostics of its own, given through its profile.
+PUSH_BLOCKS_DIAGNOSED = dataclasses.replace(
+    PUSH_BLOCKS,
+    name="push-blocks-diagnosed",
+    diagnostics=CodeDiagnostics(
+        block_diagnostics, block_pictures, lambda env, encode, result: result
+    ),
 )

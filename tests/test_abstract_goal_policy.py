@@ -11,9 +11,9 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector, MultiSyncCollector
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.envs import KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.eval import evaluate_policy, make_task_set
-from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.planners import CodeGraph, CodeMatchCost, FirstArrival
 from dorp_rl.policies import MODES, AbstractGoalPolicy, make_dorp_policy
 

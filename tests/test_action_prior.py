@@ -9,8 +9,7 @@ import torch
 from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
-from dorp_rl.modules import OracleCodeEncoder
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeGraph,

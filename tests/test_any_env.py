@@ -290,18 +290,18 @@ def test_dorp_with_the_true_dynamics_of_an_env_written_here():
         make_dorp_policy(other, encoder, graph, low_level=model, seed=0)
 
 
-def test_ground_truth_parts_need_what_the_env_declares():
-    """Oracle codes and ground-truth diagnostics come from hooks an env declares, not from
-    its class: an env without them is refused with a message saying what is missing."""
-    from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
-    from dorp_rl.eval import ground_truth_diagnostics
-    from dorp_rl.modules import OracleCodeEncoder
+def test_ground_truth_parts_need_what_the_env_declares(tmp_path):
+    """Oracle codes and ground-truth diagnostics come from hooks an env or its profile
+    declares, not from its class: an env without them is refused with a message saying
+    what is missing."""
+    from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv, OracleCodeEncoder
+    from dorp_rl.viz import write_diagnostic_plots
 
     env = PushBlocksEnv((3, 16, 16), batch_size=(2,))
     with pytest.raises(ValueError, match=r"env must declare oracle_layout\(\)"):
         OracleCodeEncoder(env)
-    with pytest.raises(ValueError, match="PushBlocksEnv declares no ground-truth diagnostics"):
-        ground_truth_diagnostics(env, lambda pixels: pixels)
+    with pytest.raises(ValueError, match="PushBlocksEnv's profile declares no code diagnostics"):
+        write_diagnostic_plots(env, lambda pixels: pixels, tmp_path)
     assert OracleCodeEncoder(ObjectRearrangementEnv(num_objects=3)).code_sizes == (16, 16, 16)
     assert OracleCodeEncoder(KeyWallEnv()).code_sizes == (16, 2)
 
@@ -444,3 +444,41 @@ def test_a_gymnasium_env_with_an_image_observation_through_gym_wrapper_and_a_ren
     encoder = DiscreteCodeEncoder(EncoderConfig.small((8,), frame_shape=(3, 10, 12)))
     graph = CodeGraph.from_play_data(buffer, encoder)
     assert graph.num_nodes(0) >= 1
+
+
+def test_an_env_s_own_diagnostics_come_through_its_profile(tmp_path):
+    """An env written here declares diagnostics of its own (EnvProfile.diagnostics): the
+    code trainer logs them beside the label diagnostics of ``objects``, and the pictures
+    and the rollout GIFs' code maps come from them; an env class alone has none."""
+    from dorp_rl.envs import env_profile
+    from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+    from dorp_rl.viz import code_maps_for_waypoints, write_diagnostic_plots
+
+    cfg = RepresentationConfig(
+        env="push_blocks:PUSH_BLOCKS_DIAGNOSED",
+        num_frames=256,
+        num_envs=4,
+        batch_size=16,
+        num_steps=3,
+        diagnostics_every=1000,
+        diagnostics_samples=64,
+        dead_check_frames=0,
+        out_dir=str(tmp_path / "codes"),
+        progress=False,
+    )
+    trainer = RepresentationTrainer(cfg)
+    trainer.train()
+    result = trainer.evaluate()
+    assert len(result["block_purity"]) == 2 and all(0 < p <= 1 for p in result["block_purity"])
+    assert "purity" in result["objects"]  # the labels of the profile's objects, as before
+    profile = env_profile("push_blocks:PUSH_BLOCKS_DIAGNOSED")
+    env = profile.build(batch_size=(4,))
+    files = write_diagnostic_plots(
+        env, trainer.encoder.encode, tmp_path / "pictures", profile=profile
+    )
+    assert files["code_map"].read_bytes().startswith(b"\x89PNG")
+    measured = profile.diagnostics.measure(env, trainer.encoder.encode, 64, 0)
+    maps = code_maps_for_waypoints(profile.diagnostics.waypoint_maps(env, None, measured), 2)
+    assert [m[0].shape for m in maps] == [(24, 32), (24, 32)]
+    with pytest.raises(ValueError, match="profile declares no code diagnostics"):
+        write_diagnostic_plots(env, trainer.encoder.encode, tmp_path)  # no registered profile

@@ -9,8 +9,8 @@ import torch
 from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
-from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
+from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv, OracleCodeEncoder
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.planners import CodeGraph, coupled_groups, encode_transitions, encoder_fingerprint
 
 

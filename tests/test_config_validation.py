@@ -16,7 +16,7 @@ import pytest
 
 from dorp_rl.config import ConfigMixin, Nested, checked, field_rules
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.envs import ENV_NAMES, KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.modules import EncoderConfig, VideoModelConfig
 from dorp_rl.trainers import (
     RepresentationConfig,
@@ -149,11 +149,9 @@ def test_a_bad_field_value_is_refused_naming_the_field_and_range(cls, name, valu
 def test_defaults_presets_and_round_trips_are_valid(cls):
     config = defaults(cls)
     assert cls.from_dict(config.to_dict()) == config
-    if cls is RepresentationConfig:
-        for preset in (cls.rearrangement(3), cls.key_wall(), cls.key_corridor()):
-            assert cls.from_dict(preset.to_dict()) == preset
-    if cls is WorldModelConfig:
-        for preset in (cls.rearrangement(2), cls.key_wall(), cls.key_corridor()):
+    if cls in (RepresentationConfig, WorldModelConfig):
+        for env in ENV_NAMES:  # every preset of the project's envs
+            preset = cls.for_env(env, 3 if env == "rearrangement" else None)
             assert cls.from_dict(preset.to_dict()) == preset
 
 
@@ -285,13 +283,13 @@ def test_world_model_windows_fit_the_trajectories(changes, message):
 
 
 def test_representation_offsets_fit_the_play_trajectories():
-    key_wall = RepresentationConfig.key_wall(trajectory_length=4, max_offset=4)
+    key_wall = RepresentationConfig.for_env("key-wall", trajectory_length=4, max_offset=4)
     assert key_wall.max_offset == 4  # equal to the trajectory length: taken
     with pytest.raises(ValueError, match="max_offset <= the play trajectory length"):
-        RepresentationConfig.key_wall(trajectory_length=4, max_offset=5)
+        RepresentationConfig.for_env("key-wall", trajectory_length=4, max_offset=5)
     with pytest.raises(ValueError, match="min_offset <= max_offset"):
-        RepresentationConfig.key_wall(min_offset=3, max_offset=2)
-    assert RepresentationConfig.key_wall(min_offset=2, max_offset=2).min_offset == 2
+        RepresentationConfig.for_env("key-wall", min_offset=3, max_offset=2)
+    assert RepresentationConfig.for_env("key-wall", min_offset=2, max_offset=2).min_offset == 2
 
 
 def test_world_model_lr_must_be_positive():

@@ -18,21 +18,22 @@ import numpy as np
 import pytest
 import torch
 
-from dorp_rl.envs import OBJECT_COLOURS, KeyCorridorEnv, KeyWallEnv, ObjectRearrangementEnv
-from dorp_rl.envs.key_rooms import AGENT_COLOUR, DOOR_COLOUR
-from dorp_rl.metrics.diagnostics import (
-    best_assignment,
-    connected_fraction,
-    encode_pixels,
+from dorp_rl.envs import (
+    OBJECT_COLOURS,
+    KeyCorridorEnv,
+    KeyWallEnv,
+    ObjectRearrangementEnv,
     key_room_code_maps,
     key_room_diagnostics,
+    plot_key_room_code_map,
     rearrangement_code_maps,
     rearrangement_diagnostics,
 )
+from dorp_rl.envs.key_rooms import AGENT_COLOUR, DOOR_COLOUR
+from dorp_rl.metrics.diagnostics import best_assignment, connected_fraction, encode_pixels
 from dorp_rl.viz.code_maps import (
+    plot_code_maps,
     plot_factorization_histogram,
-    plot_key_room_code_map,
-    plot_rearrangement_code_map,
     write_diagnostic_plots,
 )
 
@@ -366,8 +367,8 @@ def test_write_diagnostic_plots(env, encode: Encoder, tmp_path) -> None:
 
 def test_plot_functions_accept_plain_arrays(tmp_path) -> None:
     codes = torch.arange(15 * 13).view(15, 13) // 20
-    assert _is_png(plot_rearrangement_code_map(codes, tmp_path / "a.png"))
-    assert _is_png(plot_rearrangement_code_map(np.stack([codes, -codes - 1]), tmp_path / "b.png"))
+    assert _is_png(plot_code_maps(codes, tmp_path / "a.png"))
+    assert _is_png(plot_code_maps(np.stack([codes, -codes - 1]), tmp_path / "b.png"))
     assert _is_png(plot_factorization_histogram([[10, 1], [2, 8]], tmp_path / "c.png"))
     env = key_wall()
     without_key, with_key = key_room_code_maps(env, key_wall_oracle())

@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs import ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.eval import (
     evaluate_parallel,
     evaluate_policy,
@@ -24,7 +24,6 @@ from dorp_rl.eval import (
     write_task_records,
 )
 from dorp_rl.eval.results import pool_seeds
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import make_dorp_policy
 

@@ -25,11 +25,12 @@ from dorp_rl.envs import (
     KeyCorridorEnv,
     KeyWallEnv,
     ObjectRearrangementEnv,
+    OracleCodeEncoder,
     WorldModelEnv,
     make_env,
 )
 from dorp_rl.eval import evaluate_policy, make_task_set
-from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
@@ -620,7 +621,7 @@ def test_a_planner_on_rewards_does_not_count_rewards_after_an_early_done(planner
         lambda d: ObjectRearrangementEnv(1, device=d),
         lambda d: KeyWallEnv(device=d),
         lambda d: WorldModelEnv(_Still(), 4, device=d),
-        lambda d: RepresentationConfig.rearrangement(1, device=d),
+        lambda d: RepresentationConfig.for_env("rearrangement", 1, device=d),
         lambda d: check_device(d),
         lambda d: UniformRandomPolicy(4, device=d),
         lambda d: load_encoder("no-such-checkpoint.pt", device=d),
@@ -732,7 +733,7 @@ def test_a_trained_or_loaded_encoder_records_its_environment(tmp_path):
     from dorp_rl.planners import CodeGraph
     from dorp_rl.trainers import RepresentationTrainer
 
-    cfg = RepresentationConfig.key_wall(
+    cfg = RepresentationConfig.for_env("key-wall",
         num_frames=256, num_envs=8, batch_size=16, num_steps=2, log_every=1,
         checkpoint_every=2, diagnostics_every=10**9, progress=False, out_dir=str(tmp_path),
         collapse_check_after=10**9,

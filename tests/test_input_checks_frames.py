@@ -20,10 +20,11 @@ from dorp_rl.envs import (
     KeyCorridorEnv,
     KeyWallEnv,
     ObjectRearrangementEnv,
+    OracleCodeEncoder,
     WorldModelEnv,
 )
 from dorp_rl.frames import check_task_frames, frames_to_uint8
-from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, OracleCodeEncoder
+from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel
 from dorp_rl.planners import (
     CategoricalCEMPlanner,

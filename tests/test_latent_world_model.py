@@ -668,7 +668,7 @@ def test_the_command_evaluates_through_a_latent_model_checkpoint(tmp_path, capsy
     from dorp_rl.cli import main
 
     cfg = _config(tmp_path, env="rearrangement", num_objects=1, trajectory_length=16)
-    from dorp_rl.modules import OracleCodeEncoder
+    from dorp_rl.envs import OracleCodeEncoder
 
     env = cfg.make_env(batch_size=(4,))
     LatentWorldModelTrainer(cfg, encoder=OracleCodeEncoder(env, cell_size=4)).train()

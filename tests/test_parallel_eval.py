@@ -14,9 +14,8 @@ import torch
 
 from dorp_rl.cli import main
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import ObjectRearrangementEnv
+from dorp_rl.envs import ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.eval import EvalSpec, evaluate_parallel, evaluate_policy, make_task_set
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 
 # 5 tasks in chunks of 2: three chunks, the last one short (padded in the batch-locked env).

@@ -18,9 +18,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.transforms import Transform
 
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.envs.planning import ImaginedFrames, LazyValue
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,

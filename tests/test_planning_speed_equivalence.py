@@ -15,9 +15,14 @@ import torch
 from tensordict import TensorDict
 
 import dorp_rl.envs.planning as planning
-from dorp_rl.envs import GridWorldEnv, GroundTruthModelEnv, KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.envs import (
+    GridWorldEnv,
+    GroundTruthModelEnv,
+    KeyWallEnv,
+    ObjectRearrangementEnv,
+    OracleCodeEncoder,
+)
 from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, row_hashes
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,

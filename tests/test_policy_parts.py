@@ -8,9 +8,8 @@ import torch
 from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data
-from dorp_rl.envs import EnvProfile, KeyWallEnv, ObjectRearrangementEnv
+from dorp_rl.envs import EnvProfile, KeyWallEnv, ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.eval import EvalSpec
-from dorp_rl.modules import OracleCodeEncoder
 from dorp_rl.planners import CodeGraph
 from dorp_rl.policies import (
     AbstractGoalPolicy,

@@ -35,7 +35,8 @@ def _pixels(n: int, seed: int = 0) -> torch.Tensor:
 
 
 def _tiny_config(tmp_path, **overrides) -> RepresentationConfig:
-    base = RepresentationConfig.rearrangement(
+    base = RepresentationConfig.for_env(
+        "rearrangement",
         1,
         encoder={"code_sizes": (8,)},
         num_frames=512,
@@ -503,17 +504,17 @@ def test_checkpoint_from_another_env_or_corrupted(tmp_path):
 
 
 def test_config_presets_and_validation():
-    assert RepresentationConfig.rearrangement(3).code_sizes == (32, 32, 32)
-    assert RepresentationConfig.rearrangement(1).code_sizes == (16,)
-    assert RepresentationConfig.key_wall().code_sizes == (16, 2)
-    assert RepresentationConfig.key_corridor().env == "key-corridor"
+    assert RepresentationConfig.for_env("rearrangement", 3).code_sizes == (32, 32, 32)
+    assert RepresentationConfig.for_env("rearrangement", 1).code_sizes == (16,)
+    assert RepresentationConfig.for_env("key-wall").code_sizes == (16, 2)
+    assert RepresentationConfig.for_env("key-corridor").env == "key-corridor"
     with pytest.raises(ValueError, match="env must be an env profile name or import path"):
         RepresentationConfig(env="maze").validate()
     with pytest.raises(ValueError, match="unknown RepresentationConfig fields"):
         RepresentationConfig.from_dict({"colour": 1})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        RepresentationConfig.key_wall().validate()
+        RepresentationConfig.for_env("key-wall").validate()
 
 
 def test_change_overlap_separates_factorized_from_shared_changes():

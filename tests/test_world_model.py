@@ -37,7 +37,8 @@ def model(env: ObjectRearrangementEnv, windows: TensorDict) -> VideoPredictionMo
 
 
 def tiny_config(tmp_path, **overrides) -> WorldModelConfig:
-    base = WorldModelConfig.rearrangement(
+    base = WorldModelConfig.for_env(
+        "rearrangement",
         1,
         num_steps=6,
         num_frames=512,
@@ -344,9 +345,9 @@ def test_event_share_validation_names_the_field(tmp_path) -> None:
         tiny_config(tmp_path, event_share=1.0)
     assert tiny_config(tmp_path, event_share=0.25).event_share == 0.25
     # key-wall trains with event windows, the other presets with uniform ones
-    assert WorldModelConfig.key_wall().event_share == 0.25
-    assert WorldModelConfig.rearrangement(3).event_share == 0.0
-    assert WorldModelConfig.key_corridor().event_share == 0.0
+    assert WorldModelConfig.for_env("key-wall").event_share == 0.25
+    assert WorldModelConfig.for_env("rearrangement", 3).event_share == 0.0
+    assert WorldModelConfig.for_env("key-corridor").event_share == 0.0
 
 
 def test_configs_and_checkpoints_without_event_share_load(tmp_path) -> None:
@@ -354,7 +355,7 @@ def test_configs_and_checkpoints_without_event_share_load(tmp_path) -> None:
     old = tiny_config(tmp_path).to_dict()
     del old["event_share"]
     assert WorldModelConfig.from_dict(old).event_share == 0.0
-    flat = {k: v for k, v in WorldModelConfig.key_wall().to_dict().items() if k != "model"}
+    flat = {k: v for k, v in WorldModelConfig.for_env("key-wall").to_dict().items() if k != "model"}
     del flat["event_share"]
     flat.update(model_preset="small", latent_dim=4, prior="fixed")  # an older flat config
     assert WorldModelConfig.from_dict(flat).event_share == 0.0
@@ -376,7 +377,7 @@ def test_configs_and_checkpoints_without_event_share_load(tmp_path) -> None:
 
 def test_trainer_with_event_share_samples_and_evaluates_event_windows(tmp_path) -> None:
     env = KeyWallEnv(batch_size=(4,), seed=0)
-    cfg = WorldModelConfig.key_wall(
+    cfg = WorldModelConfig.for_env("key-wall",
         num_steps=2, num_frames=4000, num_envs=4, horizon=4, eval_frames=2000,
         eval_sequences=16, batch_size=64,
         model=VideoModelConfig.small(), eval_every=10**6, progress=False,

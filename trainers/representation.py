@@ -25,14 +25,14 @@ from dorp_rl.data import (
     future_pairs,
     scan_frames,
 )
-from dorp_rl.envs import DEFAULT_ENV, env_identity, env_profile
+from dorp_rl.envs import DEFAULT_ENV, EnvProfile, env_identity, env_profile, profile_of
 from dorp_rl.frames import frame_shape_of
 from dorp_rl.metrics.code_information import (
     code_dynamics,
     code_information,
     play_code_dynamics,
 )
-from dorp_rl.metrics.diagnostics import ground_truth_diagnostics, play_object_diagnostics
+from dorp_rl.metrics.diagnostics import play_object_diagnostics
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, choose_map_stride, make_similarity
 from dorp_rl.modules.encoder import competing_maps
 from dorp_rl.modules.similarity import SIMILARITIES
@@ -163,22 +163,6 @@ class RepresentationConfig(TrainerConfig):
     def profile_overrides(cls, profile: Any, num_objects: int) -> dict[str, Any]:
         """The env profile's code preset (:attr:`~dorp_rl.envs.EnvProfile.codes`)."""
         return profile.code_overrides(num_objects)
-
-    @classmethod
-    def rearrangement(cls, num_objects: int = 2, **overrides: Any) -> RepresentationConfig:
-        """k-object rearrangement: one-step play pairs, one one-hot per object (maps compete
-        with several); the preset of its env profile."""
-        return cls.for_env("rearrangement", num_objects, **overrides)
-
-    @classmethod
-    def key_wall(cls, **overrides: Any) -> RepresentationConfig:
-        """Key-wall: 4-step pairs from long random walks, a 16-code agent one-hot plus a key bit."""
-        return cls.for_env("key-wall", **overrides)
-
-    @classmethod
-    def key_corridor(cls, **overrides: Any) -> RepresentationConfig:
-        """Key-corridor: the key-wall recipe with a 32-code agent one-hot and more play data."""
-        return cls.for_env("key-corridor", **overrides)
 
     @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
@@ -368,12 +352,26 @@ def choose_code_settings(
 
 
 def diagnose(
-    env: EnvBase, encoder: DiscreteCodeEncoder, num_samples: int = 2048, seed: int = 0
+    env: EnvBase,
+    encoder: DiscreteCodeEncoder,
+    num_samples: int = 2048,
+    seed: int = 0,
+    profile: EnvProfile | None = None,
 ) -> dict:
-    """Ground-truth diagnostics of an encoder's codes on ``env``: those of the kind the env
-    declares (:func:`~dorp_rl.metrics.diagnostics.ground_truth_diagnostics`)."""
-    result = ground_truth_diagnostics(env, encoder.encode, num_samples=num_samples, seed=seed)
-    return result.to_dict() if hasattr(result, "to_dict") else dict(result)
+    """The diagnostics of an encoder's codes that ``env``'s profile declares
+    (:attr:`~dorp_rl.envs.EnvProfile.diagnostics`; ``profile`` default: the registered
+    profile of the env's class).
+
+    Raises:
+        ValueError: the profile declares none.
+    """
+    profile = profile_of(env) if profile is None else profile
+    if profile is None or profile.diagnostics is None:
+        raise ValueError(
+            f"{type(env).__name__}'s profile declares no code diagnostics "
+            "(EnvProfile.diagnostics); the label-free dorp_rl.eval.play_code_dynamics needs none."
+        )
+    return dict(profile.diagnostics.measure(env, encoder.encode, num_samples, seed))
 
 
 class RestartHook(TrainerHook):
@@ -806,7 +804,7 @@ class RepresentationTrainer(OfflineTrainer):
 
     Examples:
         >>> from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
-        >>> cfg = RepresentationConfig.rearrangement(1, num_steps=20, num_frames=2000,
+        >>> cfg = RepresentationConfig.for_env("rearrangement", 1, num_steps=20, num_frames=2000,
         ...     progress=False, out_dir="/tmp/dorp_doc_repr", diagnostics_every=10**9)
         >>> result = RepresentationTrainer(cfg).train()
         >>> result["step"], list(RepresentationTrainer.hook_names)
@@ -1215,17 +1213,18 @@ class RepresentationTrainer(OfflineTrainer):
         ``diagnostics_samples`` play transitions (``code_dynamics``: codes used, change
         and undo rates and ``dead`` one-hots per one-hot, two-code ones included,
         :func:`~dorp_rl.eval.code_dynamics`), and the ground-truth diagnostics when the
-        env declares them (:func:`diagnose`) or its profile maps states to object
+        env's profile declares them (:func:`diagnose`) or maps states to object
         positions (``objects``: :func:`~dorp_rl.eval.object_diagnostics` on the play
         data's own states; never computed on another env's states)."""
         env = self.config.make_env()
         result: dict[str, Any] = {}
-        if getattr(env, "DIAGNOSTICS", None) is not None:
+        if self.config.profile.diagnostics is not None:
             result = diagnose(
                 env,
                 self.encoder,
                 num_samples=self.config.diagnostics_samples,
                 seed=self.config.seed,
+                profile=self.config.profile,
             )
         # encoded once, for both
         sample, transitions = self.encode_play_transitions(self.config.diagnostics_samples)

@@ -119,25 +119,6 @@ class WorldModelConfig(TrainerConfig):
         return profile.world_model_overrides(num_objects)
 
     @classmethod
-    def rearrangement(cls, num_objects: int = 3, **overrides: Any) -> WorldModelConfig:
-        """k-object rearrangement: 16-step random-action trajectories, 14-step windows."""
-        return cls.for_env("rearrangement", num_objects, **overrides)
-
-    @classmethod
-    def key_wall(cls, **overrides: Any) -> WorldModelConfig:
-        """Key-wall: windows from the 1000-step random walks, a quarter of them holding a key event.
-
-        About 1% of uniform windows hold a key pickup (the door opening with it);
-        ``event_share=0.25`` puts one in every fourth window.
-        """
-        return cls.for_env("key-wall", **overrides)
-
-    @classmethod
-    def key_corridor(cls, **overrides: Any) -> WorldModelConfig:
-        """Key-corridor: windows from the 1500-step random walks of the play data."""
-        return cls.for_env("key-corridor", **overrides)
-
-    @classmethod
     def upgrade(cls, values: dict[str, Any]) -> dict[str, Any]:
         """Older flat configs: ``model_preset``, ``latent_dim`` and ``prior`` become ``model``."""
         values = super().upgrade(values)
@@ -190,7 +171,7 @@ class WorldModelTrainer(WindowTrainer):
     Examples:
         >>> from dorp_rl.modules import VideoModelConfig
         >>> from dorp_rl.trainers import WorldModelConfig, WorldModelTrainer
-        >>> cfg = WorldModelConfig.rearrangement(1, num_steps=5, num_frames=640, horizon=3,
+        >>> cfg = WorldModelConfig.for_env("rearrangement", 1, num_steps=5, num_frames=640, horizon=3,
         ...     trajectory_length=4, eval_frames=256, eval_sequences=8, model=VideoModelConfig.small(),
         ...     progress=False, out_dir="/tmp/dorp_doc_world_model")
         >>> result = WorldModelTrainer(cfg).train()

@@ -97,7 +97,7 @@ class EvalSpec:
         setting: a :data:`~dorp_rl.eval.SETTINGS` name (environment and object count), or
             an env profile's name or import path (:func:`~dorp_rl.eval.setting_of`).
         method: ``"dorp"``, ``"vf-rs"``, ``"vf-cem"`` or ``"random"``.
-        encoder: DORP only: ``"oracle"`` (:class:`~dorp_rl.modules.OracleCodeEncoder`
+        encoder: DORP only: ``"oracle"`` (:class:`~dorp_rl.envs.OracleCodeEncoder`
             with ``oracle_cell_size``), a representation checkpoint path, or an encoder.
         graph: DORP only: the path of a saved :class:`~dorp_rl.planners.CodeGraph`, or
             a graph.
@@ -195,7 +195,7 @@ class EvalSpec:
         if self.method == "dorp":
             encoder = self.encoder
             if isinstance(encoder, str) and encoder == "oracle":
-                from dorp_rl.modules import OracleCodeEncoder
+                from dorp_rl.envs import OracleCodeEncoder
 
                 encoder = OracleCodeEncoder(env, cell_size=self.oracle_cell_size)
             return make_dorp_policy(

@@ -55,8 +55,8 @@ def check_env(env: Any, name: str = "env") -> EnvBase:
     ``ValueError`` naming ``name`` and what is missing."""
     if not isinstance(env, EnvBase):
         raise ValueError(
-            f"{name} must be a TorchRL EnvBase (e.g. ObjectRearrangementEnv(num_objects=2), "
-            f"make_env('key-wall') or your own), got {type(env).__name__} {env!r:.60}."
+            f"{name} must be a TorchRL EnvBase (dorp_rl.envs.make_env(<profile>) or your "
+            f"own), got {type(env).__name__} {env!r:.60}."
         )
     keys = set(env.observation_spec.keys())
     missing = [k for k in ("state", "goal_state") if k not in keys]

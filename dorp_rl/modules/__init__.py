@@ -8,7 +8,6 @@ from dorp_rl.modules.encoder import (
     choose_map_stride,
 )
 from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel
-from dorp_rl.modules.oracle import OracleCodeEncoder
 from dorp_rl.modules.similarity import (
     SIMILARITIES,
     DDDPSimilarity,
@@ -30,7 +29,6 @@ __all__ = [
     "IdentitySimilarity",
     "LatentModelConfig",
     "LatentWorldModel",
-    "OracleCodeEncoder",
     "SIMILARITIES",
     "VideoModelConfig",
     "VideoPredictionModel",

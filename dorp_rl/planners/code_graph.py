@@ -92,81 +92,76 @@ class CodeGraphConfig(ConfigMixin):
 
 
 def _describe_env(env_config: Mapping[str, Any]) -> str:
-    """``"ObjectRearrangementEnv with num_objects=2"``, ``"KeyWallEnv"``: an env config, short."""
+    """An env config, short: its ``env`` (class) and, where it has one, ``num_objects``."""
     name = str(env_config.get("env", "an unnamed environment"))
     if "num_objects" in env_config:
         return f"{name} with num_objects={env_config['num_objects']}"
     return name
 
 
-def _expected_code_layout(env_config: Mapping[str, Any]) -> tuple[int, str] | None:
-    """One-hots the codes of an env's frames have, and what they are (``None``: unknown env).
+def _code_layout_of(
+    play: Mapping[str, Any], sizes: tuple[int, ...]
+) -> tuple[tuple[int, ...], tuple[int, ...]] | None:
+    """The code layout of the env of a play config with ``sizes[0]`` codes a one-hot, as
+    its registered profile declares it (:attr:`~dorp_rl.envs.EnvProfile.code_layout`),
+    and the same with one code more (the sizes that stay are fixed by the env, such as a
+    2-way key bit); ``None``: no profile of that env declares one."""
+    from dorp_rl.envs import env_profile, registered_profiles
 
-    The library's encoders (trained, :class:`~dorp_rl.modules.OracleCodeEncoder`) give
-    one one-hot per block in rearrangement, and an agent one-hot plus a 2-way key bit in
-    the key rooms (whose config names their ``layout``).
-    """
-    if "num_objects" in env_config:
-        k = env_config["num_objects"]
-        return (k, f"{k} one-hot(s), one per object") if isinstance(k, int) else None
-    if "layout" in env_config:
-        return 2, "an agent one-hot and a 2-way key bit"
+    for name in registered_profiles():
+        profile = env_profile(name)
+        env_type = profile.env_type
+        if env_type is None or profile.code_layout is None or env_type.__name__ != play.get("env"):
+            continue
+        count = play.get("num_objects", 1) if profile.counts_objects else 1
+        if not isinstance(count, int):
+            return None
+        size = sizes[0] if sizes else 1
+        return tuple(profile.code_layout(size, count)), tuple(profile.code_layout(size + 1, count))
     return None
 
 
-def _encoder_setting(sizes: tuple[int, ...]) -> str:
-    """The setting a code layout belongs to, in words (for error messages)."""
-    if len(sizes) == 2 and sizes[1] == 2:
-        return "a key room (an agent one-hot and a 2-way key bit) or 2-object rearrangement"
-    return f"ObjectRearrangementEnv with num_objects={len(sizes)}"
+def _fits(sizes: tuple[int, ...], layout: tuple[int, ...], other: tuple[int, ...]) -> bool:
+    """Whether ``sizes`` have the layout's one-hots and its fixed sizes."""
+    fixed = [(i, a) for i, (a, b) in enumerate(zip(layout, other, strict=True)) if a == b]
+    return len(sizes) == len(layout) and all(sizes[i] == a for i, a in fixed)
 
 
 def check_encoder_fits_play_data(buffer: Any, encoder: nn.Module) -> None:
     """Refuses an encoder made for another environment than the one of ``buffer``'s play data.
 
     The play data's environment is the ``env_config`` of ``buffer.metadata``
-    (:func:`~dorp_rl.data.collect_play_data`, :func:`~dorp_rl.data.load_play_data`). An
-    encoder that records its own (an ``env_config`` attribute) must record the same
-    environment; any encoder must give the code layout of that environment (one one-hot
-    per object in rearrangement, an agent one-hot and a 2-way key bit in the key rooms):
-    a 1-object encoder's codes of 2-object frames would build a graph of nothing.
-    Buffers without metadata (a TensorDict of transitions) are not checked.
+    (:func:`~dorp_rl.data.collect_play_data`, :func:`~dorp_rl.data.load_play_data`). The
+    encoder's code sizes must have the layout that env's profile declares (its
+    ``code_layout``: a 1-object encoder's codes of 2-object frames would build a graph of
+    nothing), and an encoder that records its environment (an ``env_config`` attribute:
+    trained encoders and the oracle do) must record the same one. Buffers without
+    metadata (a TensorDict of transitions) are not checked.
 
     Raises:
-        ValueError: naming both environments.
+        ValueError: naming both environments and how they differ.
     """
     metadata = getattr(buffer, "metadata", None)
     play = metadata.get("env_config") if isinstance(metadata, Mapping) else None
     if not isinstance(play, Mapping):
         return
-    own = getattr(encoder, "env_config", None)
-    if isinstance(own, Mapping):
-        diff = config_differences(dict(own), dict(play))
-        if diff:
-            raise ValueError(
-                f"the encoder was trained on {_describe_env(own)}, but the play data come "
-                f"from {_describe_env(play)} ({format_differences(diff, 'encoder', 'play data')}"
-                "): use an encoder trained on the play data's environment."
-            )
-    layout = _expected_code_layout(play)
     sizes = tuple(int(z) for z in encoder.code_sizes)
-    if layout is None:
-        return
-    count, what = layout
-    key_room = "layout" in play
-    fits = len(sizes) == count and (not key_room or sizes[1] == 2)
-    key_bit = getattr(encoder, "has_key_bit", None)  # the oracle says what it encodes
-    if fits and isinstance(key_bit, bool) and key_bit != key_room:
-        setting = "a key room" if key_bit else f"ObjectRearrangementEnv with num_objects={count}"
+    layout = _code_layout_of(play, sizes)
+    if layout is not None and not _fits(sizes, *layout):
         raise ValueError(
-            f"the encoder encodes frames of {setting}, but the play data come from "
-            f"{_describe_env(play)}: use an encoder made for the play data's environment."
+            f"the encoder gives codes of sizes {sizes}, but the play data come from "
+            f"{_describe_env(play)}, whose codes are of the layout {layout[0]} (its profile's "
+            "code_layout): use an encoder trained on the play data's environment."
         )
-    if not fits:
+    own = getattr(encoder, "env_config", None)
+    if not isinstance(own, Mapping):
+        return
+    diff = config_differences(dict(own), dict(play))
+    if diff:
         raise ValueError(
-            f"the encoder gives codes of sizes {sizes}, the codes of {_encoder_setting(sizes)}, "
-            f"but the play data come from {_describe_env(play)}, whose codes are {what}: "
-            "use an encoder trained on the play data's environment."
+            f"the encoder was trained on {_describe_env(own)}, but the play data come "
+            f"from {_describe_env(play)} ({format_differences(diff, 'encoder', 'play data')}"
+            "): use an encoder trained on the play data's environment."
         )
 
 

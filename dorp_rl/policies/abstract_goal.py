@@ -143,7 +143,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
     Args:
         encoder: maps frames to codes (``forward(pixels) -> (code, probs)`` and
             ``code_sizes``): a trained :class:`~dorp_rl.modules.DiscreteCodeEncoder`
-            or an :class:`~dorp_rl.modules.OracleCodeEncoder`.
+            or an :class:`~dorp_rl.envs.OracleCodeEncoder`.
         graph: a :class:`~dorp_rl.planners.CodeGraph` built with that encoder.
         waypoint_planner: a :class:`~dorp_rl.planners.DiscreteMPCPlanner` whose cost
             reads ``subgoal_code`` and ``subgoal_mask`` (a
@@ -164,7 +164,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         >>> import torch
         >>> from dorp_rl.data import collect_play_data
         >>> from dorp_rl.envs import ObjectRearrangementEnv
-        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> from dorp_rl.envs import OracleCodeEncoder
         >>> from dorp_rl.planners import CodeGraph
         >>> from dorp_rl.policies import make_dorp_policy
         >>> env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)

@@ -95,7 +95,7 @@ def make_waypoint_cost(
 
     Examples:
         >>> from dorp_rl.envs import ObjectRearrangementEnv
-        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> from dorp_rl.envs import OracleCodeEncoder
         >>> env = ObjectRearrangementEnv(num_objects=2)
         >>> cost = make_waypoint_cost(OracleCodeEncoder(env), waypoint_goal_weight=0.003)
         >>> type(cost).__name__
@@ -215,7 +215,7 @@ def make_dorp_policy(
     Examples:
         >>> from dorp_rl.data import collect_play_data
         >>> from dorp_rl.envs import KeyWallEnv
-        >>> from dorp_rl.modules import OracleCodeEncoder
+        >>> from dorp_rl.envs import OracleCodeEncoder
         >>> from dorp_rl.planners import CodeGraph
         >>> env = KeyWallEnv(batch_size=(1,), seed=0)
         >>> oracle = OracleCodeEncoder(env, cell_size=4)

@@ -3,9 +3,8 @@ rollout GIFs with DORP's waypoint."""
 
 from dorp_rl.viz.code_maps import (
     code_colours,
+    plot_code_maps,
     plot_factorization_histogram,
-    plot_key_room_code_map,
-    plot_rearrangement_code_map,
     write_diagnostic_plots,
 )
 from dorp_rl.viz.frames import frame_grid, frames_to_rgb_array, save_frame_strip, upscale_frames
@@ -22,9 +21,8 @@ __all__ = [
     "code_maps_for_waypoints",
     "frame_grid",
     "frames_to_rgb_array",
+    "plot_code_maps",
     "plot_factorization_histogram",
-    "plot_key_room_code_map",
-    "plot_rearrangement_code_map",
     "plot_results",
     "plot_steps_vs_bound",
     "plot_success",

@@ -18,23 +18,20 @@ import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.patches import Patch, Rectangle
+from matplotlib.patches import Patch
+from torchrl.envs import EnvBase
 
-from dorp_rl.envs.key_rooms import KeyRoomEnv
-from dorp_rl.envs.rearrangement import ObjectRearrangementEnv
-from dorp_rl.metrics.diagnostics import (
-    DEFAULT_CHUNK_SIZE,
-    Encoder,
-    key_room_diagnostics,
-    rearrangement_code_maps,
-    rearrangement_diagnostics,
-)
+from dorp_rl.envs import EnvProfile, profile_of
+from dorp_rl.metrics.diagnostics import Encoder
 
 __all__ = [
+    "WALL_COLOUR",
+    "as_code_array",
     "code_colours",
+    "draw_code_map",
+    "plot_code_maps",
     "plot_factorization_histogram",
-    "plot_key_room_code_map",
-    "plot_rearrangement_code_map",
+    "save_figure",
     "write_diagnostic_plots",
 ]
 
@@ -42,11 +39,13 @@ _PALETTE = np.concatenate(
     [np.asarray(matplotlib.colormaps[name].colors)[:, :3] for name in ("tab20", "tab20b", "tab20c")]
 )  # [60, 3] floats in [0, 1]
 _NO_CODE = np.array([1.0, 1.0, 1.0])  # cells without a code (unseen, invalid in that condition)
-_WALL = np.array([0.0, 0.0, 0.0])
+#: colour of walls in code maps
+WALL_COLOUR = np.array([0.0, 0.0, 0.0])
 _MAX_ANNOTATED_CELLS = 256
 
 
-def _as_array(codes: Any) -> np.ndarray:
+def as_code_array(codes: Any) -> np.ndarray:
+    """Codes as an int64 numpy array (tensors are moved to the CPU)."""
     if isinstance(codes, torch.Tensor):
         codes = codes.detach().cpu().numpy()
     return np.asarray(codes, dtype=np.int64)
@@ -65,14 +64,16 @@ def code_colours(codes: torch.Tensor | np.ndarray) -> np.ndarray:
         >>> image.shape, image[1, 0].tolist(), bool((image[0, 1] == image[1, 1]).all())
         ((2, 2, 3), [1.0, 1.0, 1.0], True)
     """
-    codes = _as_array(codes)
+    codes = as_code_array(codes)
     rgb = _PALETTE[np.maximum(codes, 0) % len(_PALETTE)]
     rgb[codes < 0] = _NO_CODE
     return rgb
 
 
-def _draw_map(ax, codes: np.ndarray, rgb: np.ndarray, title: str, annotate: bool) -> None:
-    """One code-map panel on ``ax``: cells as squares, rows downwards as in the frames."""
+def draw_code_map(ax, codes: np.ndarray, rgb: np.ndarray, title: str, annotate: bool) -> None:
+    """One code-map panel on ``ax`` (a matplotlib axes): cells as squares, rows downwards
+    as in the frames, each code index written in its cell when ``annotate`` and the map is
+    small."""
     rows, cols = codes.shape
     ax.imshow(rgb, interpolation="nearest", extent=(-0.5, cols - 0.5, rows - 0.5, -0.5))
     ax.set_title(title, fontsize=9)
@@ -95,7 +96,8 @@ def _draw_map(ax, codes: np.ndarray, rgb: np.ndarray, title: str, annotate: bool
                     )
 
 
-def _save(fig: Figure, path: str | Path) -> Path:
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """Writes ``fig`` as a PNG at ``path`` (parent folders created); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
@@ -103,7 +105,7 @@ def _save(fig: Figure, path: str | Path) -> Path:
     return path
 
 
-def plot_rearrangement_code_map(
+def plot_code_maps(
     result_or_codes: Mapping[str, Any]
     | torch.Tensor
     | np.ndarray
@@ -112,24 +114,26 @@ def plot_rearrangement_code_map(
     *,
     title: str | None = None,
     annotate: bool = True,
+    axes: tuple[str, str] = ("row", "column"),
 ) -> Path:
-    """Code maps over block top-left positions, like the paper's Figure 5.
+    """Code maps of one-hots over an object's positions, like the paper's Figure 5.
 
     Args:
         result_or_codes: one of
 
-            - the dict of :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics`
-              (its ``code_maps``: one panel per assigned one-hot, majority code over
-              its object's positions);
-            - an int ``[rows, cols]`` map (one panel; 15 x 13 for 2x4 blocks), or
-              ``[C, rows, cols]`` (one panel per one-hot);
-            - a list of per-one-hot maps (``None`` entries are skipped), as returned
-              by :func:`~dorp_rl.metrics.diagnostics.rearrangement_code_maps`.
+            - a dict with ``code_maps`` (per one-hot a map or ``None``) and optionally
+              ``onehot_object`` (per one-hot its object), as an env's diagnostics give
+              (e.g. :func:`~dorp_rl.envs.rearrangement_diagnostics`: one panel per
+              assigned one-hot, majority code over its object's positions);
+            - an int ``[rows, cols]`` map (one panel), or ``[C, rows, cols]`` (one panel
+              per one-hot);
+            - a list of per-one-hot maps (``None`` entries are skipped).
 
             ``-1`` marks positions without a code (drawn white).
         path: PNG file to write (parent directories are created).
         title: figure title.
         annotate: write each cell's code index (small maps only).
+        axes: the labels of the rows and the columns.
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
@@ -141,11 +145,11 @@ def plot_rearrangement_code_map(
         for c, code_map in enumerate(result_or_codes["code_maps"]):
             if code_map is None:
                 continue
-            maps.append(_as_array(code_map))
+            maps.append(as_code_array(code_map))
             obj = objects[c] if c < len(objects) else None
             labels.append(f"one-hot {c}" + ("" if obj is None else f" (object {obj})"))
     elif isinstance(result_or_codes, torch.Tensor | np.ndarray):
-        array = _as_array(result_or_codes)
+        array = as_code_array(result_or_codes)
         if array.ndim == 2:
             array = array[None]
         if array.ndim != 3:
@@ -157,7 +161,7 @@ def plot_rearrangement_code_map(
     else:
         for c, code_map in enumerate(result_or_codes):
             if code_map is not None:
-                maps.append(_as_array(code_map))
+                maps.append(as_code_array(code_map))
                 labels.append(f"one-hot {c}")
     if not maps:
         raise ValueError("no code map to draw (every one-hot is unassigned).")
@@ -165,64 +169,12 @@ def plot_rearrangement_code_map(
     for i, (code_map, label) in enumerate(zip(maps, labels, strict=True)):
         ax = fig.add_subplot(1, len(maps), i + 1)
         used = len(np.unique(code_map[code_map >= 0]))
-        _draw_map(ax, code_map, code_colours(code_map), f"{label}: {used} codes", annotate)
-        ax.set_xlabel("block column", fontsize=8)
+        draw_code_map(ax, code_map, code_colours(code_map), f"{label}: {used} codes", annotate)
+        ax.set_xlabel(axes[1], fontsize=8)
         if i == 0:
-            ax.set_ylabel("block row", fontsize=8)
-    fig.suptitle(title or "codes over block positions", fontsize=10)
-    return _save(fig, path)
-
-
-def plot_key_room_code_map(
-    env: KeyRoomEnv,
-    codes_without_key: torch.Tensor | np.ndarray,
-    codes_with_key: torch.Tensor | np.ndarray,
-    path: str | Path,
-    *,
-    title: str | None = None,
-    annotate: bool = True,
-) -> Path:
-    """The agent one-hot's codes over cells without and with the key (Figure 6(a, b)).
-
-    Walls are black; cells that are not valid in a panel's condition (the locked room
-    and the key cell without the key) are white; the key cell and the door are outlined.
-
-    Args:
-        env: the key-room environment (walls, key and door are read from it).
-        codes_without_key: int ``[16, 16]`` agent codes, ``-1`` on invalid cells.
-        codes_with_key: int ``[16, 16]`` agent codes, ``-1`` on invalid cells.
-        path: PNG file to write.
-
-    Returns:
-        ``path`` as a :class:`~pathlib.Path`.
-    """
-    wall = env.wall.cpu().numpy()
-    key_cell = env.key.cpu().numpy().nonzero()
-    door_cells = np.argwhere(env.door.cpu().numpy())
-    fig = Figure(figsize=(7.6, 4.0))
-    for i, (codes, name) in enumerate(
-        ((codes_without_key, "without key"), (codes_with_key, "with key"))
-    ):
-        codes = _as_array(codes)
-        if codes.shape != wall.shape:
-            raise ValueError(f"code maps must be {list(wall.shape)}, got {list(codes.shape)}.")
-        rgb = code_colours(codes)
-        rgb[wall] = _WALL
-        ax = fig.add_subplot(1, 2, i + 1)
-        used = len(np.unique(codes[codes >= 0]))
-        _draw_map(ax, codes, rgb, f"agent codes {name}: {used} codes", annotate)
-        ax.add_patch(
-            Rectangle(
-                (key_cell[1][0] - 0.5, key_cell[0][0] - 0.5), 1, 1, fill=False, ec="gold", lw=2
-            )
-        )
-        for r, c in door_cells:
-            ax.add_patch(Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, ec="saddlebrown", lw=1.5))
-        ax.set_xlabel("column", fontsize=8)
-        if i == 0:
-            ax.set_ylabel("row", fontsize=8)
-    fig.suptitle(title or f"{type(env).__name__}: agent one-hot", fontsize=10)
-    return _save(fig, path)
+            ax.set_ylabel(axes[0], fontsize=8)
+    fig.suptitle(title or "codes over positions", fontsize=10)
+    return save_figure(fig, path)
 
 
 def plot_factorization_histogram(
@@ -242,8 +194,8 @@ def plot_factorization_histogram(
 
     Args:
         change_matrix: int ``[R, C]`` counts, or the dict of
-            :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics` /
-            :func:`~dorp_rl.metrics.diagnostics.key_room_diagnostics` (counts, totals,
+            :func:`~dorp_rl.envs.rearrangement_diagnostics` /
+            :func:`~dorp_rl.envs.key_room_diagnostics` (counts, totals,
             labels and assignment are then taken from it).
         path: PNG file to write.
         totals: ``[R]`` moves per row, to turn counts into rates.
@@ -311,76 +263,48 @@ def plot_factorization_histogram(
     ax.set_ylim(0, max(1e-3, float(heights.max(initial=0.0))) * 1.15)
     ax.legend(handles=handles, fontsize=7, ncol=min(num_onehots, 4))
     ax.set_title(title or "one-hots changed per moved object (hatched: assigned)", fontsize=9)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def write_diagnostic_plots(
-    env: ObjectRearrangementEnv | KeyRoomEnv,
+    env: EnvBase,
     encode: Encoder,
     out_dir: str | Path,
     *,
     num_samples: int = 4096,
     seed: int = 0,
     result: Mapping[str, Any] | None = None,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    profile: EnvProfile | None = None,
 ) -> dict[str, Path]:
-    """Writes every picture relevant to the environment into ``out_dir``.
+    """Writes the pictures of ``env``'s own code diagnostics into ``out_dir``.
 
-    Rearrangement: ``code_map.png`` (exact map for 1 object, majority maps per one-hot
-    otherwise) and ``factorization_histogram.png``. Key rooms: ``code_map.png`` (agent
-    codes without/with the key) and ``factorization_histogram.png`` (one-hot changes on
-    key events and agent moves).
+    The diagnostics are those of the env's profile
+    (:attr:`~dorp_rl.envs.EnvProfile.diagnostics`; the paper's envs: code maps and the
+    factorisation histogram).
 
     Args:
-        env: a rearrangement or key-room environment.
-        encode: ``encode(uint8 [n, 3, 16, 16]) -> int64 [n, C]``.
+        env: the environment.
+        encode: ``encode(uint8 [n, C, H, W]) -> int64 [n, K]``.
         out_dir: directory (created if needed).
-        num_samples, seed: for rearrangement, as in
-            :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics`.
-        result: an already computed diagnostics dict for this env and encoder, to
-            avoid recomputing it.
-        chunk_size: frames per call of ``encode``.
+        num_samples, seed: for diagnostics that sample states.
+        result: the diagnostics' dict for this env and encoder, if already computed.
+        profile: the env's profile (default: the registered profile of its class).
 
     Returns:
         Picture name -> path of the written PNG.
+
+    Raises:
+        ValueError: the env's profile declares no diagnostics or no pictures.
     """
-    kind = getattr(env, "DIAGNOSTICS", None)
-    if kind not in ("rearrangement", "key_room"):
+    profile = profile_of(env) if profile is None else profile
+    diagnostics = None if profile is None else profile.diagnostics
+    if diagnostics is None or diagnostics.pictures is None:
         raise ValueError(
-            f"{type(env).__name__} declares no ground-truth diagnostics (DIAGNOSTICS is "
-            f"{kind!r}; 'rearrangement' and 'key_room' are drawn): code maps need the true "
-            "state of each frame."
+            f"{type(env).__name__}'s profile declares no code diagnostics with pictures "
+            "(EnvProfile.diagnostics): code maps need the true state of each frame."
         )
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if kind == "rearrangement":
-        if result is None:
-            result = rearrangement_diagnostics(env, encode, num_samples, seed, chunk_size)
-        maps: Any = result
-        if env.num_objects == 1:
-            maps = rearrangement_code_maps(env, encode, chunk_size=chunk_size)
-        title = (
-            f"{env.num_objects}-object rearrangement: selectivity {result['selectivity']:.2f}, "
-            f"min purity {result['min_purity']:.2f}"
-        )
-        return {
-            "code_map": plot_rearrangement_code_map(maps, out_dir / "code_map.png", title=title),
-            "factorization_histogram": plot_factorization_histogram(
-                result, out_dir / "factorization_histogram.png"
-            ),
-        }
     if result is None:
-        result = key_room_diagnostics(env, encode, chunk_size=chunk_size, with_steps=False)
-    return {
-        "code_map": plot_key_room_code_map(
-            env,
-            result["code_map_without_key"],
-            result["code_map_with_key"],
-            out_dir / "code_map.png",
-        ),
-        "factorization_histogram": plot_factorization_histogram(
-            result,
-            out_dir / "factorization_histogram.png",
-            title="one-hots changed on key events and agent moves (hatched: expected)",
-        ),
-    }
+        result = diagnostics.measure(env, encode, num_samples, seed)
+    return diagnostics.pictures(env, encode, out_dir, result)

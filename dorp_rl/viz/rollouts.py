@@ -57,11 +57,11 @@ def code_maps_for_waypoints(
 
     Args:
         diagnostics: the dict of
-            :func:`~dorp_rl.metrics.diagnostics.rearrangement_diagnostics` (its
-            ``code_maps``), of :func:`~dorp_rl.metrics.diagnostics.key_room_diagnostics`
+            :func:`~dorp_rl.envs.rearrangement_diagnostics` (its
+            ``code_maps``), of :func:`~dorp_rl.envs.key_room_diagnostics`
             (the agent one-hot gets its maps without and with the key), or a list of
             per-one-hot maps (``[rows, cols]`` ints, ``None`` for none), as
-            :func:`~dorp_rl.metrics.diagnostics.rearrangement_code_maps` returns.
+            :func:`~dorp_rl.envs.rearrangement_code_maps` returns.
         num_onehots: C, the one-hots of the codes.
 
     Returns:
