@@ -44,7 +44,7 @@ from dorp_rl.envs.latent_planning import COMPUTE_DTYPES
 from dorp_rl.modules import DiscreteCodeEncoder, LatentModelConfig, LatentWorldModel
 from dorp_rl.planners import RandomShootingPlanner
 from dorp_rl.policies import DORPConfig, make_planning_env, make_waypoint_cost
-from dorp_rl.policies.factory import DEFAULT_GOAL_MAP_WEIGHT, make_goal_cost
+from dorp_rl.policies.factory import make_goal_cost
 from dorp_rl.trainers import RepresentationConfig
 
 
@@ -114,7 +114,7 @@ def main() -> None:
     goal_phase = {
         "goal_code_weight": dorp.goal_code_weight,
         "goal_blur_sigmas": dorp.goal_blur_sigmas,
-        "goal_map_weight": DEFAULT_GOAL_MAP_WEIGHT,
+        "goal_map_weight": DORPConfig.WHERE_SUITED["goal_map_weight"],
     }
     td.set("goal_code", start)
     td.set("goal_code_weight", torch.full((args.rows, 1), dorp.goal_code_weight))

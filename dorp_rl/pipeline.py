@@ -53,7 +53,7 @@ from dorp_rl.eval import (
 from dorp_rl.eval.parallel import PLANNER_SHAPE
 from dorp_rl.integrity import DirectoryLock, DirectoryLockedError, atomic_write_bytes
 from dorp_rl.planners import CodeGraph, coupled_groups, encode_transitions, encoder_fingerprint
-from dorp_rl.policies import DORP_RECIPE, DORPConfig
+from dorp_rl.policies import DORPConfig
 from dorp_rl.trainers import (
     LatentWorldModelConfig,
     LatentWorldModelTrainer,
@@ -1135,7 +1135,7 @@ def evaluate_stage(run: Run, cmd: Evaluate | Reproduce) -> list[dict[str, Any]]:
             config.update(
                 dorp=cmd.dorp.overrides(),
                 graph=run.stages[dorp[2]]["config"],
-                policy_recipe=DORP_RECIPE,
+                dorp_where_suited=dict(DORPConfig.WHERE_SUITED),
             )
 
         key = f"evaluate:{method}" + ("" if method == "random" else f":{level_name}")

@@ -431,6 +431,25 @@ def test_dorp_settings_default_to_the_env_profile_and_reach_every_evaluation(
         assert sub.dorp.goal_budget == 50 and sub.dorp.reenter is reenter
 
 
+def test_a_changed_default_of_the_policy_reruns_stored_dorp_evaluations(
+    tmp_path, dorp, monkeypatch
+) -> None:
+    """A stored DORP evaluation is keyed by the config it ran with, including what the
+    fields left None take (DORPConfig.WHERE_SUITED): the same command skips it, a
+    changed value runs it again, naming the change."""
+    from types import MappingProxyType
+
+    from dorp_rl.policies import DORPConfig
+
+    args = ("evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "dorp", "--gifs", "0")
+    dorp(tmp_path, *args)
+    assert "evaluate:dorp:gt: done for this config, skipped" in dorp(tmp_path, *args)
+    changed = {**DORPConfig.WHERE_SUITED, "action_prior_mix": 0.5}
+    monkeypatch.setattr(DORPConfig, "WHERE_SUITED", MappingProxyType(changed))
+    out = dorp(tmp_path, *args)
+    assert "evaluate:dorp:gt: running (changed: dorp_where_suited.action_prior_mix" in out
+
+
 def test_torchrl_info_lines_are_held_back_while_bars_are_shown() -> None:
     logger = logging.getLogger("torchrl")
     before = logger.level

@@ -10,7 +10,7 @@
 
 from dorp_rl.policies.abstract_goal import ENDINGS, LOOP_FIELDS, MODES, AbstractGoalPolicy
 from dorp_rl.policies.config import ORDERS, DORPConfig
-from dorp_rl.policies.factory import DORP_RECIPE, make_dorp_policy, make_waypoint_cost
+from dorp_rl.policies.factory import make_dorp_policy, make_waypoint_cost
 from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
 from dorp_rl.policies.recovery import (
     NOOPS_KEY,
@@ -30,7 +30,6 @@ __all__ = [
     "AbstractGoalPolicy",
     "AvoidNoops",
     "DORPConfig",
-    "DORP_RECIPE",
     "ENDINGS",
     "ForgetBlocked",
     "GoalRelaxation",

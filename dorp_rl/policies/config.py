@@ -10,9 +10,10 @@ each setting are in docs/NOTES.md.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 from dorp_rl.config import ConfigMixin, checked
 from dorp_rl.planners.costs import check_step_penalty
@@ -169,6 +170,20 @@ class DORPConfig(ConfigMixin):
     """share of the goal planner's actions drawn from those that changed, in the play
     data, the one-hots whose object maps are still off the goal image's (None: 0.5 when
     the encoder has object maps and the graph action counts, else 0; 0: uniform draws)"""
+
+    #: What a field left ``None`` takes where it suits the env, the graph and the encoder
+    #: (each field's text says where; 0 or off elsewhere): the one place of these values.
+    #: The ``dorp`` command stores them with each evaluation, beside the config, so a
+    #: change here runs stored evaluations again.
+    WHERE_SUITED: ClassVar[Mapping[str, float]] = MappingProxyType(
+        {
+            "action_prior_mix": 0.8,
+            "goal_action_prior_mix": 0.5,
+            "action_persistence": 0.5,
+            "goal_map_weight": 4.0,
+            "goal_latent_weight": 1.0,
+        }
+    )
 
     @classmethod
     def for_env(cls, env: Any, *, num_objects: int | None = None, **overrides: Any) -> DORPConfig:

@@ -32,28 +32,10 @@ from dorp_rl.policies.recovery import NOOPS_KEY
 from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
 
 __all__ = [
-    "DEFAULT_ACTION_PRIOR_MIX",
-    "DEFAULT_GOAL_ACTION_PRIOR_MIX",
-    "DORP_RECIPE",
     "make_dorp_policy",
     "make_waypoint_cost",
 ]
 
-#: The version of :func:`make_dorp_policy`'s defaults, raised whenever they change: the
-#: ``dorp`` command records it with each DORP evaluation, so a stored evaluation of an
-#: older recipe runs again instead of being reused.
-DORP_RECIPE = 11
-#: ``action_prior_mix`` for graphs with action counts when the config leaves it ``None``.
-DEFAULT_ACTION_PRIOR_MIX = 0.8
-#: ``goal_action_prior_mix`` when the config leaves it ``None``, the encoder has object
-#: maps and the graph action counts.
-DEFAULT_GOAL_ACTION_PRIOR_MIX = 0.5
-#: the random-shooting planners' ``action_persistence`` when the config leaves it ``None``
-DEFAULT_ACTION_PERSISTENCE = 0.5
-#: goal_map_weight when the config leaves it None and the encoder has object maps.
-DEFAULT_GOAL_MAP_WEIGHT = 4.0
-#: ``goal_latent_weight`` when the planning env imagines latents (DORPConfig's None)
-DEFAULT_GOAL_LATENT_WEIGHT = 1.0
 _CEM_ONLY = frozenset(
     ("optim_steps", "top_k", "warm_start", "warm_start_mix", "smoothing", "min_probability")
 )
@@ -251,6 +233,7 @@ def make_dorp_policy(
         raise ValueError(f"config must be a DORPConfig, got {type(config).__name__}.")
     else:
         config = config.replace(**fields)
+    suited = DORPConfig.WHERE_SUITED  # what the fields left None take where they suit
     identity = env_identity(env)
     if isinstance(encoder, (str, Path)):
         encoder = load_encoder(encoder, env)
@@ -274,7 +257,7 @@ def make_dorp_policy(
         )
     persistence = config.action_persistence
     rs_only = {
-        "action_persistence": DEFAULT_ACTION_PERSISTENCE if persistence is None else persistence
+        "action_persistence": suited["action_persistence"] if persistence is None else persistence
     }
     shape = {
         "planning_horizon": config.planning_horizon,
@@ -297,18 +280,18 @@ def make_dorp_policy(
         )
     excluded = {"excluded_actions_key": NOOPS_KEY if config.avoid_noops else None}
     if config.action_prior_mix is None:
-        mix = DEFAULT_ACTION_PRIOR_MIX if graph.action_counts is not None else 0.0
+        mix = suited["action_prior_mix"] if graph.action_counts is not None else 0.0
         config = config.replace(action_prior_mix=mix)
     has_maps = callable(getattr(encoder, "object_maps", None))
     if config.goal_map_weight is None:
-        config = config.replace(goal_map_weight=DEFAULT_GOAL_MAP_WEIGHT if has_maps else 0.0)
+        config = config.replace(goal_map_weight=suited["goal_map_weight"] if has_maps else 0.0)
     if config.goal_action_prior_mix is None:
         suits = has_maps and graph.action_counts is not None
-        goal_mix = DEFAULT_GOAL_ACTION_PRIOR_MIX if suits else 0.0
+        goal_mix = suited["goal_action_prior_mix"] if suits else 0.0
         config = config.replace(goal_action_prior_mix=goal_mix)
     latent_model = getattr(planning_env, "latent_model", None)
     if config.goal_latent_weight is None:
-        latent_weight = DEFAULT_GOAL_LATENT_WEIGHT if latent_model is not None else 0.0
+        latent_weight = suited["goal_latent_weight"] if latent_model is not None else 0.0
         config = config.replace(goal_latent_weight=latent_weight)
     # The waypoint cost's goal term (a tie-break between plans reaching the waypoint) is
     # judged on imagined latents whenever there are any: a waypoint call decodes no frame.
