@@ -16,25 +16,28 @@ Low levels: ``gt`` (the true dynamics) and ``video`` (a video model from
 ``--codes oracle`` swaps the learned codes for :class:`~dorp_rl.envs.OracleCodeEncoder`.
 
     python benchmarks/dorp_planning.py --settings 1obj 2obj 3obj --low-level gt --threads 1
+    python benchmarks/dorp_planning.py --settings 5obj --dorp.reenter True --dorp.max-misses 2
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
+import tyro
 
+from dorp_rl.config import carry_changes
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import OracleCodeEncoder
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.eval.settings import SETTINGS, Setting
 from dorp_rl.planners import CodeGraph
-from dorp_rl.policies import make_dorp_policy
+from dorp_rl.policies import DORPConfig, make_dorp_policy
 from dorp_rl.trainers import (
     RepresentationConfig,
     RepresentationTrainer,
@@ -55,14 +58,7 @@ def video_name(setting: Setting) -> str:
     return codes_name(setting) if setting.env == "rearrangement" else setting.env
 
 
-def _switch(name: str, value: str) -> dict[str, bool | str]:
-    """``auto`` (the env profile's setting: nothing passed) / ``on`` / ``off`` (/ ``goal``)
-    as the ``make_dorp_policy`` keyword ``name``."""
-    chosen = {"auto": None, "on": True, "off": False, "goal": "goal"}[value]
-    return {} if chosen is None else {name: chosen}
-
-
-def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[Any, CodeGraph, dict]:
+def codes_and_graph(setting: Setting, args: Any, env) -> tuple[Any, CodeGraph, dict]:
     """The encoder (trained or oracle) and its code graph, from disk when already built."""
     name = f"{codes_name(setting)}-seed{args.code_seed}"
     play_dir = args.out_dir / "play" / name
@@ -105,7 +101,7 @@ def codes_and_graph(setting: Setting, args: argparse.Namespace, env) -> tuple[An
     return encoder, graph, timings
 
 
-def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str, Any]:
+def run(setting_name: str, low_level: str, args: Args) -> dict[str, Any]:
     setting = SETTINGS[setting_name]
     batch = args.tasks_per_rollout
     env = setting.make_env(batch_size=(batch,), seed=args.seed)
@@ -115,46 +111,16 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
     else:
         path = args.video_checkpoint.format(name=video_name(setting))
         level = load_video_model(path, env)
+    # the setting's own DORP config, with the fields changed on the command line
+    config = carry_changes(
+        DORPConfig.for_env(setting.env, num_objects=setting.num_objects), args.dorp, DORPConfig()
+    )
+    cem = {} if args.top_k is None else {"top_k": args.top_k}
     policy = make_dorp_policy(
-        env,
-        encoder,
-        graph,
-        low_level=level,
-        planner=args.planner,
-        planning_horizon=args.planning_horizon,
-        num_candidates=args.candidates,
-        waypoint_budget=args.waypoint_budget,
-        max_removed_edges=args.max_removed_edges,
-        forget_blocked_edges=not args.keep_removed_edges,
-        **_switch("reenter", args.reenter),
-        **_switch("replan_on_miss", args.replan_on_miss),
-        **_switch("waypoint_first_arrival", args.waypoint_first_arrival),
-        **args.dorp,
-        order=args.order,
-        goal_planner=args.goal_planner,
-        seed=args.seed,
-        **(
-            {}
-            if args.waypoint_goal_weight is None
-            else {"waypoint_goal_weight": args.waypoint_goal_weight}
-        ),
-        **({} if args.top_k is None else {"top_k": args.top_k}),
-        **(
-            {}
-            if args.action_persistence is None
-            else {"action_persistence": args.action_persistence}
-        ),
-        **({} if args.max_misses is None else {"max_misses": args.max_misses}),
-        **(
-            {}
-            if args.waypoint_step_penalty is None
-            else {"waypoint_step_penalty": args.waypoint_step_penalty}
-        ),
+        env, encoder, graph, low_level=level, config=config, seed=args.seed, **cem
     )
     tasks = make_task_set(env, args.tasks, seed=args.task_seed)
     if args.task_ids is not None:
-        if not all(0 <= i < args.tasks for i in args.task_ids):
-            raise SystemExit(f"--task-ids must lie in [0, {args.tasks}), got {args.task_ids}.")
         tasks = tasks[torch.tensor(args.task_ids)]
     result = evaluate_policy(
         env,
@@ -184,16 +150,9 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
         "seconds_per_task": result["seconds"] / len(tasks),
         "max_steps": result["max_steps"],
         "paper": setting.paper,
-        "reenter": policy.config.reenter,
-        "replan_on_miss": policy.config.replan_on_miss,
-        "planner": args.planner,
-        "waypoint_goal_weight": args.waypoint_goal_weight,
-        "waypoint_step_penalty": args.waypoint_step_penalty,
-        "waypoint_first_arrival": policy.config.waypoint_first_arrival,
-        "max_misses": policy.config.max_misses,
         "action_persistence": getattr(policy.waypoint_planner, "action_persistence", None),
         "task_ids": args.task_ids,
-        "dorp": args.dorp,
+        "dorp": policy.config.to_dict(),
         "solved": [bool(x) for x in result["success"]],
         "steps": [int(x) for x in result["steps"]],
         "lower_bounds": [int(x) for x in tasks["lower_bound"]],
@@ -201,112 +160,51 @@ def run(setting_name: str, low_level: str, args: argparse.Namespace) -> dict[str
     }
 
 
+@dataclass
+class Args:
+    """DORP on seeded task sets per setting and low level; every DORP setting is
+    ``--dorp.<field>`` (DORPConfig), over each setting's own config."""
+
+    settings: tuple[Literal[tuple(SETTINGS)], ...] = ("2obj",)  # type: ignore[valid-type]
+    """the settings to run"""
+    low_level: tuple[Literal["gt", "video"], ...] = ("gt",)
+    """gt: the true dynamics; video: the video model of --video-checkpoint"""
+    codes: Literal["trained", "oracle"] = "trained"
+    """trained codes of the setting's preset, or oracle codes of the true positions"""
+    oracle_cell: int = 4
+    """region side of oracle codes"""
+    code_seed: int = 0
+    """seed of the trained codes"""
+    tasks: int = 50
+    task_seed: int = 0
+    task_ids: tuple[int, ...] | None = None
+    """run only these tasks of the --tasks task set (to look at chosen tasks again)"""
+    seed: int = 0
+    """seed of the planners"""
+    max_steps: int | None = None
+    """step limit of a task (None: the env's)"""
+    tasks_per_rollout: int = 10
+    top_k: int | None = None
+    """CEM elites (None: CEM's default)"""
+    threads: int = 1
+    """torch threads (1: one per job; on a shared 2-core CPU more made steps far slower)"""
+    progress: bool = False
+    out_dir: Path = Path("outputs")
+    """folder of the codes, play data and graphs"""
+    video_checkpoint: str = "outputs/world_model/{name}-seed0/checkpoints/last.pt"
+    """video model per setting; {name} is rearrangement<k>, key-wall or key-corridor"""
+    json: Path | None = None
+    """append the rows here"""
+    dorp: DORPConfig = field(default_factory=DORPConfig)
+    """DORP's settings: those changed here replace each setting's own"""
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--settings", nargs="+", choices=sorted(SETTINGS), default=["2obj"])
-    parser.add_argument("--low-level", nargs="+", choices=["gt", "video"], default=["gt"])
-    parser.add_argument("--codes", choices=["trained", "oracle"], default="trained")
-    parser.add_argument("--oracle-cell", type=int, default=4, help="region side of oracle codes")
-    parser.add_argument("--code-seed", type=int, default=0, help="seed of the trained codes")
-    parser.add_argument("--tasks", type=int, default=50)
-    parser.add_argument("--task-seed", type=int, default=0)
-    parser.add_argument(
-        "--task-ids",
-        type=int,
-        nargs="+",
-        default=None,
-        help="run only these tasks of the --tasks task set (to look at chosen tasks again)",
-    )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the planners")
-    parser.add_argument("--planner", choices=["rs", "cem"], default="rs")
-    parser.add_argument("--candidates", type=int, default=1000)
-    parser.add_argument("--planning-horizon", type=int, default=14)
-    parser.add_argument("--waypoint-budget", type=int, default=28)
-    parser.add_argument("--max-removed-edges", type=int, default=128)
-    parser.add_argument(
-        "--max-misses",
-        type=int,
-        default=None,
-        help="waypoint plans in a row that reach the waypoint nowhere before its edge is "
-        "removed (default: make_dorp_policy's)",
-    )
-    parser.add_argument(
-        "--keep-removed-edges",
-        action="store_true",
-        help="never restore a removed edge (the authors); default: restore a group's removed "
-        "edges when another group reaches a waypoint",
-    )
-    parser.add_argument(
-        "--reenter",
-        choices=["auto", "on", "off", "goal"],
-        default="auto",
-        help="before removing a hop no other path replaces, leave its code over the edge "
-        "that entered it and re-enter the code another way (goal: only when the goal phase "
-        "stalls; auto: on in the key rooms, off in rearrangement)",
-    )
-    parser.add_argument(
-        "--replan-on-miss",
-        choices=["auto", "on", "off"],
-        default="auto",
-        help="cut a waypoint plan that reaches the waypoint nowhere to its first step "
-        "(auto: in the key rooms)",
-    )
-    parser.add_argument(
-        "--waypoint-first-arrival",
-        choices=["auto", "on", "off"],
-        default="auto",
-        help="judge a waypoint plan at its first step reaching the waypoint (auto: the "
-        "config's default)",
-    )
-    parser.add_argument(
-        "--dorp",
-        type=json.loads,
-        default={},
-        help="more DORPConfig fields as JSON, e.g. '{\"action_prior_mix\": 0.95}'",
-    )
-    parser.add_argument("--order", choices=["index", "nearest"], default="index")
-    parser.add_argument("--goal-planner", choices=["rs", "cem"], default=None)
-    parser.add_argument(
-        "--action-persistence",
-        type=float,
-        default=None,
-        help="random shooting: probability that a sampled action repeats the one before it "
-        "(default: make_dorp_policy's)",
-    )
-    parser.add_argument("--top-k", type=int, default=None, help="CEM elites (default: CEM's)")
-    parser.add_argument(
-        "--waypoint-goal-weight",
-        type=float,
-        default=None,
-        help="weight of the goal image's pixel distance in the waypoint cost "
-        "(default: make_dorp_policy's)",
-    )
-    parser.add_argument(
-        "--waypoint-step-penalty",
-        type=float,
-        default=None,
-        help="cost per step of a frame at the waypoint: earlier arrival wins "
-        "(default: make_dorp_policy's)",
-    )
-    parser.add_argument("--max-steps", type=int, default=None, help="default: the env's limit")
-    parser.add_argument("--tasks-per-rollout", type=int, default=10)
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
-    parser.add_argument("--progress", action="store_true")
-    parser.add_argument("--out-dir", type=Path, default=Path("outputs"))
-    parser.add_argument(
-        "--video-checkpoint",
-        default="outputs/world_model/{name}-seed0/checkpoints/last.pt",
-        help="video model per setting; {name} is rearrangement<k>, key-wall or key-corridor",
-    )
-    parser.add_argument("--json", type=Path, default=None, help="append the rows here")
-    args = parser.parse_args()
+    args = tyro.cli(Args, description=__doc__.splitlines()[0])
     if args.tasks % args.tasks_per_rollout:
-        parser.error("--tasks must be a multiple of --tasks-per-rollout")
+        raise SystemExit("--tasks must be a multiple of --tasks-per-rollout")
+    if args.task_ids is not None and not all(0 <= i < args.tasks for i in args.task_ids):
+        raise SystemExit(f"--task-ids must lie in [0, {args.tasks}), got {args.task_ids}.")
     torch.set_num_threads(args.threads)
     header = (
         f"{'setting':<12} {'low':<6} {'success':>8} {'steps':>7} {'bound':>6} {'ratio':>6} "

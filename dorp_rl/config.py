@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import typing
+from collections.abc import Sequence
 from typing import Any, TypeVar
 
 from dorp_rl.validation import check_fields
@@ -239,3 +240,28 @@ def format_differences(diff: dict[str, tuple], left: str, right: str, width: int
         return text if len(text) <= width else text[: width - 3] + "..."
 
     return "; ".join(f"{k}: {left} {show(a)}, {right} {show(b)}" for k, (a, b) in diff.items())
+
+
+def carry_changes(target: Any, given: Any, default: Any, skip: Sequence[str] = ()) -> Any:
+    """``target`` (a config dataclass, e.g. another env's preset) with every field in which
+    ``given`` differs from ``default`` (the changes someone made), nested configs field by
+    field; the fields in ``skip`` are left as ``target`` has them.
+
+    Examples:
+        >>> from dorp_rl.config import carry_changes
+        >>> from dorp_rl.policies import DORPConfig
+        >>> given = DORPConfig(planner="cem")  # a change against the defaults
+        >>> preset = DORPConfig.for_env("key-wall")
+        >>> carried = carry_changes(preset, given, DORPConfig())
+        >>> carried.planner, carried.reenter  # the change, and the preset's own setting
+        ('cem', True)
+    """
+    changes: dict[str, Any] = {}
+    for f in dataclasses.fields(given):
+        value, base = getattr(given, f.name), getattr(default, f.name)
+        if f.name in skip or value == base:
+            continue
+        if dataclasses.is_dataclass(value) and type(value) is type(base):
+            value = carry_changes(getattr(target, f.name), value, base, skip)
+        changes[f.name] = value
+    return dataclasses.replace(target, **changes)

@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 
+from dorp_rl.config import carry_changes
 from dorp_rl.envs import EnvProfile
 from dorp_rl.eval import (
     PAPER_SUCCESS,
@@ -247,18 +248,10 @@ def say_pictures(run: Run, pictures: list[Path]) -> None:
         run.say(f"rollout GIF: {gif}")
 
 
-def _carry_changes(target: Any, given: Any, default: Any) -> Any:
-    """``target`` (another setting's preset) with every field in which ``given`` differs
-    from ``default`` (the command-line overrides), nested configs field by field."""
-    changes: dict[str, Any] = {}
-    for f in dataclasses.fields(given):
-        value, base = getattr(given, f.name), getattr(default, f.name)
-        if f.name in _SETTING_FIELDS or value == base:
-            continue
-        if dataclasses.is_dataclass(value) and type(value) is type(base):
-            value = _carry_changes(getattr(target, f.name), value, base)
-        changes[f.name] = value
-    return dataclasses.replace(target, **changes)
+def _carry(target: Any, given: Any, default: Any) -> Any:
+    """``carry_changes`` of the command line's changes into a setting's preset (its env
+    and object count stay the setting's)."""
+    return carry_changes(target, given, default, _SETTING_FIELDS)
 
 
 def _expected_cost(sub: Reproduce) -> float:
@@ -277,10 +270,10 @@ def _setting_command(
     Table 1's methods, in the sub-run ``<setting>`` (or ``<setting>-seed<seed>``, whose
     codes, world models and planners use ``seed``)."""
     preset = default_command("reproduce", setting)
-    codes = _carry_changes(preset.codes, cmd.codes, base.codes)
-    world_model = _carry_changes(preset.world_model, cmd.world_model, base.world_model)
-    latent_model = _carry_changes(preset.latent_model, cmd.latent_model, base.latent_model)
-    dorp = _carry_changes(preset.dorp, cmd.dorp, base.dorp)
+    codes = _carry(preset.codes, cmd.codes, base.codes)
+    world_model = _carry(preset.world_model, cmd.world_model, base.world_model)
+    latent_model = _carry(preset.latent_model, cmd.latent_model, base.latent_model)
+    dorp = _carry(preset.dorp, cmd.dorp, base.dorp)
     seeds: dict[str, Any] = {}
     if seed is not None:
         codes = dataclasses.replace(codes, seed=seed)
