@@ -50,7 +50,7 @@ from dorp_rl.envs import (
     GroundTruthModelEnv,
     KeyWallEnv,
     ObjectRearrangementEnv,
-    WorldModelEnv,
+    VideoModelEnv,
 )
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
@@ -764,12 +764,12 @@ def _planning_mismatch_keys() -> Any:
     raise Silent("planned in another world")
 
 
-@fault("planning", "WorldModelEnv(model, 2) on a 4-action env", ("num_actions",))
+@fault("planning", "VideoModelEnv(model, 2) on a 4-action env", ("num_actions",))
 def _world_model_actions() -> Any:
     env = ObjectRearrangementEnv(1, batch_size=(2,), seed=0)
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours.cpu()])
     model = VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small()).eval()
-    env.rollout(2, _rs(WorldModelEnv(model, 2)))
+    env.rollout(2, _rs(VideoModelEnv(model, 2)))
     raise Silent("planned with actions 0 and 1 only")
 
 

@@ -7,7 +7,7 @@ sequences of ``planning_horizon`` steps, pixel-L2 cost to the goal, one acting e
 
 - ``ground truth``: :class:`~dorp_rl.envs.GroundTruthModelEnv` (true dynamics and
   renderer of ``ObjectRearrangementEnv``);
-- ``world model``: :class:`~dorp_rl.envs.WorldModelEnv` wrapping the project's
+- ``world model``: :class:`~dorp_rl.envs.VideoModelEnv` wrapping the project's
   :class:`~dorp_rl.modules.VideoPredictionModel`, trained (``--checkpoint``, a
   ``WorldModelTrainer`` checkpoint) or freshly initialised at a preset's size
   (``--preset``; latency does not depend on the weights). The env predicts each
@@ -55,7 +55,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from dorp_rl.envs import ObjectRearrangementEnv
-from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, VideoModelEnv
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
@@ -182,11 +182,11 @@ def main() -> None:
     rows: list[tuple[str, float]] = []
     gt = planner(RandomShootingPlanner, GroundTruthModelEnv(env))
     rows.append(("RS call, ground truth", median_seconds(lambda: gt(td.clone()), args.repeats)))
-    wm_env = WorldModelEnv(model, env.num_actions)
+    wm_env = VideoModelEnv(model, env.num_actions)
     wm = planner(RandomShootingPlanner, wm_env)
     rows.append(("RS call, world model", median_seconds(lambda: wm(td.clone()), args.repeats)))
     wm_plain = planner(
-        RandomShootingPlanner, WorldModelEnv(model, env.num_actions, deduplicate=False)
+        RandomShootingPlanner, VideoModelEnv(model, env.num_actions, deduplicate=False)
     )
     no_dedup = (
         "RS call, world model, no dedup",
@@ -269,7 +269,7 @@ def main() -> None:
     timed_model = TimedModel(model)
     timed_cost = TimedCost(PixelDistanceCost())
     breakdown = planner(
-        RandomShootingPlanner, WorldModelEnv(timed_model, env.num_actions), timed_cost
+        RandomShootingPlanner, VideoModelEnv(timed_model, env.num_actions), timed_cost
     )
     breakdown(td.clone())
     timed_model.timer.seconds = timed_cost.timer.seconds = 0.0

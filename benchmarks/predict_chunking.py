@@ -1,5 +1,5 @@
 """How the video model's cost per frame depends on how many frames one call gets, and
-what chunking the calls of :class:`~dorp_rl.envs.WorldModelEnv` saves in a batched
+what chunking the calls of :class:`~dorp_rl.envs.VideoModelEnv` saves in a batched
 evaluation.
 
 What is measured, in CPU seconds of this process (so other work on a shared machine
@@ -9,7 +9,7 @@ does not inflate them):
   frames (from reset states of the env), in calls of 128 to 8192 frames; per frame, and
   as a ratio to the fastest call size;
 - ``VF-RS window``: VF-RS (1000 candidates x 14 steps) on 10 tasks side by side for 14
-  batched steps through ``WorldModelEnv`` with ``chunk_size=None`` (every imagined step
+  batched steps through ``VideoModelEnv`` with ``chunk_size=None`` (every imagined step
   in one call: up to 10,000 frames) and with the default
   :data:`~dorp_rl.envs.planning.DEFAULT_PREDICT_CHUNK`; seconds per batched step and
   their ratio, measured in the same run;
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 
-from dorp_rl.envs import ObjectRearrangementEnv, WorldModelEnv
+from dorp_rl.envs import ObjectRearrangementEnv, VideoModelEnv
 from dorp_rl.envs.planning import DEFAULT_PREDICT_CHUNK
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.modules import VideoModelConfig, VideoPredictionModel
@@ -73,7 +73,7 @@ def window_cost(
     """CPU seconds per batched step of VF-RS on ``TASKS`` tasks side by side."""
     env = ObjectRearrangementEnv(num_objects=objects, batch_size=(TASKS,), seed=0)
     tasks = make_task_set(env, TASKS, seed=0)
-    planning = WorldModelEnv(model, env.num_actions, chunk_size=chunk_size)
+    planning = VideoModelEnv(model, env.num_actions, chunk_size=chunk_size)
     policy = VisualForesightPolicy(planning, "rs", seed=0)
     start = time.process_time()
     result = evaluate_policy(env, policy, tasks, max_steps=steps, tasks_per_rollout=TASKS, seed=0)
@@ -86,8 +86,8 @@ def differing_frames(model: VideoPredictionModel, env: ObjectRearrangementEnv) -
     first = env.reset()["pixels"][:TASKS]
     frames = first.unsqueeze(1).expand(TASKS, 1000, *first.shape[-3:])
     actions = torch.randint(0, env.num_actions, (TASKS, 1000, 1), generator=generator)
-    whole = WorldModelEnv(model, env.num_actions, chunk_size=None, deduplicate=False)
-    chunked = WorldModelEnv(model, env.num_actions, deduplicate=False)
+    whole = VideoModelEnv(model, env.num_actions, chunk_size=None, deduplicate=False)
+    chunked = VideoModelEnv(model, env.num_actions, deduplicate=False)
     one, other = whole.predict_frames(frames, actions), chunked.predict_frames(frames, actions)
     return int((one != other).flatten(2).any(-1).sum())
 

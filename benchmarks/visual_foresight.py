@@ -10,7 +10,7 @@ bound (sum of Manhattan distances), and the wall-clock, with the paper's Table 1
 (which used an SV2P video model) beside it.
 
 Planning models: ``gt`` (:class:`~dorp_rl.envs.GroundTruthModelEnv`, the true dynamics)
-and ``video`` (:class:`~dorp_rl.envs.WorldModelEnv` over a trained
+and ``video`` (:class:`~dorp_rl.envs.VideoModelEnv` over a trained
 :class:`~dorp_rl.modules.VideoPredictionModel`, read from ``--checkpoint``'s template,
 ``{k}`` standing for the number of objects; train one with
 ``benchmarks/video_model_accuracy.py --num-objects k``).
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, WorldModelEnv
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModelEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.policies import VisualForesightPolicy
 from dorp_rl.trainers import load_video_model
@@ -100,7 +100,7 @@ def main() -> None:
                 planning_env = GroundTruthModelEnv(env)
             else:
                 model = load_video_model(args.checkpoint.format(k=k), env)
-                planning_env = WorldModelEnv(model, env.num_actions)
+                planning_env = VideoModelEnv(model, env.num_actions)
             per_rollout = args.tasks_per_rollout or (10 if model_name == "gt" else 1)
             for variant in args.variants:
                 policy = VisualForesightPolicy(

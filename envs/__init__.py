@@ -22,7 +22,7 @@ from dorp_rl.envs.key_rooms import KeyCorridorEnv, KeyRoomEnv, KeyWallEnv
 from dorp_rl.envs.latent_planning import LatentModelEnv, planning_dtype
 from dorp_rl.envs.oracle import OracleCodeEncoder
 from dorp_rl.envs.paper import DEFAULT_ENV
-from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, VideoModelEnv
 from dorp_rl.envs.profile import (
     CodeDiagnostics,
     EnvProfile,
@@ -80,7 +80,7 @@ __all__ = [
     "ObjectRearrangementEnv",
     "paint_layers",
     "register_gymnasium_envs",
-    "WorldModelEnv",
+    "VideoModelEnv",
     "LatentModelEnv",
     "planning_dtype",
 ]

@@ -9,7 +9,7 @@ the current situation. The two envs here are such models. Both are stateless Tor
 
 - :class:`GroundTruthModelEnv` steps copies of the true configuration ``state`` with the
   environment's own dynamics and renders them: the "ground-truth model" of the paper.
-- :class:`WorldModelEnv` predicts the next frame from the current frame and the action
+- :class:`VideoModelEnv` predicts the next frame from the current frame and the action
   with a learned video prediction model.
 
 Keys (leading shape ``*B`` arbitrary):
@@ -68,7 +68,7 @@ from dorp_rl.validation import (
 _FRAME = (3, GRID_SIZE, GRID_SIZE)
 _FRAME_BYTES = 3 * GRID_SIZE * GRID_SIZE
 
-#: Frames per ``predict`` call of :class:`WorldModelEnv` by default. On one CPU thread the
+#: Frames per ``predict`` call of :class:`VideoModelEnv` by default. On one CPU thread the
 #: video model predicted a frame in about 0.2 ms in calls of 128-2048 frames and 0.38 ms
 #: in calls of 8192 (``benchmarks/predict_chunking.py``); a batched evaluation of 10
 #: tasks x 1000 candidates hands it 10,000 at once.
@@ -86,7 +86,7 @@ class LazyValue(Protocol):
 
 @runtime_checkable
 class FramePredictor(Protocol):
-    """What :class:`WorldModelEnv` needs from a video prediction model."""
+    """What :class:`VideoModelEnv` needs from a video prediction model."""
 
     def predict(
         self, pixels: torch.Tensor, action: torch.Tensor, deterministic: bool = True
@@ -749,7 +749,7 @@ class ImaginedFrames:
         return goal_norms[owner] + per_part.reshape(-1)[index].sum(-1)
 
 
-class WorldModelEnv(_PlanningEnvBase):
+class VideoModelEnv(_PlanningEnvBase):
     """A video prediction model as a planning env: next ``pixels`` from ``pixels`` and ``action``.
 
     ``model`` is any object with ``predict(pixels, action, deterministic=True)``
@@ -780,11 +780,11 @@ class WorldModelEnv(_PlanningEnvBase):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from dorp_rl.envs import WorldModelEnv
+        >>> from dorp_rl.envs import VideoModelEnv
         >>> class StillModel:  # predicts that nothing moves
         ...     def predict(self, pixels, action, deterministic=True):
         ...         return pixels.clone()
-        >>> env = WorldModelEnv(StillModel(), num_actions=4)
+        >>> env = VideoModelEnv(StillModel(), num_actions=4)
         >>> td = TensorDict(
         ...     pixels=torch.zeros(2, 7, 3, 16, 16, dtype=torch.uint8),
         ...     action=torch.zeros(2, 7, 1, dtype=torch.int64),
@@ -913,7 +913,7 @@ class WorldModelEnv(_PlanningEnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         pixels = tensordict.get("pixels", None)
         if pixels is None:
-            raise KeyError("WorldModelEnv.step needs 'pixels' (the current frame).")
+            raise KeyError("VideoModelEnv.step needs 'pixels' (the current frame).")
         action = check_planning_action(
             tensordict.get("action"), self.num_actions, tensordict.batch_size
         )

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, WorldModelEnv
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModelEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.policies import VisualForesightPolicy
 from dorp_rl.trainers import load_video_model
@@ -44,7 +44,7 @@ def main() -> None:
     if args.checkpoint is None:
         planning_env = GroundTruthModelEnv(env)
     else:
-        planning_env = WorldModelEnv(load_video_model(args.checkpoint, env), env.num_actions)
+        planning_env = VideoModelEnv(load_video_model(args.checkpoint, env), env.num_actions)
     # VF-CEM refits to the best 2 % of the candidates (the paper's top_k=20 of 1000).
     elites = {"top_k": max(1, round(0.02 * args.candidates))} if args.variant == "cem" else {}
     policy = VisualForesightPolicy(

@@ -19,7 +19,7 @@ from push_blocks import PushBlocksEnv
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, WorldModelEnv, planning
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModelEnv, planning
 from dorp_rl.envs.planning import StatelessEnvModel, distinct_rows, row_hashes
 from dorp_rl.planners import CodeGraph, PixelDistanceCost, RandomShootingPlanner
 
@@ -312,7 +312,7 @@ def test_every_planning_env_plans_toward_a_goal_given_as_an_image_only(name):
     if name in ("ground-truth", "world-model"):
         env = ObjectRearrangementEnv(num_objects=1, batch_size=(2,), seed=0)
         model = (
-            GroundTruthModelEnv(env) if name == "ground-truth" else WorldModelEnv(ShiftModel(), 8)
+            GroundTruthModelEnv(env) if name == "ground-truth" else VideoModelEnv(ShiftModel(), 8)
         )
     else:
         env_class = CountingBlocksEnv if name == "stateless-counting" else PushBlocksEnv

@@ -26,7 +26,7 @@ from dorp_rl.envs import (
     KeyWallEnv,
     ObjectRearrangementEnv,
     OracleCodeEncoder,
-    WorldModelEnv,
+    VideoModelEnv,
     make_env,
 )
 from dorp_rl.eval import evaluate_policy, make_task_set
@@ -257,8 +257,8 @@ def test_a_world_model_env_with_another_action_count_is_refused():
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours.cpu()])
     model = VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small())
     with pytest.raises(ValueError, match="num_actions=2 does not match the model.*4 actions"):
-        WorldModelEnv(model, 2)
-    assert WorldModelEnv(model, env.num_actions).num_actions == 4
+        VideoModelEnv(model, 2)
+    assert VideoModelEnv(model, env.num_actions).num_actions == 4
 
 
 @pytest.mark.parametrize(
@@ -620,7 +620,7 @@ def test_a_planner_on_rewards_does_not_count_rewards_after_an_early_done(planner
     [
         lambda d: ObjectRearrangementEnv(1, device=d),
         lambda d: KeyWallEnv(device=d),
-        lambda d: WorldModelEnv(_Still(), 4, device=d),
+        lambda d: VideoModelEnv(_Still(), 4, device=d),
         lambda d: RepresentationConfig.for_env("rearrangement", 1, device=d),
         lambda d: check_device(d),
         lambda d: UniformRandomPolicy(4, device=d),
@@ -682,7 +682,7 @@ class _Still:
         lambda: ObjectRearrangementEnv(1, batch_size=(2,), seed=0),
         lambda: KeyWallEnv(seed=0),
         lambda: GroundTruthModelEnv(KeyWallEnv(seed=0)),
-        lambda: WorldModelEnv(_Still(), 4),
+        lambda: VideoModelEnv(_Still(), 4),
     ],
     ids=["rearrangement", "key-wall", "ground-truth-model", "world-model"],
 )

@@ -21,7 +21,7 @@ from dorp_rl.envs import (
     KeyWallEnv,
     ObjectRearrangementEnv,
     OracleCodeEncoder,
-    WorldModelEnv,
+    VideoModelEnv,
 )
 from dorp_rl.frames import check_task_frames, frames_to_uint8
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig
@@ -136,7 +136,7 @@ def test_a_world_model_planner_refuses_colours_outside_its_palette():
     env = ObjectRearrangementEnv(1, batch_size=(2,), seed=0)
     palette = torch.cat([torch.zeros(1, 3, dtype=torch.uint8), env.colours])
     model = VideoPredictionModel(env.num_actions, palette, VideoModelConfig.small())
-    policy = VisualForesightPolicy(WorldModelEnv(model, env.num_actions), "rs", **SHAPE)
+    policy = VisualForesightPolicy(VideoModelEnv(model, env.num_actions), "rs", **SHAPE)
     td = env.reset()
     td["goal_pixels"] = KeyWallEnv(batch_size=(2,), seed=0).reset()["goal_pixels"]
     with pytest.raises(ValueError, match=r"goal_pixels .*world model cannot show.*128, 128, 128"):
@@ -233,7 +233,7 @@ def test_the_video_model_takes_float_frames_in_0_1(video_model, dtype):
     assert torch.equal(model.logits(unit, action), model.logits(frames, action))
     actions = action.unsqueeze(1).expand(16, 3, 1)
     assert torch.equal(model.rollout(unit, actions), model.rollout(frames, actions))
-    planning = WorldModelEnv(model, env.num_actions)
+    planning = VideoModelEnv(model, env.num_actions)
     assert torch.equal(
         planning.predict_frames(unit, action), planning.predict_frames(frames, action)
     )

@@ -17,7 +17,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import TensorDictPrimer
 
 from dorp_rl.envs import ObjectRearrangementEnv
-from dorp_rl.envs.planning import GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.planning import GroundTruthModelEnv, VideoModelEnv
 from dorp_rl.planners import (
     CategoricalCEMPlanner,
     CodeMatchCost,
@@ -563,7 +563,7 @@ def test_same_cost_and_plan_through_a_world_model():
         top_k=1,
     )
     learned = CategoricalCEMPlanner(
-        WorldModelEnv(DecodingModel(env), num_actions=4),
+        VideoModelEnv(DecodingModel(env), num_actions=4),
         PixelDistanceCost(),
         planning_horizon=5,
         num_candidates=32,

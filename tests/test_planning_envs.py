@@ -1,4 +1,4 @@
-"""Tests of the planning envs: ``GroundTruthModelEnv`` and ``WorldModelEnv``.
+"""Tests of the planning envs: ``GroundTruthModelEnv`` and ``VideoModelEnv``.
 
 The ground-truth model is checked step for step against the acting env it wraps; the
 world-model env with fake frame predictors (a per-frame colour shift, and a model that
@@ -13,7 +13,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
-from dorp_rl.envs.planning import DEFAULT_PREDICT_CHUNK, GroundTruthModelEnv, WorldModelEnv
+from dorp_rl.envs.planning import DEFAULT_PREDICT_CHUNK, GroundTruthModelEnv, VideoModelEnv
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -54,7 +54,7 @@ class DecodingModel:
 
 def test_specs_and_flags():
     env = ObjectRearrangementEnv(num_objects=2, seed=0)
-    for model_env in (GroundTruthModelEnv(env), WorldModelEnv(ShiftModel(), num_actions=8)):
+    for model_env in (GroundTruthModelEnv(env), VideoModelEnv(ShiftModel(), num_actions=8)):
         assert not model_env.batch_locked and model_env.batch_size == torch.Size([])
         check_env_specs(model_env)
         assert model_env.action_spec.n == 8 and model_env.action_spec.dtype == torch.int64
@@ -122,7 +122,7 @@ def test_ground_truth_reset_takes_state_and_goal():
 
 def test_world_model_env_flattens_and_restores_leading_dims():
     model = ShiftModel()
-    env = WorldModelEnv(model, num_actions=4)
+    env = VideoModelEnv(model, num_actions=4)
     gen = torch.Generator().manual_seed(0)
     pixels = torch.randint(0, 256, (2, 3, 4, 3, 16, 16), dtype=torch.uint8, generator=gen)
     action = torch.randint(0, 4, (2, 3, 4, 1), generator=gen)
@@ -135,7 +135,7 @@ def test_world_model_env_flattens_and_restores_leading_dims():
         expected = model.predict(pixels[index][None], action[index][None])[0]
         assert torch.equal(out["pixels"][index], expected)
     assert torch.equal(out["goal_pixels"], goal)
-    chunked = WorldModelEnv(model, num_actions=4, chunk_size=10)
+    chunked = VideoModelEnv(model, num_actions=4, chunk_size=10)
     model.calls.clear()
     again = chunked.step(td.exclude("next"))["next", "pixels"]
     assert model.calls == [10, 10, 4]
@@ -151,10 +151,10 @@ def test_world_model_env_chunks_large_batches_by_default():
     n = 2 * DEFAULT_PREDICT_CHUNK + 452
     pixels = torch.randint(0, 256, (n, 3, 16, 16), dtype=torch.uint8, generator=gen)
     action = torch.randint(0, 4, (n, 1), generator=gen)
-    chunked = WorldModelEnv(model, num_actions=4).predict_frames(pixels, action)
+    chunked = VideoModelEnv(model, num_actions=4).predict_frames(pixels, action)
     assert model.calls == [DEFAULT_PREDICT_CHUNK, DEFAULT_PREDICT_CHUNK, 452]
     model.calls.clear()
-    whole = WorldModelEnv(model, num_actions=4, chunk_size=None).predict_frames(pixels, action)
+    whole = VideoModelEnv(model, num_actions=4, chunk_size=None).predict_frames(pixels, action)
     assert model.calls == [n]
     assert torch.equal(chunked, whole)
 
@@ -162,7 +162,7 @@ def test_world_model_env_chunks_large_batches_by_default():
 def test_world_model_env_with_a_perfect_model_matches_ground_truth():
     env = ObjectRearrangementEnv(num_objects=1, seed=4)
     truth = GroundTruthModelEnv(env)
-    learned = WorldModelEnv(DecodingModel(env), num_actions=4)
+    learned = VideoModelEnv(DecodingModel(env), num_actions=4)
     state = env.sample_states(torch.Size([8]))
     td_true = TensorDict(state=state, pixels=env.render_state(state), batch_size=(8,))
     td_model = td_true.select("pixels").clone()
@@ -175,7 +175,7 @@ def test_world_model_env_with_a_perfect_model_matches_ground_truth():
 
 
 def test_world_model_env_reset():
-    env = WorldModelEnv(ShiftModel(), num_actions=4)
+    env = VideoModelEnv(ShiftModel(), num_actions=4)
     assert (env.reset()["pixels"] == 0).all()
     frames = torch.full((2, 3, 16, 16), 7, dtype=torch.uint8)
     out = env.reset(TensorDict(pixels=frames, batch_size=(2,)), set_state=True)
@@ -194,7 +194,7 @@ def test_world_model_env_reset():
 )
 def test_bad_actions_raise_value_errors(action, message):
     gt = GroundTruthModelEnv(ObjectRearrangementEnv(num_objects=1, seed=0))
-    wm = WorldModelEnv(ShiftModel(), num_actions=4)
+    wm = VideoModelEnv(ShiftModel(), num_actions=4)
     state = torch.tensor([[[3, 3]]]).reshape(action.shape[:1] + (1, 2))
     for env, td in (
         (gt, TensorDict(state=state, action=action, batch_size=action.shape[:1])),
@@ -213,17 +213,17 @@ def test_bad_actions_raise_value_errors(action, message):
 
 def test_construction_errors():
     with pytest.raises(ValueError, match="GridWorldEnv"):
-        GroundTruthModelEnv(WorldModelEnv(ShiftModel(), num_actions=4))
+        GroundTruthModelEnv(VideoModelEnv(ShiftModel(), num_actions=4))
     with pytest.raises(ValueError, match="predict"):
-        WorldModelEnv(object(), num_actions=4)
+        VideoModelEnv(object(), num_actions=4)
     with pytest.raises(ValueError, match="num_actions"):
-        WorldModelEnv(ShiftModel(), num_actions=0)
+        VideoModelEnv(ShiftModel(), num_actions=0)
 
     class WrongModel:
         def predict(self, pixels, action, deterministic=True):
             return pixels.float()
 
-    env = WorldModelEnv(WrongModel(), num_actions=4)
+    env = VideoModelEnv(WrongModel(), num_actions=4)
     td = TensorDict(
         pixels=torch.zeros(2, 3, 16, 16, dtype=torch.uint8),
         action=torch.zeros(2, 1, dtype=torch.int64),
@@ -236,7 +236,7 @@ def test_construction_errors():
 
 
 def test_world_model_env_predicts_each_distinct_pair_once():
-    from dorp_rl.envs import ObjectRearrangementEnv, WorldModelEnv
+    from dorp_rl.envs import ObjectRearrangementEnv, VideoModelEnv
 
     class CountingModel:
         """Shifts frames by the action (a deterministic toy) and counts predicted rows."""
@@ -252,11 +252,11 @@ def test_world_model_env_predicts_each_distinct_pair_once():
     pixels = frames[torch.tensor([0, 1, 0, 2, 1, 0, 0, 0])]  # 3 distinct frames
     action = torch.tensor([[1], [1], [1], [0], [1], [2], [1], [1]])  # 4 distinct pairs
     td = TensorDict(pixels=pixels, action=action, batch_size=[8])
-    plain = WorldModelEnv(CountingModel(), 8, deduplicate=False).step(td.clone())
+    plain = VideoModelEnv(CountingModel(), 8, deduplicate=False).step(td.clone())
     assert CountingModel.rows == 8
     CountingModel.rows = 0
-    deduped = WorldModelEnv(CountingModel(), 8).step(td.clone())
+    deduped = VideoModelEnv(CountingModel(), 8).step(td.clone())
     assert CountingModel.rows == 4
     assert torch.equal(deduped["next", "pixels"], plain["next", "pixels"])
     with pytest.raises(ValueError, match="deterministic"):
-        WorldModelEnv(CountingModel(), 8, deterministic=False, deduplicate=True)
+        VideoModelEnv(CountingModel(), 8, deterministic=False, deduplicate=True)

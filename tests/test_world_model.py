@@ -409,10 +409,10 @@ def test_trainer_with_event_share_samples_and_evaluates_event_windows(tmp_path) 
 def test_the_video_model_plugs_into_a_planning_env_and_planner(
     env: ObjectRearrangementEnv, model: VideoPredictionModel
 ) -> None:
-    from dorp_rl.envs import WorldModelEnv
+    from dorp_rl.envs import VideoModelEnv
     from dorp_rl.planners import PixelDistanceCost, RandomShootingPlanner
 
-    planning_env = WorldModelEnv(model, env.num_actions)
+    planning_env = VideoModelEnv(model, env.num_actions)
     planner = RandomShootingPlanner(
         planning_env, PixelDistanceCost(), planning_horizon=3, num_candidates=16, seed=0
     )

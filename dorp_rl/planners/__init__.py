@@ -3,7 +3,7 @@
 The planners are :class:`torchrl.modules.planners.MPCPlannerBase` subclasses, one per
 file as in torchrl (``base.py``, ``random_shooting.py``, ``cem.py``), that sample
 discrete action sequences, roll them out in a planning env
-(:class:`dorp_rl.envs.GroundTruthModelEnv`, :class:`dorp_rl.envs.WorldModelEnv`) and
+(:class:`dorp_rl.envs.GroundTruthModelEnv`, :class:`dorp_rl.envs.VideoModelEnv`) and
 minimise a cost over the imagined rollout. Costs (``costs.py``) are TensorDict modules
 that write a per-step cost ``[B, N, H]``; they compose with :class:`CostSequence` (a
 :class:`~tensordict.nn.TensorDictSequential` that passes lazily computed predictions on)

@@ -4,7 +4,7 @@
 :class:`~torchrl.data.Categorical` action: given the acting envs' tensordict (batch
 ``[B]``) it samples ``N`` candidate action sequences per row, rolls them out in a
 planning env (:class:`~dorp_rl.envs.GroundTruthModelEnv`,
-:class:`~dorp_rl.envs.WorldModelEnv`, or any non-batch-locked env) on a ``[B, N]``
+:class:`~dorp_rl.envs.VideoModelEnv`, or any non-batch-locked env) on a ``[B, N]``
 batch, scores them with a cost module (:mod:`dorp_rl.planners.costs`) and writes an
 ``action``. The optimisers are :class:`~dorp_rl.planners.RandomShootingPlanner`
 (``random_shooting.py``) and :class:`~dorp_rl.planners.CategoricalCEMPlanner`
@@ -212,7 +212,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 f"batch_size={tuple(env.batch_size)}): a planner steps a [B, N] batch of "
                 "candidates in it, so it must accept any leading shape. Build it with "
                 "batch_size=() and batch_locked=False, or wrap the env's dynamics in "
-                "dorp_rl.envs.GroundTruthModelEnv / WorldModelEnv."
+                "dorp_rl.envs.GroundTruthModelEnv / VideoModelEnv."
             )
         check_int("num_candidates", num_candidates, low=1)
         check_int("planning_horizon", planning_horizon, low=1)

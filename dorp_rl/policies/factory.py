@@ -183,7 +183,7 @@ def make_dorp_policy(
         config: the policy's settings; default :meth:`DORPConfig.for_env` of ``env``
             (the generic recipe with the ``dorp`` settings of the env's profile).
         low_level: ``"gt"`` (the env's true dynamics), a planning env
-            (:class:`~dorp_rl.envs.WorldModelEnv`, ...), a video prediction model, or the
+            (:class:`~dorp_rl.envs.VideoModelEnv`, ...), a video prediction model, or the
             path of a world-model checkpoint (:func:`~dorp_rl.policies.make_planning_env`).
         seed: seeds the planners (the goal planner with a derived seed).
         **overrides: :class:`DORPConfig` fields changed from ``config``, and more

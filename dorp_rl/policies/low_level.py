@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from dorp_rl.envs.latent_planning import LatentModelEnv
-from dorp_rl.envs.planning import StatelessEnvModel, WorldModelEnv
+from dorp_rl.envs.planning import StatelessEnvModel, VideoModelEnv
 from dorp_rl.envs.spec import DiscreteActions
 
 __all__ = ["TRUE_DYNAMICS", "make_planning_env"]
@@ -33,7 +33,7 @@ def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module)
             :class:`~dorp_rl.envs.planning.StatelessEnvModel` over it), a planning env (used as it is),
             a latent world model (:class:`~dorp_rl.modules.LatentWorldModel`, driven by
             :class:`~dorp_rl.envs.LatentModelEnv`), a model with ``predict(pixels,
-            action)`` (wrapped in :class:`~dorp_rl.envs.WorldModelEnv`) or the path of a
+            action)`` (wrapped in :class:`~dorp_rl.envs.VideoModelEnv`) or the path of a
             checkpoint of either (loaded against ``env``).
 
     Raises:
@@ -66,7 +66,7 @@ def make_planning_env(env: EnvBase, low_level: str | Path | EnvBase | nn.Module)
         # A latent world model: frames decoded at every step, for costs that read pixels.
         return LatentModelEnv(low_level, decode=True)
     if callable(getattr(low_level, "predict", None)):
-        return WorldModelEnv(low_level, DiscreteActions.of(env).num_actions)
+        return VideoModelEnv(low_level, DiscreteActions.of(env).num_actions)
     raise ValueError(
         f"low_level must be {TRUE_DYNAMICS!r} (the true dynamics), a planning env, a latent "
         "world model, a model with predict(pixels, action) or the path of a world-model "

@@ -1,7 +1,7 @@
 """Visual foresight (VF-RS, VF-CEM): the paper's baselines, planning on pixel distance.
 
 The policy imagines candidate action sequences in a planning env (a video prediction
-model through :class:`~dorp_rl.envs.WorldModelEnv`, or the true dynamics through
+model through :class:`~dorp_rl.envs.VideoModelEnv`, or the true dynamics through
 :class:`~dorp_rl.envs.GroundTruthModelEnv`) and picks the one whose predicted frames
 come closest to the goal image ``goal_pixels`` in pixel L2
 (:class:`~dorp_rl.planners.PixelDistanceCost`).
