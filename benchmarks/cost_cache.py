@@ -29,7 +29,7 @@ import torch
 from dorp_rl.eval import evaluate_policy, make_task_set
 from dorp_rl.eval.settings import SETTINGS
 from dorp_rl.planners import CodeGraph
-from dorp_rl.planners.costs import _KeyedCache
+from dorp_rl.planners.costs.caches import KeyedCache
 from dorp_rl.policies import make_dorp_policy
 from dorp_rl.trainers import load_encoder
 
@@ -39,7 +39,7 @@ def without_caches(policy: torch.nn.Module) -> int:
     count = 0
     for module in policy.modules():
         cache = getattr(module, "cache", None)
-        if isinstance(cache, _KeyedCache):
+        if isinstance(cache, KeyedCache):
             cache.clear()
             cache.size = 0
             count += 1

@@ -872,7 +872,7 @@ def test_blur_is_a_gaussian_with_symmetric_borders(sigma):
     """The matrix blur equals a direct sum over taps of the symmetrically padded image."""
     import numpy as np
 
-    from dorp_rl.planners.costs import _blur
+    from dorp_rl.planners.costs.goal_image import _blur
 
     radius = min(15, math.ceil(3 * sigma))
     taps = torch.exp(-0.5 * (torch.arange(-radius, radius + 1) / sigma) ** 2)
@@ -892,7 +892,7 @@ def test_blur_is_a_gaussian_with_symmetric_borders(sigma):
 
 
 def test_encoding_cache_returns_what_the_encoder_returns_across_inserts_and_resets():
-    from dorp_rl.planners.costs import _EncodingCache
+    from dorp_rl.planners.costs.caches import EncodingCache
 
     generator = torch.Generator().manual_seed(0)
     pool = torch.randint(0, 256, (12, 3, 4, 4), dtype=torch.uint8, generator=generator)
@@ -903,7 +903,7 @@ def test_encoding_cache_returns_what_the_encoder_returns_across_inserts_and_rese
         flat = frames.flatten(1).to(torch.int64)
         return flat[:, :2] % 7, flat[:, :6].float().reshape(-1, 2, 3) / 255
 
-    cache = _EncodingCache(size=8)
+    cache = EncodingCache(size=8)
     for picks in ([0, 1, 2], [2, 3, 1, 4], [5, 6, 0], [7, 8, 9, 3], [9, 10, 11, 11]):
         frames = pool[torch.tensor(picks)]
         code, prob = cache.encode(frames, encode_frames, None)
