@@ -19,8 +19,8 @@ from push_blocks import PushBlocksEnv
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
-from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModelEnv, planning
-from dorp_rl.envs.planning import StatelessEnvModel, distinct_rows, row_hashes
+from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModelEnv
+from dorp_rl.envs.planning import StatelessEnvModel, distinct_rows, frame_hash, row_hashes
 from dorp_rl.planners import CodeGraph, PixelDistanceCost, RandomShootingPlanner
 
 
@@ -332,7 +332,7 @@ def test_every_planning_env_plans_toward_a_goal_given_as_an_image_only(name):
 def reference_hashes(rows: torch.Tensor) -> torch.Tensor:
     """The weighted byte sums modulo 2**64 that row_hashes is defined as."""
     flat = rows.reshape(rows.shape[0], -1)
-    weights = planning._hash_weights(rows.device, flat.shape[1])
+    weights = frame_hash.hash_weights(rows.device, flat.shape[1])
     return (flat.to(torch.int64) * weights).sum(-1)
 
 
@@ -356,7 +356,7 @@ def test_distinct_rows_are_exact_on_large_frames_and_give_up_on_collisions(monke
         assert unique.shape[0] == 5 and torch.equal(unique[inverse], rows)
     # Every hash equal: the rows are compared, so different rows are never merged.
     monkeypatch.setattr(
-        planning, "_hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
+        frame_hash, "hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
     )
     rows = frames[pick]
     unique, inverse = distinct_rows(rows)

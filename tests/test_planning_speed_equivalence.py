@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-import dorp_rl.envs.planning as planning
+import dorp_rl.envs.planning.frame_hash as frame_hash
 from dorp_rl.envs import (
     GridWorldEnv,
     GroundTruthModelEnv,
@@ -191,7 +191,7 @@ def test_cached_costs_stay_right_when_hashes_collide(monkeypatch, name):
     """Frames sharing a hash are kept out of the caches keyed by hashes: later calls,
     which read the caches, score every candidate as an uncached cost does."""
     monkeypatch.setattr(
-        planning, "_hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
+        frame_hash, "hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
     )
     env = make_env("rearrangement", batch=2)
     td = with_codes(env, env.reset())
@@ -299,7 +299,7 @@ def test_fallbacks_give_the_same_costs(monkeypatch):
 
     # Every hash colliding: deduplication gives up on both paths alike.
     monkeypatch.setattr(
-        planning, "_hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
+        frame_hash, "hash_weights", lambda device, n: torch.zeros(n, dtype=torch.long)
     )
     env = make_env("rearrangement", batch=2)
     td = with_codes(env, env.reset())
@@ -443,6 +443,6 @@ def test_deduplication_takes_frames_whose_byte_size_is_not_a_multiple_of_8(disti
     expected = (frames.float() / 255 - goal.float() / 255).flatten(-3).norm(dim=-1)
     torch.testing.assert_close(cost, expected)
     actions = torch.zeros(12, dtype=torch.int64) + 3
-    out_frames, out_actions, inverse = planning._distinct_pairs(palette[which], actions)
+    out_frames, out_actions, inverse = frame_hash._distinct_pairs(palette[which], actions)
     assert out_frames.shape[0] == distinct and torch.equal(out_actions[inverse], actions)
     assert torch.equal(out_frames[inverse], palette[which])

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from dorp_rl.envs.planning import row_hashes
 from dorp_rl.policies.state import StateKey
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -475,7 +476,6 @@ class AvoidNoops(RecoveryRule):
             raise ValueError(f"memory must be >= 1 (frames remembered), got {memory}.")
         self.memory = int(memory)
         self.num_actions = 0  # the planners' actions, set by bind
-        self._weights: dict[tuple[int, torch.device], torch.Tensor] = {}
 
     def bind(self, policy: AbstractGoalPolicy) -> None:
         super().bind(policy)
@@ -513,16 +513,9 @@ class AvoidNoops(RecoveryRule):
         )
 
     def frame_hash(self, frames: torch.Tensor) -> torch.Tensor:
-        """int64 ``[rows, 1]``: a hash of each uint8 frame ``[rows, C, H, W]``, the sum of
-        its pixels times fixed random 31-bit weights (integer arithmetic: equal frames,
-        equal hashes; no wrap-around below 16 million pixel values per frame)."""
-        flat = frames.reshape(frames.shape[0], -1)
-        key = (flat.shape[-1], flat.device)
-        if key not in self._weights:
-            gen = torch.Generator().manual_seed(0)
-            weights = torch.randint(1, 2**31, (flat.shape[-1],), generator=gen)
-            self._weights[key] = weights.to(flat.device)
-        return (flat.long() * self._weights[key]).sum(-1, keepdim=True)
+        """int64 ``[rows, 1]``: the frame hash of each uint8 frame ``[rows, C, H, W]``
+        (:func:`~dorp_rl.envs.planning.row_hashes`, the one the planners use)."""
+        return row_hashes(frames).unsqueeze(-1)
 
     def observe(self, state: State, frames: torch.Tensor, active: torch.Tensor) -> None:
         if not active.any():
