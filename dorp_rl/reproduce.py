@@ -58,10 +58,10 @@ from dorp_rl.pipeline import (
     PaperOptions,
     Reproduce,
     Run,
-    _policy,
     default_command,
     dorp_stages,
     evaluate_stage,
+    method_policy,
     task_set,
 )
 from dorp_rl.progress import BarMirror, progress_bar, relay_bars
@@ -199,7 +199,7 @@ def _rollout_gifs(
     chosen = tasks_to_draw(records, n) if records else list(range(n))
     env = setting.make_env(batch_size=(batch,), seed=cmd.seed)
     tasks, limit = task_set(cmd, env)
-    policy = _policy(cmd, method, env, _low_level_path(run, cmd), dorp)
+    policy = method_policy(cmd, method, env, _low_level_path(run, cmd), dorp)
     code_maps = maps.get(_codes_variant(method))
     bar = progress_bar(run.progress, total=len(chosen), desc="GIF rollouts", unit="task")
     paths: list[Path] = []

@@ -34,7 +34,7 @@ from dorp_rl.frames import frame_shape_of
 from dorp_rl.modules import DDDPSimilarity, DiscreteCodeEncoder, EncoderConfig
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners import CodeGraph
-from dorp_rl.planners.code_graph import play_actions
+from dorp_rl.planners.play_codes import play_actions
 
 
 @pytest.mark.parametrize(

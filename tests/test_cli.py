@@ -306,16 +306,16 @@ def test_the_demo_defaults_are_the_2_object_preset_with_fewer_steps() -> None:
 
 
 def test_graphs_over_one_codes_variant_share_one_encoding(tmp_path, dorp, monkeypatch) -> None:
-    import dorp_rl.pipeline as pipeline
+    from dorp_rl.pipeline import stages
 
     calls = []
-    encode = pipeline.encode_transitions
+    encode = stages.encode_transitions
 
     def counting(buffer, encoder, **kwargs):
         calls.append(encoder_fingerprint(encoder))
         return encode(buffer, encoder, **kwargs)
 
-    monkeypatch.setattr(pipeline, "encode_transitions", counting)
+    monkeypatch.setattr(stages, "encode_transitions", counting)
     dorp(tmp_path, "evaluate", *dorp.CODES, *dorp.EVAL, "--methods", "dorp", "dorp-full")
     assert len(calls) == 1  # the per-one-hot and the full graph: one encoding
     assert (tmp_path / "run" / "graph.pt").exists()
@@ -394,6 +394,7 @@ def test_dorp_settings_default_to_the_env_profile_and_reach_every_evaluation(
 ) -> None:
     from dorp_rl import pipeline
     from dorp_rl.cli import parse
+    from dorp_rl.pipeline import stages
     from dorp_rl.reproduce import _setting_command
 
     # the profile's DORP settings are the defaults: the key rooms re-enter codes
@@ -410,14 +411,14 @@ def test_dorp_settings_default_to_the_env_profile_and_reach_every_evaluation(
         def make_policy(self, env):
             return None
 
-    monkeypatch.setattr(pipeline, "EvalSpec", Recorder)
-    pipeline._policy(cmd, "dorp", None, low_level=None, dorp=("enc", "graph", "graph"))
+    monkeypatch.setattr(stages, "EvalSpec", Recorder)
+    pipeline.method_policy(cmd, "dorp", None, low_level=None, dorp=("enc", "graph", "graph"))
     (spec,) = specs
     assert spec["dorp"]["planner"] == "cem" and spec["dorp"]["goal_budget"] == 50
     assert spec["dorp"]["reenter"] is True and "num_candidates" not in spec["dorp"]
     monkeypatch.undo()
     kept = {k: v for k, v in spec.items() if k not in ("encoder", "graph")}
-    config = pipeline.EvalSpec("keywall", "random", **kept).dorp_config()
+    config = stages.EvalSpec("keywall", "random", **kept).dorp_config()
     assert (config.planner, config.goal_budget, config.num_candidates) == ("cem", 50, 7)
     # --paper carries the command line's --dorp.* changes into every setting's own config
     _, paper = parse(["reproduce", "--paper", "--dorp.goal-budget", "50"])

@@ -37,7 +37,7 @@ from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, choose_map_strid
 from dorp_rl.modules.encoder import competing_maps
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
-from dorp_rl.planners.code_graph import encode_transitions
+from dorp_rl.planners.play_codes import encode_transitions
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
 from dorp_rl.validation import Choice, Float, Floats, Int, Text, check_device, derive_seed
 

@@ -174,7 +174,7 @@ def play_code_dynamics(
     and ``step_count``.
     """
     from dorp_rl.data.samplers import stored_column
-    from dorp_rl.planners.code_graph import encode_transitions
+    from dorp_rl.planners.play_codes import encode_transitions
 
     if transitions is None:
         transitions = encode_transitions(buffer, encoder, chunk_size=chunk_size)

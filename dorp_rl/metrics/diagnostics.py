@@ -415,7 +415,7 @@ def play_object_diagnostics(
     :func:`~dorp_rl.planners.encode_transitions` on the same data, if already computed."""
     from tensordict import TensorDictBase
 
-    from dorp_rl.planners.code_graph import encode_transitions
+    from dorp_rl.planners.play_codes import encode_transitions
 
     if transitions is None:
         transitions = encode_transitions(buffer, encoder, chunk_size=chunk_size)

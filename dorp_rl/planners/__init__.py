@@ -23,12 +23,7 @@ from dorp_rl.planners.base import (
     select_best,
 )
 from dorp_rl.planners.cem import CategoricalCEMPlanner
-from dorp_rl.planners.code_graph import (
-    CodeGraph,
-    encode_transitions,
-    encoder_fingerprint,
-    resolve_groups,
-)
+from dorp_rl.planners.code_graph import CodeGraph, resolve_groups
 from dorp_rl.planners.costs import (
     STEP_AGGREGATIONS,
     CodeMatchCost,
@@ -46,6 +41,7 @@ from dorp_rl.planners.costs import (
     run_cost_lazy,
 )
 from dorp_rl.planners.coupling import GroupChoice, coupled_groups
+from dorp_rl.planners.play_codes import encode_transitions, encoder_fingerprint
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
 
 __all__ = [
