@@ -450,22 +450,16 @@ def test_an_env_s_own_diagnostics_come_through_its_profile(tmp_path):
     """An env written here declares diagnostics of its own (EnvProfile.diagnostics): the
     code trainer logs them beside the label diagnostics of ``objects``, and the pictures
     and the rollout GIFs' code maps come from them; an env class alone has none."""
+    from tiny_args import tiny_codes
+
     from dorp_rl.envs import env_profile
-    from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
+    from dorp_rl.trainers import RepresentationTrainer
     from dorp_rl.viz import code_maps_for_waypoints, write_diagnostic_plots
 
-    cfg = RepresentationConfig(
-        env="push_blocks:PUSH_BLOCKS_DIAGNOSED",
-        num_frames=256,
-        num_envs=4,
-        batch_size=16,
-        num_steps=3,
-        diagnostics_every=1000,
-        diagnostics_samples=64,
-        dead_check_frames=0,
-        out_dir=str(tmp_path / "codes"),
-        progress=False,
-    )
+    cfg = tiny_codes(
+        "push_blocks:PUSH_BLOCKS_DIAGNOSED", tmp_path, num_frames=256, num_steps=3,
+        diagnostics_samples=64, encoder={},
+    )  # fmt: skip
     trainer = RepresentationTrainer(cfg)
     trainer.train()
     result = trainer.evaluate()

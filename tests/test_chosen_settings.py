@@ -14,6 +14,7 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
+from tiny_args import tiny_codes
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
@@ -62,22 +63,6 @@ def test_scan_refuses_what_is_not_a_batch_of_frames():
         scan_frames(torch.zeros(1, 3, 8, 8, dtype=torch.uint8))
     with pytest.raises(ValueError, match="uint8 or floats"):
         scan_frames(torch.zeros(4, 3, 8, 8, dtype=torch.int32))
-
-
-def tiny_codes(env: str, tmp_path, **overrides) -> RepresentationConfig:
-    values = {
-        "num_frames": 512,
-        "num_envs": 4,
-        "batch_size": 16,
-        "num_steps": 4,
-        "diagnostics_every": 1000,
-        "dead_check_frames": 0,
-        "out_dir": str(tmp_path / "codes"),
-        "progress": False,
-        "encoder": {"channels": 4, "mlp_sizes": (16,)},
-        **overrides,
-    }
-    return RepresentationConfig(env=env, **values)
 
 
 def test_a_bare_make_env_gets_its_one_hots_counted_and_the_choices_written(tmp_path):

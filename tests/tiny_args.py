@@ -1,4 +1,6 @@
-"""Arguments of the ``dorp`` command that make each stage take seconds in a test."""
+"""Arguments of the ``dorp`` command, and configs, that make each stage take seconds in a test."""
+
+from dorp_rl.trainers import RepresentationConfig
 
 #: 1-object codes of a few steps (the play data's size left to the test).
 CODES_ANY_FRAMES = (
@@ -32,3 +34,20 @@ WORLD_MODEL = (
     "--world-model.model.dilations", "1", "2", "4",
     "--world-model.batch-size", "8",
 )  # fmt: skip
+
+
+def tiny_codes(env: str, tmp_path, **overrides) -> RepresentationConfig:
+    """A code config of a few steps on a few hundred frames of ``env``."""
+    values = {
+        "num_frames": 512,
+        "num_envs": 4,
+        "batch_size": 16,
+        "num_steps": 4,
+        "diagnostics_every": 1000,
+        "dead_check_frames": 0,
+        "out_dir": str(tmp_path / "codes"),
+        "progress": False,
+        "encoder": {"channels": 4, "mlp_sizes": (16,)},
+        **overrides,
+    }
+    return RepresentationConfig(env=env, **values)

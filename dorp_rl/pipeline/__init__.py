@@ -11,86 +11,9 @@ their options, each a composition of the option groups it needs (:class:`RunOpti
 ``dorp reproduce --paper`` (:mod:`dorp_rl.reproduce`) runs them once per setting.
 """
 
-from dorp_rl.pipeline.options import (
-    COMMANDS,
-    DEMO_CODE_STEPS,
-    DORP_VARIANTS,
-    LOW_LEVEL_NAMES,
-    PLAY_FIELDS,
-    BuildGraph,
-    CodeOptions,
-    Collect,
-    Demo,
-    DORPOptions,
-    Evaluate,
-    EvaluationOptions,
-    LatentModelOptions,
-    PaperOptions,
-    Reproduce,
-    RunOptions,
-    TrainEncoder,
-    TrainWorldModel,
-    WorldModelOptions,
-    default_command,
-)
-from dorp_rl.pipeline.run import (
-    NAME_RULE,
-    RUN_HOLDER,
-    RUN_LOCK,
-    Run,
-    UsageError,
-    quiet_torchrl,
-    run_folder,
-)
-from dorp_rl.pipeline.stages import (
-    codes_stage,
-    dorp_stages,
-    evaluate_stage,
-    graph_stage,
-    latent_model_stage,
-    method_policy,
-    play_stage,
-    say_chosen,
-    task_set,
-    world_model_stage,
-)
+from dorp_rl.pipeline import options, run, stages
+from dorp_rl.pipeline.options import *  # noqa: F403
+from dorp_rl.pipeline.run import *  # noqa: F403
+from dorp_rl.pipeline.stages import *  # noqa: F403
 
-__all__ = [
-    "COMMANDS",
-    "DEMO_CODE_STEPS",
-    "DORP_VARIANTS",
-    "LOW_LEVEL_NAMES",
-    "NAME_RULE",
-    "PLAY_FIELDS",
-    "RUN_HOLDER",
-    "RUN_LOCK",
-    "BuildGraph",
-    "CodeOptions",
-    "Collect",
-    "DORPOptions",
-    "Demo",
-    "Evaluate",
-    "EvaluationOptions",
-    "LatentModelOptions",
-    "PaperOptions",
-    "Reproduce",
-    "Run",
-    "RunOptions",
-    "TrainEncoder",
-    "TrainWorldModel",
-    "UsageError",
-    "WorldModelOptions",
-    "codes_stage",
-    "default_command",
-    "dorp_stages",
-    "evaluate_stage",
-    "graph_stage",
-    "latent_model_stage",
-    "play_stage",
-    "quiet_torchrl",
-    "run_folder",
-    "say_chosen",
-    "task_set",
-    "world_model_stage",
-    "method_policy",
-]
+__all__ = [*options.__all__, *run.__all__, *stages.__all__]
