@@ -35,6 +35,28 @@ from dorp_rl.validation import Device, Flag, Int, Seed, Text
 MAX_OBJECTS = 8
 
 
+def read_trained(
+    path: str | Path, kind: str, config_type: Any, env: EnvBase | None, state_key: str
+) -> tuple[Any, dict[str, Any], dict[str, Any]]:
+    """``(config, state, payload)`` of a trainer's checkpoint of ``kind``: its config as
+    ``config_type``, the state dict under ``state_key`` and the whole payload; with ``env``,
+    the checkpoint must come from that environment.
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: a damaged, incomplete or non-finite file
+            (:class:`~dorp_rl.integrity.IntegrityError`), another kind of checkpoint or
+            another environment.
+    """
+    payload = load_checkpoint(
+        path,
+        kind=kind,
+        env_config=None if env is None else env_identity(env),
+        state_keys=(state_key,),
+    )
+    return config_type.from_dict(payload["config"]), payload["state"][state_key], payload
+
+
 @dataclass(frozen=True)
 class EnvName:
     """Rule of an ``env`` field: a registered profile name or an import path

@@ -15,14 +15,14 @@ from torchrl.data import TensorDictReplayBuffer
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
 from dorp_rl.config import Nested, checked
 from dorp_rl.data import SequenceSampler, play_segment_length, rare_code_changes
-from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.envs import DiscreteActions
 from dorp_rl.frames import frame_shape_of
 from dorp_rl.integrity import state_digest
 from dorp_rl.metrics.world_model import latent_open_loop_accuracy
 from dorp_rl.modules.encoder import choose_map_stride
 from dorp_rl.modules.latent import LatentModelConfig, LatentWorldModel, check_latent_model
 from dorp_rl.objectives.latent import LatentWorldModelLoss
-from dorp_rl.trainers.base import TrainerConfig
+from dorp_rl.trainers.base import TrainerConfig, read_trained
 from dorp_rl.trainers.representation import load_encoder
 from dorp_rl.trainers.windows import WindowTrainer
 from dorp_rl.trainers.world_model import WorldModelTrainer, load_video_model
@@ -368,16 +368,11 @@ def load_latent_world_model(
             environment, or other code sizes or frames than ``encoder``'s.
     """
     device = check_device(device)
-    payload = load_checkpoint(
-        path,
-        kind=LatentWorldModelTrainer.kind,
-        env_config=None if env is None else env_identity(env),
-        state_keys=("model",),
-    )
-    cfg = LatentWorldModelConfig.from_dict(payload["config"])
+    kind = LatentWorldModelTrainer.kind
+    cfg, state, payload = read_trained(path, kind, LatentWorldModelConfig, env, "model")
     num_actions = DiscreteActions.of(cfg.make_env() if env is None else env).num_actions
     model = LatentWorldModel(num_actions, cfg.model)
-    load_module_state(model, payload["state"]["model"], path, "model")
+    load_module_state(model, state, path, "model")
     if encoder is not None:
         check_latent_model(
             model, encoder.code_sizes, getattr(encoder, "frame_shape", model.frame_shape)

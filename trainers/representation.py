@@ -38,7 +38,7 @@ from dorp_rl.modules.encoder import competing_maps
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.play_codes import encode_transitions
-from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook
+from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook, read_trained
 from dorp_rl.validation import Choice, Float, Floats, Int, Text, check_device, derive_seed
 
 #: Flat fields of older representation configs that now live in ``encoder``.
@@ -1261,14 +1261,9 @@ def load_encoder(
             another environment.
     """
     device = check_device(device)
-    payload = load_checkpoint(
-        path,
-        kind="representation",
-        env_config=None if env is None else env_identity(env),
-        state_keys=("encoder",),
-    )
-    cfg = RepresentationConfig.from_dict(payload["config"])
+    kind = RepresentationTrainer.kind
+    cfg, state, payload = read_trained(path, kind, RepresentationConfig, env, "encoder")
     encoder = DiscreteCodeEncoder(cfg.encoder_config())
-    load_module_state(encoder, payload["state"]["encoder"], path, "encoder")
+    load_module_state(encoder, state, path, "encoder")
     encoder.env_config = dict(payload.get("env_config") or {}) or None
     return encoder.to(device).eval()

@@ -11,17 +11,17 @@ import torch
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
-from dorp_rl.checkpoint import load_checkpoint, load_module_state
+from dorp_rl.checkpoint import load_module_state
 from dorp_rl.config import Nested, checked
 from dorp_rl.data import (
     play_segment_length,
 )
-from dorp_rl.envs import DiscreteActions, env_identity
+from dorp_rl.envs import DiscreteActions
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.metrics.world_model import open_loop_accuracy
 from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palette_from_frames
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
-from dorp_rl.trainers.base import TrainerConfig
+from dorp_rl.trainers.base import TrainerConfig, read_trained
 from dorp_rl.trainers.windows import WindowTrainer
 from dorp_rl.validation import Choice, Float, Int, Text, check_device
 
@@ -245,14 +245,7 @@ def load_video_model(
             another environment.
     """
     device = check_device(device)
-    payload = load_checkpoint(
-        path,
-        kind=WorldModelTrainer.kind,
-        env_config=None if env is None else env_identity(env),
-        state_keys=("model",),
-    )
-    cfg = WorldModelConfig.from_dict(payload["config"])
-    state = payload["state"]["model"]
+    cfg, state, _ = read_trained(path, WorldModelTrainer.kind, WorldModelConfig, env, "model")
     if "palette" not in state:
         raise IntegrityError(f"checkpoint {path} is incomplete: its model has no 'palette'.")
     num_actions = DiscreteActions.of(cfg.make_env()).num_actions
