@@ -16,8 +16,7 @@ from dorp_rl.planners import (
     PixelDistanceCost,
     RandomShootingPlanner,
 )
-from dorp_rl.policies import make_dorp_policy
-from dorp_rl.policies.abstract_goal import PRIOR_KEY
+from dorp_rl.policies import PRIOR_KEY, make_dorp_policy
 from dorp_rl.validation import MissingKeyError
 
 

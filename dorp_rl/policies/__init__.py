@@ -13,7 +13,6 @@ from dorp_rl.policies.config import ORDERS, DORPConfig
 from dorp_rl.policies.factory import make_dorp_policy, make_waypoint_cost
 from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
 from dorp_rl.policies.recovery import (
-    NOOPS_KEY,
     AvoidNoops,
     ForgetBlocked,
     GoalRelaxation,
@@ -23,7 +22,7 @@ from dorp_rl.policies.recovery import (
     RestoreWhenStuck,
     recovery_rules,
 )
-from dorp_rl.policies.state import PolicyState, StateKey
+from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY, PolicyState, StateKey
 from dorp_rl.policies.visual_foresight import VARIANT_DEFAULTS, VisualForesightPolicy
 
 __all__ = [
@@ -36,7 +35,9 @@ __all__ = [
     "LOOP_FIELDS",
     "MODES",
     "MissedPlans",
+    "GOAL_PRIOR_KEY",
     "NOOPS_KEY",
+    "PRIOR_KEY",
     "ORDERS",
     "PolicyState",
     "RecoveryRule",

@@ -69,11 +69,11 @@ from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.policies.config import DORPConfig
-from dorp_rl.policies.recovery import NOOPS_KEY, RecoveryRule, recovery_rules
-from dorp_rl.policies.state import PolicyState, StateKey
+from dorp_rl.policies.recovery import RecoveryRule, recovery_rules
+from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY, PolicyState, StateKey
 from dorp_rl.validation import MissingKeyError, check_keywords, check_seed, derive_seed
 
-__all__ = ["ENDINGS", "LOOP_FIELDS", "MODES", "GOAL_PRIOR_KEY", "PRIOR_KEY", "AbstractGoalPolicy"]
+__all__ = ["ENDINGS", "LOOP_FIELDS", "MODES", "AbstractGoalPolicy"]
 
 #: Values of ``dorp_mode``.
 MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
@@ -82,10 +82,6 @@ _NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = range(5)
 #: :meth:`AbstractGoalPolicy.task_records`).
 ENDINGS = {"running": 0, "no_path": 1, "goal_stalled": 2, "removal_limit": 3}
 _RUNNING, _NO_PATH, _GOAL_STALLED, _REMOVAL_LIMIT = range(4)
-#: Where the policy writes the waypoint planner's action distribution (``action_prior_mix``).
-PRIOR_KEY = "subgoal_action_prior"
-#: Where the policy writes the goal planner's action distribution (``goal_action_prior_mix``).
-GOAL_PRIOR_KEY = "goal_action_prior"
 #: The :class:`~dorp_rl.policies.DORPConfig` fields the policy itself reads (the others
 #: shape the planners :func:`~dorp_rl.policies.make_dorp_policy` gives it).
 LOOP_FIELDS = (

@@ -25,10 +25,10 @@ from dorp_rl.planners.costs import (
     check_step_penalty,
 )
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
-from dorp_rl.policies.abstract_goal import GOAL_PRIOR_KEY, PRIOR_KEY, AbstractGoalPolicy
+from dorp_rl.policies.abstract_goal import AbstractGoalPolicy
 from dorp_rl.policies.config import DORPConfig
 from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
-from dorp_rl.policies.recovery import NOOPS_KEY
+from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY
 from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
 
 __all__ = [

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from dorp_rl.envs.planning import row_hashes
-from dorp_rl.policies.state import StateKey
+from dorp_rl.policies.state import NOOPS_KEY, StateKey
 
 if TYPE_CHECKING:  # pragma: no cover
     from dorp_rl.policies.abstract_goal import AbstractGoalPolicy
@@ -443,11 +443,6 @@ class GoalRelaxation(RecoveryRule):
         state["dorp_goal_stall"][rows] = 0
         state["dorp_goal_best"][rows] = float("inf")
         plans[self.policy.goal_planner.length_key][rows] = 0
-
-
-#: Where :class:`AvoidNoops` keeps the actions seen to leave the current frame unchanged
-#: (the planners' ``excluded_actions_key``).
-NOOPS_KEY = "dorp_noops"
 
 
 class AvoidNoops(RecoveryRule):

@@ -31,7 +31,17 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
-__all__ = ["PolicyState", "StateKey"]
+__all__ = ["GOAL_PRIOR_KEY", "NOOPS_KEY", "PRIOR_KEY", "PolicyState", "StateKey"]
+
+# The keys the policy's parts share with its planners (the rest are declared as
+# StateKeys by the part that keeps them).
+#: Where the policy writes the waypoint planner's action distribution (``action_prior_mix``).
+PRIOR_KEY = "subgoal_action_prior"
+#: Where the policy writes the goal planner's action distribution (``goal_action_prior_mix``).
+GOAL_PRIOR_KEY = "goal_action_prior"
+#: The actions seen to leave the current frame unchanged (kept by
+#: :class:`~dorp_rl.policies.AvoidNoops`; the planners' ``excluded_actions_key``).
+NOOPS_KEY = "dorp_noops"
 
 
 @dataclass(frozen=True)
