@@ -8,7 +8,7 @@ instead of half-loading. A config may embed another as a field (a trainer config
 its model's config); :meth:`ConfigMixin.replace` changes fields of both at once.
 
 Every field has a rule, given beside it with :func:`checked` (``lr: float =
-checked(1e-3, Float(low=0.0))``; rules in :mod:`dorp_rl.validation`, :class:`Nested` for
+checked(1e-3, Float(low=0.0))``; the rules below: :class:`Int`, :class:`Float`, ..., :class:`Nested` for
 an embedded config), checked when the config is built (also by
 :func:`dataclasses.replace` and ``from_dict``): a wrong value raises ``ValueError``
 naming the field and its allowed range, and values are normalised (``3.0`` steps become
@@ -19,12 +19,21 @@ live in :meth:`ConfigMixin.check_relations`.
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import typing
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from dorp_rl.validation import check_fields
+from dorp_rl.validation import (
+    check_bool,
+    check_choice,
+    check_device,
+    check_float,
+    check_int,
+    check_seed,
+)
 
 T = TypeVar("T", bound="ConfigMixin")
 
@@ -117,7 +126,7 @@ class ConfigMixin:
     Examples:
         >>> from dataclasses import dataclass
         >>> from dorp_rl.config import ConfigMixin, Nested, checked
-        >>> from dorp_rl.validation import Int, Ints
+        >>> from dorp_rl.config import Int, Ints
         >>> @dataclass
         ... class Sizes(ConfigMixin):
         ...     widths: tuple[int, ...] = checked((32, 32), Ints(low=1))
@@ -265,3 +274,164 @@ def carry_changes(target: Any, given: Any, default: Any, skip: Sequence[str] = (
             value = carry_changes(getattr(target, f.name), value, base, skip)
         changes[f.name] = value
     return dataclasses.replace(target, **changes)
+
+
+# --------------------------------------------------------------------------- field rules
+@dataclass(frozen=True)
+class Int:
+    """Rule of an integer config field."""
+
+    low: int | None = None
+    high: int | None = None
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> int | None:
+        return check_int(name, value, low=self.low, high=self.high, optional=self.optional)
+
+
+@dataclass(frozen=True)
+class Ints:
+    """Rule of a tuple-of-integers field (e.g. conv dilations), each ``>= low``."""
+
+    low: int | None = None
+    min_length: int = 1
+    max_length: int | None = None
+
+    def __call__(self, name: str, value: Any) -> tuple[int, ...]:
+        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+            raise ValueError(f"{name} must be a sequence of integers, got {value!r}.")
+        items = tuple(check_int(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(value))
+        if len(items) < self.min_length:
+            raise ValueError(
+                f"{name} must hold at least {self.min_length} integer(s), got {value!r}."
+            )
+        if self.max_length is not None and len(items) > self.max_length:
+            raise ValueError(
+                f"{name} must hold at most {self.max_length} integer(s), got {value!r}."
+            )
+        return items
+
+
+@dataclass(frozen=True)
+class Floats:
+    """Rule of a tuple-of-floats field (e.g. per-one-hot weights), each finite and ``>= low``;
+    with ``allow_scalar`` one number is also taken (and kept as a float)."""
+
+    low: float | None = None
+    allow_scalar: bool = False
+
+    def __call__(self, name: str, value: Any) -> float | tuple[float, ...]:
+        if self.allow_scalar and not isinstance(value, (str, bytes, Iterable)):
+            return check_float(name, value, low=self.low)
+        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
+            what = (
+                "a number or a sequence of numbers"
+                if self.allow_scalar
+                else "a sequence of numbers"
+            )
+            raise ValueError(f"{name} must be {what}, got {value!r}.")
+        items = tuple(check_float(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(value))
+        if not items:
+            raise ValueError(f"{name} must hold at least one number, got {value!r}.")
+        return items
+
+
+@dataclass(frozen=True)
+class Float:
+    """Rule of a float config field (finite unless ``allow_inf``)."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    allow_inf: bool = False
+    optional: bool = False
+    #: appended to the error message (what the value means, how to turn a feature off)
+    hint: str = ""
+
+    def __call__(self, name: str, value: Any) -> float | None:
+        try:
+            return check_float(
+                name,
+                value,
+                low=self.low,
+                high=self.high,
+                low_open=self.low_open,
+                high_open=self.high_open,
+                allow_inf=self.allow_inf,
+                optional=self.optional,
+            )
+        except ValueError as err:
+            if not self.hint:
+                raise
+            raise ValueError(f"{err} {self.hint}") from None
+
+
+@dataclass(frozen=True)
+class Choice:
+    """Rule of a field taking one of a few values."""
+
+    options: tuple[Any, ...]
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> Any:
+        return check_choice(name, value, self.options, optional=self.optional)
+
+
+@dataclass(frozen=True)
+class Flag:
+    """Rule of a ``bool`` field (``optional``: ``None`` too)."""
+
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> bool | None:
+        if value is None and self.optional:
+            return None
+        return check_bool(name, value)
+
+
+@dataclass(frozen=True)
+class Text:
+    """Rule of a non-empty string field (paths too: a ``pathlib.Path`` is stored as ``str``)."""
+
+    optional: bool = False
+
+    def __call__(self, name: str, value: Any) -> str | None:
+        if value is None and self.optional:
+            return None
+        if isinstance(value, os.PathLike):
+            value = os.fspath(value)
+        if not isinstance(value, str) or not value:
+            extra = " or None" if self.optional else ""
+            raise ValueError(f"{name} must be a non-empty string{extra}, got {value!r}.")
+        return value
+
+
+@dataclass(frozen=True)
+class Seed:
+    """Rule of a seed field (see :func:`check_seed`)."""
+
+    def __call__(self, name: str, value: Any) -> int:
+        return check_seed(value, name)
+
+
+@dataclass(frozen=True)
+class Device:
+    """Rule of a torch device field, stored as a string (``"cpu"``, ``"cuda:0"``); see :func:`check_device`."""
+
+    def __call__(self, name: str, value: Any) -> str:
+        return str(check_device(value, name))
+
+
+def check_fields(obj: Any, rules: Mapping[str, Any], fields: Iterable[str]) -> None:
+    """Checks every field of a dataclass ``obj`` with its rule and stores the normalised value.
+
+    Raises:
+        ValueError: the first field that breaks its rule (the message names it).
+        TypeError: a field without a rule (a bug of the config class, not of its user).
+    """
+    missing = [name for name in fields if name not in rules]
+    if missing:
+        raise TypeError(f"{type(obj).__name__} has no validation rule for fields {missing}.")
+    for name in fields:
+        object.__setattr__(obj, name, rules[name](name, getattr(obj, name)))

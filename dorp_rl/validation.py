@@ -8,11 +8,8 @@ policy call, a trainer's construction). The checks that read tensor values (an a
 range, the range of float pixels) synchronise with the device, so they never run inside
 per-step loops (an env's ``_step`` on its own output, a planner's imagined rollouts).
 
-Config dataclasses give every field one rule beside it (:class:`Int`, :class:`Float`,
-:class:`Choice`, :class:`Flag`, :class:`Text`, :class:`Seed`; with
-:func:`~dorp_rl.config.checked`, ``depth: int = checked(2, Int(low=1))``) and are
-checked with :func:`check_fields` when they are built (see
-:class:`~dorp_rl.config.ConfigMixin`).
+Config dataclasses give every field one rule beside it, built on these checks
+(:mod:`dorp_rl.config`: :class:`~dorp_rl.config.Int`, :class:`~dorp_rl.config.Float`, ...).
 
 Examples:
     >>> from dorp_rl.validation import check_int, check_seed
@@ -34,9 +31,7 @@ import inspect
 import math
 import numbers
 import operator
-import os
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import torch
@@ -50,20 +45,11 @@ __all__ = [
     "MissingKeyError",
     "UnknownArgumentError",
     "SEED_MAX",
-    "Choice",
-    "Device",
-    "Flag",
-    "Float",
-    "Int",
-    "Ints",
-    "Seed",
-    "Text",
     "check_action",
     "check_batch_size",
     "check_bool",
     "check_choice",
     "check_device",
-    "check_fields",
     "check_float",
     "check_int",
     "check_keywords",
@@ -280,167 +266,6 @@ def check_keywords(given: Iterable[str], accepted: Iterable[str], where: str) ->
             f"{where} got unknown keyword argument(s) {unknown}; the keywords it passes on "
             f"are {accepted}."
         )
-
-
-# --------------------------------------------------------------------------- config rules
-@dataclass(frozen=True)
-class Int:
-    """Rule of an integer config field."""
-
-    low: int | None = None
-    high: int | None = None
-    optional: bool = False
-
-    def __call__(self, name: str, value: Any) -> int | None:
-        return check_int(name, value, low=self.low, high=self.high, optional=self.optional)
-
-
-@dataclass(frozen=True)
-class Ints:
-    """Rule of a tuple-of-integers field (e.g. conv dilations), each ``>= low``."""
-
-    low: int | None = None
-    min_length: int = 1
-    max_length: int | None = None
-
-    def __call__(self, name: str, value: Any) -> tuple[int, ...]:
-        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
-            raise ValueError(f"{name} must be a sequence of integers, got {value!r}.")
-        items = tuple(check_int(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(value))
-        if len(items) < self.min_length:
-            raise ValueError(
-                f"{name} must hold at least {self.min_length} integer(s), got {value!r}."
-            )
-        if self.max_length is not None and len(items) > self.max_length:
-            raise ValueError(
-                f"{name} must hold at most {self.max_length} integer(s), got {value!r}."
-            )
-        return items
-
-
-@dataclass(frozen=True)
-class Floats:
-    """Rule of a tuple-of-floats field (e.g. per-one-hot weights), each finite and ``>= low``;
-    with ``allow_scalar`` one number is also taken (and kept as a float)."""
-
-    low: float | None = None
-    allow_scalar: bool = False
-
-    def __call__(self, name: str, value: Any) -> float | tuple[float, ...]:
-        if self.allow_scalar and not isinstance(value, (str, bytes, Iterable)):
-            return check_float(name, value, low=self.low)
-        if isinstance(value, (str, bytes)) or not isinstance(value, Iterable):
-            what = (
-                "a number or a sequence of numbers"
-                if self.allow_scalar
-                else "a sequence of numbers"
-            )
-            raise ValueError(f"{name} must be {what}, got {value!r}.")
-        items = tuple(check_float(f"{name}[{i}]", v, low=self.low) for i, v in enumerate(value))
-        if not items:
-            raise ValueError(f"{name} must hold at least one number, got {value!r}.")
-        return items
-
-
-@dataclass(frozen=True)
-class Float:
-    """Rule of a float config field (finite unless ``allow_inf``)."""
-
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-    allow_inf: bool = False
-    optional: bool = False
-    #: appended to the error message (what the value means, how to turn a feature off)
-    hint: str = ""
-
-    def __call__(self, name: str, value: Any) -> float | None:
-        try:
-            return check_float(
-                name,
-                value,
-                low=self.low,
-                high=self.high,
-                low_open=self.low_open,
-                high_open=self.high_open,
-                allow_inf=self.allow_inf,
-                optional=self.optional,
-            )
-        except ValueError as err:
-            if not self.hint:
-                raise
-            raise ValueError(f"{err} {self.hint}") from None
-
-
-@dataclass(frozen=True)
-class Choice:
-    """Rule of a field taking one of a few values."""
-
-    options: tuple[Any, ...]
-    optional: bool = False
-
-    def __call__(self, name: str, value: Any) -> Any:
-        return check_choice(name, value, self.options, optional=self.optional)
-
-
-@dataclass(frozen=True)
-class Flag:
-    """Rule of a ``bool`` field (``optional``: ``None`` too)."""
-
-    optional: bool = False
-
-    def __call__(self, name: str, value: Any) -> bool | None:
-        if value is None and self.optional:
-            return None
-        return check_bool(name, value)
-
-
-@dataclass(frozen=True)
-class Text:
-    """Rule of a non-empty string field (paths too: a ``pathlib.Path`` is stored as ``str``)."""
-
-    optional: bool = False
-
-    def __call__(self, name: str, value: Any) -> str | None:
-        if value is None and self.optional:
-            return None
-        if isinstance(value, os.PathLike):
-            value = os.fspath(value)
-        if not isinstance(value, str) or not value:
-            extra = " or None" if self.optional else ""
-            raise ValueError(f"{name} must be a non-empty string{extra}, got {value!r}.")
-        return value
-
-
-@dataclass(frozen=True)
-class Seed:
-    """Rule of a seed field (see :func:`check_seed`)."""
-
-    def __call__(self, name: str, value: Any) -> int:
-        return check_seed(value, name)
-
-
-@dataclass(frozen=True)
-class Device:
-    """Rule of a torch device field, stored as a string (``"cpu"``, ``"cuda:0"``); see :func:`check_device`."""
-
-    def __call__(self, name: str, value: Any) -> str:
-        return str(check_device(value, name))
-
-
-def check_fields(obj: Any, rules: Mapping[str, Any], fields: Iterable[str]) -> None:
-    """Checks every field of a dataclass ``obj`` with its rule and stores the normalised value.
-
-    Raises:
-        ValueError: the first field that breaks its rule (the message names it).
-        TypeError: a field without a rule (a bug of the config class, not of its user).
-    """
-    missing = [name for name in fields if name not in rules]
-    if missing:
-        raise TypeError(f"{type(obj).__name__} has no validation rule for fields {missing}.")
-    for name in fields:
-        object.__setattr__(obj, name, rules[name](name, getattr(obj, name)))
 
 
 # --------------------------------------------------------------------------- tensors

@@ -14,7 +14,21 @@ from pathlib import Path
 
 import pytest
 
-from dorp_rl.config import ConfigMixin, Nested, checked, field_rules
+from dorp_rl.config import (
+    Choice,
+    ConfigMixin,
+    Device,
+    Flag,
+    Float,
+    Floats,
+    Int,
+    Ints,
+    Nested,
+    Seed,
+    Text,
+    checked,
+    field_rules,
+)
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import ENV_NAMES, KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.modules import EncoderConfig, VideoModelConfig
@@ -26,7 +40,6 @@ from dorp_rl.trainers import (
     WorldModelTrainer,
 )
 from dorp_rl.trainers.base import EnvName
-from dorp_rl.validation import Choice, Device, Flag, Float, Floats, Int, Ints, Seed, Text
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

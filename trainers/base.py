@@ -18,7 +18,17 @@ from torchrl.envs import EnvBase
 from torchrl.trainers import TrainerHookBase
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
-from dorp_rl.config import ConfigMixin, checked, config_differences, format_differences
+from dorp_rl.config import (
+    ConfigMixin,
+    Device,
+    Flag,
+    Int,
+    Seed,
+    Text,
+    checked,
+    config_differences,
+    format_differences,
+)
 from dorp_rl.envs import (
     DEFAULT_ENV,
     EnvProfile,
@@ -29,7 +39,6 @@ from dorp_rl.envs import (
 )
 from dorp_rl.integrity import DirectoryLock, IntegrityError
 from dorp_rl.progress import progress_bar
-from dorp_rl.validation import Device, Flag, Int, Seed, Text
 
 #: Upper bound of ``num_objects`` (the default colour palette).
 MAX_OBJECTS = 8

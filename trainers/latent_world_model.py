@@ -13,7 +13,7 @@ from torch import nn
 from torchrl.data import TensorDictReplayBuffer
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
-from dorp_rl.config import Nested, checked
+from dorp_rl.config import Flag, Float, Int, Nested, Text, checked
 from dorp_rl.data import SequenceSampler, play_segment_length, rare_code_changes
 from dorp_rl.envs import DiscreteActions
 from dorp_rl.frames import frame_shape_of
@@ -26,7 +26,7 @@ from dorp_rl.trainers.base import TrainerConfig, read_trained
 from dorp_rl.trainers.representation import load_encoder
 from dorp_rl.trainers.windows import WindowTrainer
 from dorp_rl.trainers.world_model import WorldModelTrainer, load_video_model
-from dorp_rl.validation import Flag, Float, Int, Text, check_device
+from dorp_rl.validation import check_device
 
 __all__ = [
     "LatentWorldModelConfig",

@@ -16,7 +16,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_checkpoint, load_module_state
-from dorp_rl.config import Nested, checked
+from dorp_rl.config import Choice, Float, Floats, Int, Nested, Text, checked
 from dorp_rl.data import (
     FrameScan,
     FuturePairSampler,
@@ -39,7 +39,7 @@ from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.play_codes import encode_transitions
 from dorp_rl.trainers.base import OfflineTrainer, TrainerConfig, TrainerHook, read_trained
-from dorp_rl.validation import Choice, Float, Floats, Int, Text, check_device, derive_seed
+from dorp_rl.validation import check_device, derive_seed
 
 #: Flat fields of older representation configs that now live in ``encoder``.
 _FLAT_ENCODER_FIELDS = ("code_size", "encoder_preset", "map_competition", "extractor_kernel_size")

@@ -12,7 +12,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from dorp_rl.checkpoint import load_module_state
-from dorp_rl.config import Nested, checked
+from dorp_rl.config import Choice, Float, Int, Nested, Text, checked
 from dorp_rl.data import (
     play_segment_length,
 )
@@ -23,7 +23,7 @@ from dorp_rl.modules.video import VideoModelConfig, VideoPredictionModel, palett
 from dorp_rl.objectives.video import FEEDBACK_MODES, VideoPredictionLoss
 from dorp_rl.trainers.base import TrainerConfig, read_trained
 from dorp_rl.trainers.windows import WindowTrainer
-from dorp_rl.validation import Choice, Float, Int, Text, check_device
+from dorp_rl.validation import check_device
 
 #: Flat fields of older world-model configs that now live in ``model``.
 _FLAT_MODEL_FIELDS = ("model_preset", "latent_dim", "prior")

@@ -12,9 +12,9 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.config import Choice, ConfigMixin, Flag, Float, Int, Ints, checked
 from dorp_rl.frames import frame_shape_of, frames_to_unit_float
-from dorp_rl.validation import Choice, Flag, Float, Int, Ints, as_tensor, check_choice, check_int
+from dorp_rl.validation import as_tensor, check_choice, check_int
 
 
 @dataclass

@@ -25,10 +25,9 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import WorldModel
 
-from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.config import Choice, ConfigMixin, Flag, Int, Ints, Text, checked
 from dorp_rl.frames import frames_to_unit_float
 from dorp_rl.modules.encoder import choose_map_stride, pool_blocks
-from dorp_rl.validation import Choice, Flag, Int, Ints, Text
 
 __all__ = ["LatentModelConfig", "LatentWorldModel"]
 

@@ -42,9 +42,9 @@ import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.config import Choice, ConfigMixin, Flag, Float, Int, Ints, checked
 from dorp_rl.frames import frames_to_uint8
-from dorp_rl.validation import Choice, Flag, Float, Int, Ints, check_action, check_int
+from dorp_rl.validation import check_action, check_int
 
 FRAME_SHAPE = (3, 16, 16)
 

@@ -12,9 +12,10 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
+from dorp_rl.config import Floats
 from dorp_rl.modules.encoder import DiscreteCodeEncoder, pool_blocks
 from dorp_rl.modules.similarity import _Similarity
-from dorp_rl.validation import Floats, check_choice, check_float
+from dorp_rl.validation import check_choice, check_float
 
 
 def standardize_codes(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

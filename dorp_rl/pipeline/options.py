@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 import tyro
 
-from dorp_rl.config import checked
+from dorp_rl.config import Int, checked
 from dorp_rl.envs.paper import DEFAULT_SETTING, TABLE_1_SETTINGS
 from dorp_rl.eval import (
     SETTINGS,
@@ -28,7 +28,6 @@ from dorp_rl.trainers import (
     RepresentationConfig,
     WorldModelConfig,
 )
-from dorp_rl.validation import Int
 
 __all__ = [
     "COMMANDS",

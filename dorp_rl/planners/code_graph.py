@@ -45,7 +45,7 @@ import torch
 from torch import nn
 
 from dorp_rl.checkpoint import load_checkpoint, save_checkpoint
-from dorp_rl.config import ConfigMixin, checked, config_differences, format_differences
+from dorp_rl.config import ConfigMixin, Int, Ints, checked, config_differences, format_differences
 from dorp_rl.integrity import IntegrityError
 from dorp_rl.planners.coupling import coupled_groups
 from dorp_rl.planners.play_codes import (
@@ -56,7 +56,7 @@ from dorp_rl.planners.play_codes import (
     encoder_fingerprint,
     play_actions,
 )
-from dorp_rl.validation import Int, Ints, check_int
+from dorp_rl.validation import check_int
 
 __all__ = [
     "CodeGraph",

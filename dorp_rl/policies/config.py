@@ -15,9 +15,9 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar
 
-from dorp_rl.config import ConfigMixin, checked
+from dorp_rl.config import Choice, ConfigMixin, Flag, Float, Int, checked
 from dorp_rl.planners.costs import check_step_penalty
-from dorp_rl.validation import Choice, Flag, Float, Int, check_float
+from dorp_rl.validation import check_float
 
 __all__ = ["DORPConfig", "ORDERS"]
 
