@@ -54,7 +54,7 @@ key                        dtype / shape       meaning
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import torch
@@ -69,7 +69,7 @@ from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.policies.config import DORPConfig
-from dorp_rl.policies.recovery import RecoveryRule, recovery_rules
+from dorp_rl.policies.recovery import PlanDecision, RecoveryRule, recovery_rules
 from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY, PolicyState, StateKey
 from dorp_rl.validation import MissingKeyError, check_keywords, check_seed, derive_seed
 
@@ -129,6 +129,15 @@ def _check_action_prior(
         )
     if missing is not None:
         raise ValueError(f"{name}={mix} needs {missing} pass {name}=0.")
+
+
+def _union(masks: Iterable[torch.Tensor | None]) -> torch.Tensor | None:
+    """The rows of any of ``masks`` (``None`` entries left out; ``None`` if all are)."""
+    out = None
+    for mask in masks:
+        if mask is not None:
+            out = mask if out is None else out | mask
+    return out
 
 
 class AbstractGoalPolicy(TensorDictModuleBase):
@@ -361,23 +370,6 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.waypoint_planner.set_seed(seed)
         self.goal_planner.set_seed(None if seed is None else derive_seed(seed, 1))
 
-    def ask(self, hook: str, *args: Any) -> bool:
-        """Whether one of the rules takes the matter of ``hook`` over (the first that does)."""
-        return any(getattr(rule, hook)(*args) for rule in self.rules)
-
-    def _each(self, hook: str, *args: Any) -> None:
-        for rule in self.rules:
-            getattr(rule, hook)(*args)
-
-    def _any_rows(self, hook: str, *args: Any) -> torch.Tensor | None:
-        masks = [m for m in (getattr(rule, hook)(*args) for rule in self.rules) if m is not None]
-        if not masks:
-            return None
-        out = masks[0]
-        for mask in masks[1:]:
-            out = out | mask
-        return out
-
     def task_records(self, last: TensorDictBase) -> list[dict[str, Any]]:
         """How the policy fared on each task, from the tensordicts of the tasks' last steps.
 
@@ -459,8 +451,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             state["code"][active] = codes[: int(active.sum())]
             state["goal_code"][fresh] = codes[int(active.sum()) :]
         code, goal_code = state["code"], state["goal_code"]
-        self._each("track", state, active)
-        self._each("observe", state, pixels, active)
+        for rule in self.rules:
+            rule.track(state, active)
+            rule.observe(state, pixels, active)
 
         # The goal-image phase starts when every code is the goal's, and an open-loop goal
         # plan runs to its end even if frames on the way have other codes: otherwise the
@@ -470,11 +463,11 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             flat, gp, gp.length_key
         )
         at_goal = (code == goal_code).all(-1) | ((mode == _GOAL) & running.squeeze(-1) & ~fresh)
-        held = self._any_rows("holds_goal", state, fresh)
+        held = _union(rule.holds_goal(state, fresh) for rule in self.rules)
         if held is not None:
             at_goal |= held
         at_goal &= active
-        delayed = self._any_rows("delays_goal", state)
+        delayed = _union(rule.delays_goal(state) for rule in self.rules)
         if delayed is not None:
             at_goal &= ~delayed
 
@@ -491,7 +484,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         out_of_budget = in_waypoint & ~reached & (state["dorp_budget"].squeeze(-1) <= 0)
         state["dorp_waypoints"][hop_reached] += 1
         state["dorp_stale_removals"][hop_reached] = 0
-        self._each("on_reached", state, hop_reached)
+        for rule in self.rules:
+            rule.on_reached(state, hop_reached)
         for row in out_of_budget.nonzero().squeeze(-1).tolist():
             self._remove_edge(state, row)
 
@@ -524,7 +518,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         action = torch.zeros(rows, 1, dtype=torch.int64)
         frames = (pixels, goal_pixels)
         waypoint_rows = (mode == _WAYPOINT) & active & ~failed
-        replan = self._any_rows("forces_replan", state)
+        replan = _union(rule.forces_replan(state) for rule in self.rules)
         if replan is None:
             replan = torch.zeros(rows, dtype=torch.bool)
         wp_state = self._plan(flat, state, frames, wp, waypoint_rows, new_waypoint | replan, action)
@@ -535,14 +529,19 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         # Step bookkeeping, then the rules that watch the plans.
         planned_now = (mode == _WAYPOINT) & (wp_state[wp.cursor_key].squeeze(-1) == 1)
         state["dorp_plans"][planned_now] += 1
-        self._each("after_waypoint_plan", state, wp_state, planned_now)
+        cost = wp_state[wp.plan_cost_key].squeeze(-1)
+        for rule in self.rules:
+            self._apply(
+                rule.after_waypoint_plan(state, planned_now, cost), state, wp_state, gp_state
+            )
         state["dorp_budget"][mode == _WAYPOINT] -= 1
         state["dorp_waypoint_steps"][(mode == _WAYPOINT) & active] += 1
         in_goal = (mode == _GOAL) & active
         state["dorp_goal_steps"][in_goal] += 1
-        self._each("after_goal_plan", state, gp_state, in_goal)
+        self._goal_stalls(state, wp_state, gp_state, in_goal)
 
-        self._each("after_action", state, action, active & ~failed)
+        for rule in self.rules:
+            rule.after_action(state, action, active & ~failed)
         if self.actions is not None:
             action = self.actions.from_index(action)
         out = {"action": action, **state, **wp_state, **gp_state}
@@ -599,6 +598,51 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 planner_state[key][index] = sub.get(key).cpu().to(planner_state[key].dtype)
         return planner_state
 
+    def _apply(
+        self,
+        decision: PlanDecision | None,
+        state: dict[str, torch.Tensor],
+        wp_state: dict[str, torch.Tensor],
+        gp_state: dict[str, torch.Tensor],
+    ) -> None:
+        """Carries out a rule's decision on the policy's and the planners' state."""
+        if decision is None:
+            return
+        wp, gp = self.waypoint_planner, self.goal_planner
+        if decision.cut is not None:  # the plan runs this step only
+            wp_state[wp.length_key][decision.cut] = wp_state[wp.cursor_key][decision.cut]
+        if decision.drop is not None:  # 0 after this step's decrement: removed next step
+            state["dorp_budget"][decision.drop] = 1
+        if decision.restart is not None:
+            gp_state[gp.length_key][decision.restart] = 0
+
+    def _goal_stalls(
+        self,
+        state: dict[str, torch.Tensor],
+        wp_state: dict[str, torch.Tensor],
+        gp_state: dict[str, torch.Tensor],
+        rows: torch.Tensor,
+    ) -> None:
+        """Goal phases that stopped progressing: each stalled row is offered to the rules
+        (a rule that takes it spends a removal), then the rule that found the stall acts
+        on the rest."""
+        gp = self.goal_planner
+        planned = rows & (gp_state[gp.cursor_key].squeeze(-1) == 1)
+        cost = gp_state[gp.plan_cost_key].squeeze(-1)
+        for rule in self.rules:
+            stalled = rule.goal_stalls(state, rows, planned, cost)
+            if stalled is None:
+                continue
+            taken = torch.zeros_like(stalled)
+            for row in stalled.nonzero().squeeze(-1).tolist():
+                if self.removal_limit_reached(state, row):
+                    continue
+                if any(other.on_goal_stall(state, row) for other in self.rules):
+                    taken[row] = True
+                    self.count_removal(state, row)
+            decision = rule.after_goal_stalls(state, rows, stalled, taken)
+            self._apply(decision, state, wp_state, gp_state)
+
     def _remove_edge(self, state: dict[str, torch.Tensor], row: int) -> None:
         """The current waypoint was not reached in time: remove its edge for this task
         (unless a rule handles the failed hop); past ``max_removed_edges`` since the last
@@ -610,7 +654,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             state["dorp_end"][row] = _REMOVAL_LIMIT
             state["dorp_end_group"][row] = state["dorp_group"][row]
             return
-        if not self.ask("instead_of_removal", state, row, edge) and edge >= 0:
+        handled = any(rule.instead_of_removal(state, row, edge) for rule in self.rules)
+        if not handled and edge >= 0:
             free = (removed < 0).nonzero()
             count = int(state["dorp_replans"][row])
             removed[int(free[0]) if free.numel() else count % removed.shape[0]] = edge
@@ -627,14 +672,17 @@ class AbstractGoalPolicy(TensorDictModuleBase):
 
     def _next_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
         """Sets the next waypoint of ``row``; marks the row failed when no group has a path."""
-        if self.ask("next_waypoint", state, row):
-            return True
+        for rule in self.rules:
+            chosen = rule.next_waypoint(state, row)
+            if chosen is not None:
+                self.set_waypoint(state, row, *chosen)
+                return True
         code, goal = state["code"][row], state["goal_code"][row]
         removed = state["dorp_removed"][row]
         current = int(state["dorp_group"][row]) if int(state["dorp_mode"][row]) == _WAYPOINT else -1
         ranked = self._group_order(code, goal, current)
         best = self._best_hop(code, goal, removed, ranked, current)
-        if best is None and self.ask("when_stuck", state, row):
+        if best is None and any(rule.when_stuck(state, row) for rule in self.rules):
             best = self._best_hop(code, goal, removed, ranked, current)
         if best is None:
             state["dorp_failed"][row] = True
@@ -710,7 +758,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_edge"][row] = edge
         state["dorp_distance"][row] = distance
         state["dorp_budget"][row] = self.waypoint_budget
-        self._each("on_waypoint", state, row)
+        for rule in self.rules:
+            rule.on_waypoint(state, row)
 
     def _action_prior(self, state: dict[str, torch.Tensor], index: torch.Tensor) -> torch.Tensor:
         """``[len(index), A]``: the hop's one-hots' action shares, mixed with uniform draws."""

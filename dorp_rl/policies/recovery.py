@@ -32,6 +32,7 @@ Settings come from :class:`~dorp_rl.policies.DORPConfig` (:func:`recovery_rules`
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -44,6 +45,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from dorp_rl.policies.config import DORPConfig
 
 __all__ = [
+    "PlanDecision",
+    "Waypoint",
     "AvoidNoops",
     "ForgetBlocked",
     "GoalRelaxation",
@@ -57,12 +60,35 @@ __all__ = [
 State = dict[str, torch.Tensor]
 
 
+@dataclass
+class PlanDecision:
+    """What a rule decides once the planners have run; the policy applies it.
+
+    Attributes:
+        cut: rows whose new waypoint plan runs for this step only (planned again next).
+        drop: rows whose hop is given up next step (its edge removed, as when its budget
+            runs out).
+        restart: rows whose goal plan is made afresh next step.
+    """
+
+    cut: torch.Tensor | None = None
+    drop: torch.Tensor | None = None
+    restart: torch.Tensor | None = None
+
+
+#: A waypoint a rule chooses: ``(group, node, edge, distance)``, as the shortest path's.
+Waypoint = tuple[int, int, int, int]
+
+
 class RecoveryRule:
     """A part of the DORP policy; every hook does nothing unless a rule overrides it.
 
     ``state`` is the policy's state (``{key: [rows, width]}``, CPU), ``rows`` a bool mask
-    ``[rows]`` and ``row`` one row index. Hooks returning ``bool`` answer whether the rule
-    took the matter over (the first rule that does wins).
+    ``[rows]`` and ``row`` one row index. A rule keeps its own keys of the state (its
+    :meth:`state_keys`) and returns its decisions (masks, a waypoint, whether it takes a
+    matter over), which the policy applies: no rule calls back into the policy or writes
+    a planner's state. Hooks returning ``bool`` answer whether the rule took the matter
+    over (the first rule that does wins).
     """
 
     policy: AbstractGoalPolicy
@@ -104,9 +130,9 @@ class RecoveryRule:
         """The hop over ``edge`` failed: handle it instead of removing the edge?"""
         return False
 
-    def next_waypoint(self, state: State, row: int) -> bool:
-        """Set ``row``'s next waypoint instead of the shortest path?"""
-        return False
+    def next_waypoint(self, state: State, row: int) -> Waypoint | None:
+        """A waypoint for ``row`` instead of the shortest path's (``None``: the usual one)."""
+        return None
 
     def when_stuck(self, state: State, row: int) -> bool:
         """No group has a path left: change the state so that the search is tried again?"""
@@ -119,16 +145,31 @@ class RecoveryRule:
         """``[rows]`` factors of the goal phase's step budget."""
         return None
 
-    def after_waypoint_plan(self, state: State, plans: State, planned: torch.Tensor) -> None:
-        """``planned`` rows made a fresh waypoint plan; ``plans`` is the waypoint planner's
-        state (its cost ``plan_cost_key``, cursor and length, which the rule may cut)."""
+    def after_waypoint_plan(
+        self, state: State, planned: torch.Tensor, cost: torch.Tensor
+    ) -> PlanDecision | None:
+        """``planned`` rows made a fresh waypoint plan of best cost ``cost`` ``[rows]``."""
+        return None
 
-    def after_goal_plan(self, state: State, plans: State, rows: torch.Tensor) -> None:
-        """``rows`` took a goal-phase step; ``plans`` is the goal planner's state."""
+    def goal_stalls(
+        self, state: State, rows: torch.Tensor, planned: torch.Tensor, cost: torch.Tensor
+    ) -> torch.Tensor | None:
+        """``rows`` took a goal-phase step (``planned``: with a fresh plan of best cost
+        ``cost``): the rows whose goal phase stopped progressing (``None``: none)."""
+        return None
 
     def on_goal_stall(self, state: State, row: int) -> bool:
-        """The goal phase of ``row`` stopped progressing: handle it before relaxing?"""
+        """The goal phase of ``row`` stopped progressing: take it over before it relaxes?
+        A rule that does spends one of the task's removals (``max_removed_edges``), and
+        is not asked once they are spent."""
         return False
+
+    def after_goal_stalls(
+        self, state: State, rows: torch.Tensor, stalled: torch.Tensor, taken: torch.Tensor
+    ) -> PlanDecision | None:
+        """After :meth:`goal_stalls`: of the ``stalled`` rows, ``taken`` were taken over by
+        a rule; ``rows`` took a goal-phase step."""
+        return None
 
     def __repr__(self) -> str:
         fields = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if k != "policy")
@@ -154,15 +195,15 @@ class MissedPlans(RecoveryRule):
     def on_waypoint(self, state: State, row: int) -> None:
         state["dorp_misses"][row] = 0
 
-    def after_waypoint_plan(self, state: State, plans: State, planned: torch.Tensor) -> None:
-        planner = self.policy.waypoint_planner
-        missed = planned & (plans[planner.plan_cost_key].squeeze(-1) >= self.threshold)
+    def after_waypoint_plan(
+        self, state: State, planned: torch.Tensor, cost: torch.Tensor
+    ) -> PlanDecision:
+        missed = planned & (cost >= self.threshold)
         state["dorp_misses"][missed] += 1
-        if self.replan_on_miss:
-            plans[planner.length_key][missed] = plans[planner.cursor_key][missed]
+        gone = None
         if self.max_misses is not None:
             gone = missed & (state["dorp_misses"].squeeze(-1) >= self.max_misses)
-            state["dorp_budget"][gone] = 1  # 0 after this step's decrement: removed next step
+        return PlanDecision(cut=missed if self.replan_on_miss else None, drop=gone)
 
 
 class ForgetBlocked(RecoveryRule):
@@ -306,13 +347,13 @@ class Reentry(RecoveryRule):
         self._note(state, row, edge)
         return True
 
-    def next_waypoint(self, state: State, row: int) -> bool:
+    def next_waypoint(self, state: State, row: int) -> Waypoint | None:
         """At ``dorp_via`` before leaving: back over the entry edge. Elsewhere: a shortest
         path back to ``dorp_via`` not over the entry edge. Back at ``dorp_via`` after
         leaving, or with no such path: the re-entry ends and the usual path follows."""
         via, ban = int(state["dorp_via"][row]), int(state["dorp_via_ban"][row])
         if via < 0:
-            return False
+            return None
         graph = self.policy.graph
         group = int(graph.group_of_edge(ban))
         node = int(graph.node_of(state["code"][row], group))
@@ -329,20 +370,17 @@ class Reentry(RecoveryRule):
                 step = (nxt, edge, distance)
         if step is None:
             self._end(state, row)
-            return False
-        self.policy.set_waypoint(state, row, group, *step)
-        return True
+            return None
+        return (group, *step)
 
     def on_goal_stall(self, state: State, row: int) -> bool:
         """Only when the group of the last hop entered its goal node by that hop, another
         way into it exists and this entry has not been re-entered already."""
-        graph, policy = self.policy.graph, self.policy
+        graph = self.policy.graph
         entry = int(state["dorp_entry_edge"][row])
         if entry < 0 or int(state["dorp_via"][row]) >= 0:
             return False
         if not self._may_reenter(state, row, entry):
-            return False
-        if policy.removal_limit_reached(state, row):
             return False
         node, source = int(graph.indices[entry]), int(graph.edge_source[entry])
         group = int(graph.group_of_edge(entry))
@@ -357,7 +395,6 @@ class Reentry(RecoveryRule):
         state["dorp_via_ban"][row] = entry
         state["dorp_via_left"][row] = False
         self._note(state, row, entry)
-        policy.count_removal(state, row)
         return True
 
 
@@ -406,43 +443,47 @@ class GoalRelaxation(RecoveryRule):
     def goal_budget_scale(self, state: State) -> torch.Tensor:
         return 1 + state["dorp_relaxed"].squeeze(-1).long()
 
-    def after_goal_plan(self, state: State, plans: State, rows: torch.Tensor) -> None:
+    def goal_stalls(
+        self, state: State, rows: torch.Tensor, planned: torch.Tensor, cost: torch.Tensor
+    ) -> torch.Tensor | None:
         if self.patience is None:
-            return
-        planner = self.policy.goal_planner
-        planned = rows & (plans[planner.cursor_key].squeeze(-1) == 1)
-        cost = plans[planner.plan_cost_key].squeeze(-1).float()
+            return None
+        cost = cost.float()
         best = state["dorp_goal_best"].squeeze(-1)
         better = planned & (cost < best - 1e-4 * best.abs().clamp(max=1e6))
         state["dorp_goal_best"][better] = cost[better].unsqueeze(-1)
         state["dorp_goal_stall"][better] = 0
         state["dorp_goal_stall"][rows & ~better] += 1
         relaxed = state["dorp_relaxed"].squeeze(-1)
-        give_up = rows & ~relaxed & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
-        for row in give_up.nonzero().squeeze(-1).tolist():
-            if self.policy.ask("on_goal_stall", state, row):
-                give_up[row] = False
-                state["dorp_goal_stall"][row] = 0
-                state["dorp_goal_best"][row] = float("inf")
+        return rows & ~relaxed & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
+
+    def after_goal_stalls(
+        self, state: State, rows: torch.Tensor, stalled: torch.Tensor, taken: torch.Tensor
+    ) -> PlanDecision | None:
+        if self.patience is None:
+            return None
+        # a stall another rule took over: watch the goal phase afresh
+        state["dorp_goal_stall"][taken] = 0
+        state["dorp_goal_best"][taken] = float("inf")
+        relaxed = state["dorp_relaxed"].squeeze(-1)  # a view: sees the rows relaxed below
+        give_up = stalled & ~taken
         if give_up.any():  # replan without the term next step
-            self._set_code_term(state, plans, give_up, relaxed=True)
+            self._set_code_term(state, give_up, relaxed=True)
         off_goal = (state["code"] != state["goal_code"]).any(-1)
         back = rows & relaxed & off_goal & (state["dorp_goal_stall"].squeeze(-1) >= self.patience)
         back &= state["dorp_goal_returns"].squeeze(-1) < self.max_returns
         if back.any():  # leave the goal phase: the loop plans waypoints next step
             state["dorp_goal_returns"][back] += 1
-            self._set_code_term(state, plans, back, relaxed=False)
+            self._set_code_term(state, back, relaxed=False)
+        return PlanDecision(restart=give_up | back)
 
-    def _set_code_term(
-        self, state: State, plans: State, rows: torch.Tensor, *, relaxed: bool
-    ) -> None:
+    def _set_code_term(self, state: State, rows: torch.Tensor, *, relaxed: bool) -> None:
         """Drops (``relaxed``) or restores the goal-code term of ``rows``, restarting the
-        stall watch and the goal plan."""
+        stall watch (the policy restarts their goal plans)."""
         state["dorp_relaxed"][rows] = relaxed
         state["goal_code_weight"][rows] = 0.0 if relaxed else self.weight
         state["dorp_goal_stall"][rows] = 0
         state["dorp_goal_best"][rows] = float("inf")
-        plans[self.policy.goal_planner.length_key][rows] = 0
 
 
 class AvoidNoops(RecoveryRule):
