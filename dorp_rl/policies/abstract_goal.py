@@ -425,16 +425,33 @@ class AbstractGoalPolicy(TensorDictModuleBase):
     # ------------------------------------------------------------------ #
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One step of every row of ``tensordict``: the loop of the module docstring, in
+        its order, each step a method below; writes ``action`` and the state."""
         batch = tensordict.batch_size
         flat = tensordict.reshape(-1) if len(batch) != 1 else tensordict
-        rows = flat.batch_size[0]
-        pixels = self._frames(flat, self.pixels_key)
-        goal_pixels = self._frames(flat, self.goal_pixels_key)
+        frames = (self._frames(flat, self.pixels_key), self._frames(flat, self.goal_pixels_key))
         state = self.state.read(flat)
-        mode = state["dorp_mode"].squeeze(-1)
+        fresh, active = self._start_rows(flat, state)
+        self._encode_rows(state, frames, fresh, active)  # 1
+        at_goal = self._goal_phase_rows(flat, state, fresh, active)  # 6: every code the goal's
+        reached, missed = self._check_waypoints(state, fresh, active, at_goal)  # 5
+        new_waypoint = self._choose_waypoints(state, active, at_goal, reached | missed)  # 2-4
+        at_goal = self._spend_goal_budget(state, at_goal)  # 6: its step budget
+        action, plans = self._act(flat, state, frames, active, at_goal, new_waypoint)
+        if self.actions is not None:
+            action = self.actions.from_index(action)
+        out = {"action": action, **state, **plans[0], **plans[1]}
+        for key, value in out.items():
+            tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(tensordict.device))
+        return tensordict
 
-        # New episodes (is_init, or a tensordict without plan state) start afresh.
-        fresh = mode == _NEW
+    def _start_rows(
+        self, flat: TensorDictBase, state: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """New episodes (``is_init``, or a tensordict without plan state) start afresh;
+        finished ones are done. Returns the ``fresh`` and the ``active`` rows."""
+        rows = flat.batch_size[0]
+        fresh = state["dorp_mode"].squeeze(-1) == _NEW
         is_init = flat.get("is_init", None)
         if is_init is not None:
             fresh |= is_init.reshape(rows, -1).any(-1).cpu()
@@ -443,26 +460,43 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         finished = finished_rows(flat) & ~fresh
         mode = state["dorp_mode"].squeeze(-1)
         mode[finished & (mode != _FAILED)] = _DONE
-        active = (mode != _FAILED) & (mode != _DONE)
+        return fresh, (mode != _FAILED) & (mode != _DONE)
 
-        # 1. Codes of the frames (and of the goals of new episodes): one encoder call.
+    def _encode_rows(
+        self,
+        state: dict[str, torch.Tensor],
+        frames: tuple[torch.Tensor, torch.Tensor],
+        fresh: torch.Tensor,
+        active: torch.Tensor,
+    ) -> None:
+        """1. Codes of the frames (and of the goals of new episodes): one encoder call."""
+        pixels, goal_pixels = frames
         if active.any() or fresh.any():
             codes = self._encode(torch.cat([pixels[active], goal_pixels[fresh]]))
             state["code"][active] = codes[: int(active.sum())]
             state["goal_code"][fresh] = codes[int(active.sum()) :]
-        code, goal_code = state["code"], state["goal_code"]
         for rule in self.rules:
             rule.track(state, active)
             rule.observe(state, pixels, active)
 
-        # The goal-image phase starts when every code is the goal's, and an open-loop goal
-        # plan runs to its end even if frames on the way have other codes: otherwise the
-        # two phases interrupt each other and the policy flips between them.
+    def _goal_phase_rows(
+        self,
+        flat: TensorDictBase,
+        state: dict[str, torch.Tensor],
+        fresh: torch.Tensor,
+        active: torch.Tensor,
+    ) -> torch.Tensor:
+        """6. The rows in the goal-image phase: every code is the goal's, or an open-loop
+        goal plan is still running (even if frames on the way have other codes: otherwise
+        the two phases interrupt each other and the policy flips between them)."""
+        mode = state["dorp_mode"].squeeze(-1)
         gp = self.goal_planner
         running = self._read_planner(flat, gp, gp.cursor_key) < self._read_planner(
             flat, gp, gp.length_key
         )
-        at_goal = (code == goal_code).all(-1) | ((mode == _GOAL) & running.squeeze(-1) & ~fresh)
+        at_goal = (state["code"] == state["goal_code"]).all(-1) | (
+            (mode == _GOAL) & running.squeeze(-1) & ~fresh
+        )
         held = _union(rule.holds_goal(state, fresh) for rule in self.rules)
         if held is not None:
             at_goal |= held
@@ -470,84 +504,115 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         delayed = _union(rule.delays_goal(state) for rule in self.rules)
         if delayed is not None:
             at_goal &= ~delayed
+        return at_goal
 
-        # 5. Was the waypoint reached? (A hop landing in the goal's codes counts too.)
-        mask = state["subgoal_mask"]
+    def _check_waypoints(
+        self,
+        state: dict[str, torch.Tensor],
+        fresh: torch.Tensor,
+        active: torch.Tensor,
+        at_goal: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """5. Was each waypoint reached (a hop landing in the goal's codes counts too)?
+        A waypoint not reached within its budget has its edge removed for the task.
+        Returns the rows that ``reached`` their waypoint and those that ``missed`` it."""
+        mode = state["dorp_mode"].squeeze(-1)
         hop_reached = (
             active
             & ~fresh
             & (mode == _WAYPOINT)
-            & ((code == state["subgoal_code"]) | ~mask).all(-1)
+            & ((state["code"] == state["subgoal_code"]) | ~state["subgoal_mask"]).all(-1)
         )
         in_waypoint = active & ~at_goal & (mode == _WAYPOINT)
         reached = in_waypoint & hop_reached
-        out_of_budget = in_waypoint & ~reached & (state["dorp_budget"].squeeze(-1) <= 0)
+        missed = in_waypoint & ~reached & (state["dorp_budget"].squeeze(-1) <= 0)
         state["dorp_waypoints"][hop_reached] += 1
         state["dorp_stale_removals"][hop_reached] = 0
         for rule in self.rules:
             rule.on_reached(state, hop_reached)
-        for row in out_of_budget.nonzero().squeeze(-1).tolist():
+        for row in missed.nonzero().squeeze(-1).tolist():
             self._remove_edge(state, row)
+        return reached, missed
 
-        # 2-4. A group, its shortest path and the next waypoint, where one is needed.
-        need = active & ~at_goal & ((mode != _WAYPOINT) | reached | out_of_budget)
+    def _choose_waypoints(
+        self,
+        state: dict[str, torch.Tensor],
+        active: torch.Tensor,
+        at_goal: torch.Tensor,
+        hop_over: torch.Tensor,
+    ) -> torch.Tensor:
+        """2-4. A group, its shortest path and the next waypoint, where one is needed (no
+        waypoint yet, or the last one reached or missed); returns the rows given one."""
+        mode = state["dorp_mode"].squeeze(-1)
+        need = active & ~at_goal & ((mode != _WAYPOINT) | hop_over)
         need &= ~state["dorp_failed"].squeeze(-1)
-        new_waypoint = torch.zeros(rows, dtype=torch.bool)
+        new_waypoint = torch.zeros(need.shape[0], dtype=torch.bool)
         for row in need.nonzero().squeeze(-1).tolist():
             new_waypoint[row] = self._next_waypoint(state, row)
+        return new_waypoint
 
-        # 6. The goal phase's budget.
+    def _spend_goal_budget(
+        self, state: dict[str, torch.Tensor], at_goal: torch.Tensor
+    ) -> torch.Tensor:
+        """6. A task past the goal phase's step budget is given up; returns the goal-phase
+        rows left."""
         if self.goal_budget is not None:
-            allowed = torch.full((rows,), self.goal_budget, dtype=torch.int64)
+            allowed = torch.full(at_goal.shape, self.goal_budget, dtype=torch.int64)
             scale = self._scale(state)
             if scale is not None:
                 allowed = allowed * scale
             spent = at_goal & (state["dorp_goal_steps"].squeeze(-1) >= allowed)
             state["dorp_failed"][spent] = True
             state["dorp_end"][spent] = _GOAL_STALLED
-            at_goal &= ~spent
+            at_goal = at_goal & ~spent
+        return at_goal
+
+    def _act(
+        self,
+        flat: TensorDictBase,
+        state: dict[str, torch.Tensor],
+        frames: tuple[torch.Tensor, torch.Tensor],
+        active: torch.Tensor,
+        at_goal: torch.Tensor,
+        new_waypoint: torch.Tensor,
+    ) -> tuple[torch.Tensor, tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]]:
+        """4 and 6. The low level acts: the waypoint planner towards each row's waypoint,
+        the goal planner towards the goal image (fresh plans where the target changed or
+        a rule asks); then the step's counts and the rules that watch the plans. Returns
+        the actions ``[rows, 1]`` (planner indices) and both planners' state."""
+        mode = state["dorp_mode"].squeeze(-1)
         failed = state["dorp_failed"].squeeze(-1)
         mode[failed] = _FAILED
-
-        # Modes, and fresh low-level plans where the target changed.
         entering_goal = at_goal & (mode != _GOAL)
         mode[at_goal] = _GOAL
         mode[new_waypoint] = _WAYPOINT
         state["dorp_mode"] = mode.unsqueeze(-1)
-        wp = self.waypoint_planner
-        action = torch.zeros(rows, 1, dtype=torch.int64)
-        frames = (pixels, goal_pixels)
+        wp, gp = self.waypoint_planner, self.goal_planner
+        action = torch.zeros(mode.shape[0], 1, dtype=torch.int64)
         waypoint_rows = (mode == _WAYPOINT) & active & ~failed
         replan = _union(rule.forces_replan(state) for rule in self.rules)
         if replan is None:
-            replan = torch.zeros(rows, dtype=torch.bool)
+            replan = torch.zeros(mode.shape[0], dtype=torch.bool)
         wp_state = self._plan(flat, state, frames, wp, waypoint_rows, new_waypoint | replan, action)
         gp_state = self._plan(
             flat, state, frames, gp, (mode == _GOAL) & active, entering_goal | replan, action
         )
 
-        # Step bookkeeping, then the rules that watch the plans.
+        # The step's counts, then the rules that watch the plans.
         planned_now = (mode == _WAYPOINT) & (wp_state[wp.cursor_key].squeeze(-1) == 1)
         state["dorp_plans"][planned_now] += 1
         cost = wp_state[wp.plan_cost_key].squeeze(-1)
         for rule in self.rules:
-            self._apply(
-                rule.after_waypoint_plan(state, planned_now, cost), state, wp_state, gp_state
-            )
+            decision = rule.after_waypoint_plan(state, planned_now, cost)
+            self._apply(decision, state, wp_state, gp_state)
         state["dorp_budget"][mode == _WAYPOINT] -= 1
         state["dorp_waypoint_steps"][(mode == _WAYPOINT) & active] += 1
         in_goal = (mode == _GOAL) & active
         state["dorp_goal_steps"][in_goal] += 1
         self._goal_stalls(state, wp_state, gp_state, in_goal)
-
         for rule in self.rules:
             rule.after_action(state, action, active & ~failed)
-        if self.actions is not None:
-            action = self.actions.from_index(action)
-        out = {"action": action, **state, **wp_state, **gp_state}
-        for key, value in out.items():
-            tensordict.set(key, value.reshape(*batch, *value.shape[1:]).to(tensordict.device))
-        return tensordict
+        return action, (wp_state, gp_state)
 
     # ------------------------------------------------------------------ #
     # Steps of the loop
