@@ -56,6 +56,7 @@ rollout raises :class:`MissingRolloutKeyError` (both a ``KeyError`` and a
 
 from dorp_rl.planners.costs.base import (
     STEP_AGGREGATIONS,
+    ImaginedFrameCost,
     MissingRolloutKeyError,
     RolloutCost,
     check_step_aggregation,
@@ -68,6 +69,7 @@ from dorp_rl.planners.costs.goal_image import LatentGoalCost, ObjectMapCost, Pix
 from dorp_rl.planners.costs.reward import NegativeRewardCost
 
 __all__ = [
+    "ImaginedFrameCost",
     "STEP_AGGREGATIONS",
     "CodeMatchCost",
     "CostSequence",

@@ -14,6 +14,7 @@ from tensordict.nn import TensorDictModuleBase
 from dorp_rl.envs.planning import ImaginedFrames
 
 __all__ = [
+    "ImaginedFrameCost",
     "STEP_AGGREGATIONS",
     "MissingRolloutKeyError",
     "RolloutCost",
@@ -214,6 +215,34 @@ class RolloutCost(TensorDictModuleBase):
 
     def extra_repr(self) -> str:
         return f"out_key={self.out_key!r}, step_aggregation={self.step_aggregation!r}"
+
+
+class ImaginedFrameCost(RolloutCost):
+    """A cost of the imagined frames under ``pixels_key`` that reads them for less when
+    they come as lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`.
+
+    Subclasses set ``pixels_key`` and implement ``_per_step_cost(rollout, imagined)``:
+    ``imagined`` is the lazy frames, or ``None`` when the rollout holds the frames; both
+    must give the same costs. Lazy values of other kinds are materialised first.
+    """
+
+    pixels_key: NestedKey
+
+    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+        return self._per_step_cost(rollout, None)
+
+    def per_step_cost_lazy(
+        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+    ) -> torch.Tensor:
+        frames = lazy_frames(rollout, lazy, self.pixels_key)
+        if frames is None:
+            return super().per_step_cost_lazy(rollout, lazy)
+        return self._per_step_cost(rollout, frames)
+
+    def _per_step_cost(
+        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
+    ) -> torch.Tensor:
+        raise NotImplementedError
 
 
 def _forward_materialized(

@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -12,7 +12,11 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from torch import nn
 
 from dorp_rl.envs.planning import ImaginedFrames, distinct_rows
-from dorp_rl.planners.costs.base import RolloutCost, compact_broadcast, get_rollout_key, lazy_frames
+from dorp_rl.planners.costs.base import (
+    ImaginedFrameCost,
+    compact_broadcast,
+    get_rollout_key,
+)
 from dorp_rl.planners.costs.caches import EncodingCache
 from dorp_rl.validation import check_float, check_int
 
@@ -35,7 +39,7 @@ def check_step_penalty(value: float, name: str = "step_penalty") -> float:
         raise ValueError(f"{err} (so that a match at step 25 still costs less than 0.5)") from None
 
 
-class CodeMatchCost(RolloutCost):
+class CodeMatchCost(ImaginedFrameCost):
     """0 once the encoder's code of a predicted frame is the target code, else 1.
 
     DORP's waypoint cost. At each step the predicted frame is encoded; the step
@@ -224,19 +228,6 @@ class CodeMatchCost(RolloutCost):
             codes.append(code)
             probs.append(prob)
         return torch.cat(codes), torch.cat(probs)
-
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
-        return self._per_step_cost(rollout, None)
-
-    def per_step_cost_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-    ) -> torch.Tensor:
-        """The same costs from lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`,
-        drawing and encoding distinct frames only."""
-        frames = lazy_frames(rollout, lazy, self.pixels_key)
-        if frames is None:
-            return super().per_step_cost_lazy(rollout, lazy)
-        return self._per_step_cost(rollout, frames)
 
     def _per_step_cost(
         self, rollout: TensorDictBase, imagined: ImaginedFrames | None

@@ -6,7 +6,7 @@ and, through a latent model, of its latent (:class:`LatentGoalCost`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -14,7 +14,12 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from torch import nn
 
 from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, int64_columns, row_hashes
-from dorp_rl.planners.costs.base import RolloutCost, compact_broadcast, get_rollout_key, lazy_frames
+from dorp_rl.planners.costs.base import (
+    ImaginedFrameCost,
+    RolloutCost,
+    compact_broadcast,
+    get_rollout_key,
+)
 from dorp_rl.planners.costs.caches import KeyedCache
 from dorp_rl.validation import check_float, check_int
 
@@ -29,7 +34,7 @@ __all__ = [
 _PAIR_KEY_FACTOR = 0x9E3779B97F4A7C15 - 2**64
 
 
-class _GoalFrameCost(RolloutCost):
+class _GoalFrameCost(ImaginedFrameCost):
     """A cost of each predicted frame against the goal image (the shared keys and blurs)."""
 
     def _set_frame_keys(
@@ -72,9 +77,6 @@ class _GoalFrameCost(RolloutCost):
         goal_keys = row_hashes(goals).index_select(0, owner)
         keys = row_hashes(frames) * _PAIR_KEY_FACTOR + goal_keys  # wraps modulo 2**64
         return self.cache.fetch(keys, lambda miss: (compute(miss),), module)[0]
-
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
-        return self._per_step_cost(rollout, None)
 
     def extra_repr(self) -> str:
         blur = f", blur_sigmas={self.blur_sigmas}" if self.blur_sigmas else ""
@@ -129,10 +131,11 @@ class PixelDistanceCost(_GoalFrameCost):
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas, cache_size)
 
-    def per_step_cost_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
+    def _per_step_cost(
+        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
     ) -> torch.Tensor:
-        """The same costs from imagined states: exact distances without drawing frames.
+        """The costs; from imagined states (``imagined``), exact distances without drawing
+        every frame.
 
         When the frames are lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`: without
         ``blur_sigmas``, each squared distance is an integer below ``2**24`` (checked),
@@ -140,14 +143,6 @@ class PixelDistanceCost(_GoalFrameCost):
         integers from the frames' parts; the blurred terms are computed on the distinct
         (frame, goal) pairs, of which only the distinct frames are drawn.
         """
-        frames = lazy_frames(rollout, lazy, self.pixels_key)
-        if frames is None:
-            return super().per_step_cost_lazy(rollout, lazy)
-        return self._per_step_cost(rollout, frames)
-
-    def _per_step_cost(
-        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
-    ) -> torch.Tensor:
         pairs = _GoalPairs(rollout, imagined, self.pixels_key, self.goal_key, type(self).__name__)
         goals = pairs.goals.reshape(pairs.goals.shape[0], -1).to(torch.float32)
         if imagined is not None and not self.blur_sigmas:
@@ -421,15 +416,6 @@ class ObjectMapCost(_GoalFrameCost):
             )
         self.encoder = encoder
         self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas, cache_size)
-
-    def per_step_cost_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-    ) -> torch.Tensor:
-        """The same costs, drawing and mapping distinct (frame, goal) pairs only."""
-        frames = lazy_frames(rollout, lazy, self.pixels_key)
-        if frames is None:
-            return super().per_step_cost_lazy(rollout, lazy)
-        return self._per_step_cost(rollout, frames)
 
     @torch.no_grad()
     def _maps(self, frames: torch.Tensor) -> torch.Tensor:
