@@ -65,7 +65,7 @@ from dorp_rl.pipeline import (
     task_set,
 )
 from dorp_rl.progress import BarMirror, progress_bar, relay_bars
-from dorp_rl.viz import plot_results
+from dorp_rl.viz import plot_results, write_diagnostic_plots
 from dorp_rl.viz.rollouts import code_maps_for_waypoints, save_rollout_gif
 
 __all__ = ["paper_methods", "pictures_stage", "reproduce_paper", "run_setting", "say_pictures"]
@@ -114,8 +114,7 @@ def _diagnostic_pictures(
     result = diagnostics.measure(env, encode, max(num_samples, 2), 0)
     written: dict[str, Path] = {}
     if diagnostics.pictures is not None:
-        directory.mkdir(parents=True, exist_ok=True)
-        written = diagnostics.pictures(env, encode, directory, result)
+        written = write_diagnostic_plots(env, encode, directory, result=result, profile=profile)
     if diagnostics.waypoint_maps is None:
         return None, list(written.values())
     maps = diagnostics.waypoint_maps(env, encode, result)

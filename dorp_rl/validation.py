@@ -319,7 +319,7 @@ def check_state_layout(
     """Checks the dtype (int64) and trailing shape of a batch of states ``[*B, *state_shape]``.
 
     Reads no values (no device synchronisation); the rules of a world (no overlap, no
-    wall) are checked by the env (:meth:`~dorp_rl.envs.GridWorldEnv.check_state`).
+    wall) are checked by the env, where it declares ``check_state``.
     """
     if not isinstance(state, torch.Tensor):
         raise ValueError(f"{name} must be a torch.Tensor, got {type(state).__name__}.")

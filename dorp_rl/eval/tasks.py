@@ -109,8 +109,7 @@ def check_task_set(tasks: Any, env: EnvBase | None = None, name: str = "tasks") 
     ``state`` and ``goal_state``; its optional ``lower_bound`` holds one finite number
     ``>= 0`` per task (steps cannot be negative, and a NaN bound would be averaged into
     ``mean_lower_bound``). With ``env``, starts and goals must be states of ``env``: its
-    state shape and, when the env declares ``check_state``, its rules (the grid worlds'
-    :meth:`~dorp_rl.envs.GridWorldEnv.check_state`).
+    state shape and, when the env declares ``check_state(states, name)``, its rules.
 
     Raises:
         ValueError: naming ``name``, the entry and what it must be.
