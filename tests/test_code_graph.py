@@ -291,3 +291,82 @@ def test_settings_complete_the_graphs_their_profile_allows():
     made = setting.make_graph(play, oracle)
     assert torch.equal(made.indices, plain.completed().indices)
     assert made.num_edges(1) > plain.num_edges(1) and made.num_edges(0) >= plain.num_edges(0)
+
+
+@pytest.mark.parametrize("dense_limit", [1024, 0])
+def test_next_waypoints_answer_rows_of_several_groups_with_their_own_removed_edges(dense_limit):
+    """One batched search: every row's next hop is one step down a shortest path of the
+    graph without that row's removed edges (networkx as reference), the most-seen edge
+    among the equally short ones, whatever the other rows ask."""
+    codes, next_codes = random_walk_codes(3, 6, 3000)
+    graph = CodeGraph.from_transitions(
+        codes, next_codes, (6, 6, 6), [(0, 1), (2,)], dense_limit=dense_limit
+    )
+    gen = torch.Generator().manual_seed(0)
+    rows = 40
+    group = torch.randint(0, graph.num_groups, (rows,), generator=gen)
+    pick = torch.randint(0, codes.shape[0], (2, rows), generator=gen)
+    nodes = graph.nodes_of(codes[pick[0]], group)
+    goals = graph.nodes_of(next_codes[pick[1]], group)
+    removed = torch.full((rows, 3), -1)
+    for i in range(rows):  # a few of the row's own group's edges, some rows none
+        lo = int(graph.indptr[graph.node_offsets[group[i]]])
+        hi = int(graph.indptr[graph.node_offsets[group[i] + 1]])
+        count = i % 4
+        removed[i, :count] = torch.randint(lo, hi, (count,), generator=gen)
+    nxt, edge, distance = graph.next_waypoints(nodes, goals, removed)
+    for i in range(rows):
+        members = graph.groups[int(group[i])]
+        ref = reference_graph(codes, next_codes, members)
+        gone = [int(e) for e in removed[i] if e >= 0]
+        for e in gone:
+            a, b = int(graph.edge_source[e]), int(graph.indices[e])
+            ref.remove_edges_from(
+                [(tuple(graph.node_code(a).tolist()), tuple(graph.node_code(b).tolist()))]
+            )
+        start = tuple(graph.node_code(int(nodes[i])).tolist())
+        goal = tuple(graph.node_code(int(goals[i])).tolist())
+        if not nx.has_path(ref, start, goal):
+            assert (int(nxt[i]), int(edge[i]), int(distance[i])) == (-1, -1, -1)
+            continue
+        expected = nx.shortest_path_length(ref, start, goal)
+        assert int(distance[i]) == expected
+        if expected == 0:
+            assert int(nxt[i]) == int(nodes[i]) and int(edge[i]) == -1
+            continue
+        hop = tuple(graph.node_code(int(nxt[i])).tolist())
+        assert ref.has_edge(start, hop)
+        assert nx.shortest_path_length(ref, hop, goal) == expected - 1
+        assert int(graph.edge_source[edge[i]]) == int(nodes[i])
+        assert int(graph.indices[edge[i]]) == int(nxt[i])
+        # the most-seen edge among the hops one step closer
+        closer = [
+            int(graph.edge_counts[e])
+            for e in range(int(graph.indptr[nodes[i]]), int(graph.indptr[nodes[i] + 1]))
+            if e not in gone
+            and int(graph.edge_reverse[e]) not in gone
+            and nx.has_path(ref, tuple(graph.node_code(int(graph.indices[e])).tolist()), goal)
+            and nx.shortest_path_length(
+                ref, tuple(graph.node_code(int(graph.indices[e])).tolist()), goal
+            )
+            == expected - 1
+        ]
+        assert int(graph.edge_counts[edge[i]]) == max(closer)
+        # the same answer asked alone
+        assert graph.next_waypoint(int(nodes[i]), int(goals[i]), removed[i]) == (
+            int(nxt[i]),
+            int(edge[i]),
+            int(distance[i]),
+        )
+    assert (distance >= 1).sum() > rows // 2  # the draw asked real questions
+
+
+def test_node_codes_give_each_node_s_group_codes():
+    codes, next_codes = random_walk_codes(3, 6, 500)
+    graph = CodeGraph.from_transitions(codes, next_codes, (6, 6, 6), [(0, 2), (1,)])
+    nodes = torch.arange(graph.node_offsets[-1].item())
+    values, onehots = graph.node_codes(nodes)
+    for node in nodes.tolist():
+        group = 0 if node < int(graph.node_offsets[1]) else 1
+        assert onehots[node].nonzero().squeeze(-1).tolist() == sorted(graph.groups[group])
+        assert values[node, graph.groups[group]].tolist() == graph.node_code(node).tolist()

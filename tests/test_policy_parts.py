@@ -114,6 +114,43 @@ def test_a_users_rule_plugs_in_with_its_own_state_key(one_object):
         )
 
 
+class KeepOddRowsEdges(RecoveryRule):
+    """A user's rule that decides: the failed hops of odd rows keep their edge (the rule
+    takes them over), and it counts them in its own key."""
+
+    def state_keys(self):
+        return (StateKey("kept_hops", fill=0),)
+
+    def instead_of_removal(self, state, rows):
+        odd = torch.arange(rows.shape[0]) % 2 == 1
+        state["kept_hops"][rows & odd] += 1
+        return rows & odd
+
+
+def test_a_users_rule_decides_a_failed_hop_without_touching_the_loop():
+    """The rule's decision is applied by the loop: the rows it takes keep their edges but
+    count the removal; the others lose the edge; every row is offered in one call."""
+    env = ObjectRearrangementEnv(num_objects=1, batch_size=(4,), seed=0)
+    oracle = OracleCodeEncoder(env, cell_size=4)
+    graph = CodeGraph.from_play_data(collect_play_data(env, 2000, seed=0), oracle)
+    built = make_dorp_policy(env, oracle, graph, seed=0, **SMALL)
+    rules = [KeepOddRowsEdges(), *recovery_rules(built.config, goal_code_term=True)]
+    policy = AbstractGoalPolicy(
+        oracle, graph, built.waypoint_planner, built.goal_planner, built.config, rules=rules
+    )
+    start = torch.tensor([[[0, 0]], [[0, 12]], [[12, 0]], [[12, 12]]])
+    task = env.reset().set("state", start).set("goal_state", start.flip(0))
+    td = policy(env.reset(task, set_state=True))
+    edge = td["dorp_edge"].clone()
+    assert (edge >= 0).all()  # every row is on its way to a waypoint
+    td["dorp_budget"][:] = 0  # every row's waypoint missed
+    td = policy(td)
+    assert td["dorp_replans"].squeeze(-1).tolist() == [1, 1, 1, 1]
+    assert td["kept_hops"].squeeze(-1).tolist() == [0, 1, 0, 1]
+    removed = td["dorp_removed"][:, 0]
+    assert torch.equal(removed[::2], edge[::2, 0]) and (removed[1::2] == -1).all()
+
+
 def test_a_goal_cost_without_the_code_term_needs_a_zero_weight(one_object):
     env, oracle, graph = one_object
     pixels_only = make_dorp_policy(env, oracle, graph, goal_code_weight=0, **SMALL)

@@ -560,6 +560,40 @@ class CodeGraph(nn.Module):
         group = torch.bucketize(source, offsets, right=True)
         return torch.where(edge >= 0, group, torch.full_like(group, -1))
 
+    def nodes_of(self, code: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
+        """Global node ids ``[N]`` of codes ``[N, C]``, row ``i`` in group ``groups[i]``;
+        -1 where the code was never seen or the group is -1."""
+        code = self._check_code(code, "code")
+        groups = self._check_edge_ids(groups, "groups", high=self.num_groups - 1)
+        out = torch.full(groups.shape, _UNREACHABLE, dtype=torch.int64)
+        for group in groups[groups >= 0].unique().tolist():
+            rows = groups == group
+            out[rows] = self._node_of(code[rows], group).cpu()
+        return out
+
+    def node_codes(self, nodes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The codes of global nodes ``[N]``: int64 ``[N, C]`` (0 outside each node's
+        group) and bool ``[N, C]``, the one-hots of each node's group."""
+        nodes = self._check_edge_ids(nodes, "nodes", high=self._offsets[-1] - 1).reshape(-1)
+        if bool((nodes < 0).any()):
+            raise ValueError(f"nodes must be node ids, got {nodes.tolist()}.")
+        members = self.group_members[self._groups_of_nodes(nodes)]  # [N, M]
+        radix = self.group_radix[self._groups_of_nodes(nodes)]
+        sizes = torch.tensor(self.code_sizes)[members.clamp(min=0)]
+        values = (self.node_keys[nodes].unsqueeze(-1) // radix.clamp(min=1)) % sizes
+        codes = torch.zeros(nodes.shape[0], len(self.code_sizes), dtype=torch.int64)
+        mask = torch.zeros(codes.shape, dtype=torch.bool)
+        rows, slots = (members >= 0).nonzero(as_tuple=True)
+        codes[rows, members[rows, slots]] = values[rows, slots]
+        mask[rows, members[rows, slots]] = True
+        return codes, mask
+
+    def _groups_of_nodes(self, nodes: torch.Tensor) -> torch.Tensor:
+        """Group of each global node id (any shape; -1 for -1 entries)."""
+        offsets = torch.as_tensor(self._offsets[1:-1], dtype=torch.int64)
+        group = torch.bucketize(nodes, offsets, right=True)
+        return torch.where(nodes >= 0, group, torch.full_like(group, -1))
+
     # ------------------------------------------------------------------ #
     # Search
     # ------------------------------------------------------------------ #
@@ -581,42 +615,13 @@ class CodeGraph(nn.Module):
         """
         goal = self._check_node(goal, "goal")
         group = self._group_of_node(goal)
-        lo, hi = self._offsets[group], self._offsets[group + 1]
         if stop_at is not None:
             stop_at = self._check_node(stop_at, "stop_at", group)
-        removed = self._removed(removed)
-        table = self._table_offsets[group]
-        if table >= 0 and removed.numel() == 0:
-            n = hi - lo
-            row = self.dense_distances[table + (goal - lo) * n : table + (goal - lo + 1) * n]
-            return row.to(torch.int64)
-        e_lo, e_hi = int(self.indptr[lo]), int(self.indptr[hi])
-        src = self.edge_source[e_lo:e_hi] - lo
-        dst = self.indices[e_lo:e_hi] - lo
-        alive = torch.ones(e_hi - e_lo, dtype=torch.bool)
-        if removed.numel():
-            both = torch.cat([removed, self.edge_reverse[removed]])
-            both = both[(both >= e_lo) & (both < e_hi)] - e_lo
-            alive[both] = False
-        src, dst = src[alive], dst[alive]
-        dist = torch.full((hi - lo,), _UNREACHABLE, dtype=torch.int64)
-        dist[goal - lo] = 0
-        frontier = torch.zeros(hi - lo, dtype=torch.bool)
-        frontier[goal - lo] = True
-        level = 0
-        while True:
-            step = frontier[src]
-            reached = dst[step]
-            reached = reached[dist[reached] < 0]
-            if reached.numel() == 0:
-                break
-            level += 1
-            dist[reached] = level
-            frontier = torch.zeros_like(frontier)
-            frontier[reached] = True
-            if stop_at is not None and dist[stop_at - lo] >= 0:
-                break
-        return dist
+        removed = self._removed(removed).unsqueeze(0)
+        lo = self._offsets[group]
+        alive = self._alive_edges(group, removed)
+        start = None if stop_at is None else torch.tensor([stop_at - lo])
+        return self._distance_fields(group, torch.tensor([goal - lo]), alive, start)[0]
 
     def next_waypoint(
         self, node: int, goal: int, removed: torch.Tensor | None = None
@@ -624,7 +629,8 @@ class CodeGraph(nn.Module):
         """The next node on a shortest path from ``node`` to ``goal`` (same group).
 
         Among neighbours one hop closer to the goal, the one joined by the edge seen most
-        often in the play data wins (then the lowest id).
+        often in the play data wins (then the lowest id). :meth:`next_waypoints` answers
+        many such questions at once.
 
         Returns:
             ``(next_node, edge_id, distance)``: ``distance`` is the hop count from ``node``
@@ -632,33 +638,74 @@ class CodeGraph(nn.Module):
             0)`` when ``node == goal``.
         """
         node, goal = self._check_node(node, "node"), self._check_node(goal, "goal")
-        if self._group_of_node(node) != self._group_of_node(goal):
-            raise ValueError(f"nodes {node} and {goal} belong to different groups.")
-        if node == goal:
-            return node, _UNREACHABLE, 0
-        dist = self.distances_to(goal, removed, stop_at=node)
-        return self._step_towards(dist, node, goal, self._removed(removed))
+        removed = self._removed(removed).unsqueeze(0)
+        nxt, edge, distance = self.next_waypoints(
+            torch.tensor([node]), torch.tensor([goal]), removed
+        )
+        return int(nxt[0]), int(edge[0]), int(distance[0])
 
-    def _step_towards(
-        self, dist: torch.Tensor, node: int, goal: int, removed: torch.Tensor
-    ) -> tuple[int, int, int]:
-        """One hop down the distance field ``dist`` (of ``goal``'s group) from ``node``."""
-        lo = self._offsets[self._group_of_node(goal)]
-        d = int(dist[node - lo])
-        if d < 0:
-            return _UNREACHABLE, _UNREACHABLE, _UNREACHABLE
-        if d == 0:
-            return node, _UNREACHABLE, 0
-        e_lo, e_hi = int(self.indptr[node]), int(self.indptr[node + 1])
-        candidates = self.indices[e_lo:e_hi]
-        ok = dist[candidates - lo] == d - 1
-        if removed.numel():
-            edges = torch.arange(e_lo, e_hi)
-            gone = torch.isin(edges, removed) | torch.isin(self.edge_reverse[edges], removed)
-            ok &= ~gone
-        scores = torch.where(ok, self.edge_counts[e_lo:e_hi], torch.full_like(candidates, -1))
-        best = int(scores.argmax())
-        return int(candidates[best]), e_lo + best, d
+    def next_waypoints(
+        self,
+        nodes: torch.Tensor,
+        goals: torch.Tensor,
+        removed: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The next node on a shortest path from each of ``nodes`` to its goal, at once.
+
+        Args:
+            nodes: int64 ``[N]`` global node ids (-1: a code never seen: no path).
+            goals: int64 ``[N]`` global node ids of the same groups (-1: no path).
+            removed: int64 ``[N, S]`` edge ids each row must not use, in both directions
+                (-1: a free slot); ``None``: none.
+
+        Returns:
+            ``(next_node, edge_id, distance)``, each int64 ``[N]``, per row as
+            :meth:`next_waypoint`.
+
+        Examples:
+            >>> import torch
+            >>> codes = torch.tensor([[0], [1], [2], [3]])
+            >>> graph = CodeGraph.from_transitions(codes[:-1], codes[1:], code_sizes=(4,))
+            >>> nxt, edge, distance = graph.next_waypoints(
+            ...     torch.tensor([0, 3, 1]), torch.tensor([3, 0, 1]),
+            ...     torch.tensor([[-1], [-1], [-1]]))
+            >>> nxt.tolist(), distance.tolist()
+            ([1, 2, 1], [3, 3, 0])
+        """
+        nodes = self._check_edge_ids(nodes, "nodes", high=self._offsets[-1] - 1).reshape(-1)
+        goals = self._check_edge_ids(goals, "goals", high=self._offsets[-1] - 1).reshape(-1)
+        if goals.shape != nodes.shape:
+            raise ValueError(
+                f"nodes and goals must have one entry per row, got {list(nodes.shape)} "
+                f"and {list(goals.shape)}."
+            )
+        if removed is None:
+            removed = torch.full((nodes.shape[0], 1), _UNREACHABLE, dtype=torch.int64)
+        removed = self._check_edge_ids(removed, "removed")
+        if removed.dim() != 2 or removed.shape[0] != nodes.shape[0]:
+            raise ValueError(
+                f"removed must be edge ids [N, S] (one row per node), got {list(removed.shape)}."
+            )
+        groups, goal_groups = self._groups_of_nodes(nodes), self._groups_of_nodes(goals)
+        both = (nodes >= 0) & (goals >= 0)
+        if bool((both & (groups != goal_groups)).any()):
+            row = int((both & (groups != goal_groups)).nonzero()[0])
+            raise ValueError(
+                f"nodes {int(nodes[row])} and {int(goals[row])} belong to different groups."
+            )
+        nxt = torch.full_like(nodes, _UNREACHABLE)
+        edge, distance = nxt.clone(), nxt.clone()
+        same = both & (nodes == goals)
+        nxt[same], distance[same] = nodes[same], 0
+        todo = both & ~same
+        for group in groups[todo].unique().tolist():
+            rows = (todo & (groups == group)).nonzero().squeeze(-1)
+            lo = self._offsets[group]
+            alive = self._alive_edges(group, removed[rows])
+            start = nodes[rows] - lo
+            dist = self._distance_fields(group, goals[rows] - lo, alive, start)
+            nxt[rows], edge[rows], distance[rows] = self._steps(group, dist, start, alive)
+        return nxt, edge, distance
 
     def shortest_path(
         self,
@@ -683,15 +730,95 @@ class CodeGraph(nn.Module):
         b = self._as_node(goal, group, "goal")
         if a < 0 or b < 0:
             return []
-        removed = self._removed(removed)
-        dist = self.distances_to(b, removed)
+        lo = self._offsets[group]
+        alive = self._alive_edges(group, self._removed(removed).unsqueeze(0))
+        dist = self._distance_fields(group, torch.tensor([b - lo]), alive)
         path = [a]
         while path[-1] != b:
-            nxt, _, _ = self._step_towards(dist, path[-1], b, removed)
-            if nxt < 0:
+            nxt, _, _ = self._steps(group, dist, torch.tensor([path[-1] - lo]), alive)
+            if int(nxt[0]) < 0:
                 return []
-            path.append(nxt)
+            path.append(int(nxt[0]))
         return path
+
+    def _alive_edges(self, group: int, removed: torch.Tensor) -> torch.Tensor:
+        """bool ``[N, E_group]``: the group's directed edges each row may use (those in
+        ``removed`` ``[N, S]``, and their reverses, may not)."""
+        e_lo = int(self.indptr[self._offsets[group]])
+        e_hi = int(self.indptr[self._offsets[group + 1]])
+        alive = torch.ones(removed.shape[0], e_hi - e_lo, dtype=torch.bool)
+        reverse = torch.where(removed >= 0, self.edge_reverse[removed.clamp(min=0)], -1)
+        both = torch.cat([removed, reverse], dim=-1)
+        rows, slots = ((both >= e_lo) & (both < e_hi)).nonzero(as_tuple=True)
+        alive[rows, both[rows, slots] - e_lo] = False
+        return alive
+
+    def _distance_fields(
+        self,
+        group: int,
+        goals: torch.Tensor,
+        alive: torch.Tensor,
+        stop_at: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """int64 ``[N, n]``: hop distances of the group's ``n`` nodes to each row's goal
+        (local ids ``[N]``) over the row's ``alive`` edges, by one breadth-first search of
+        all rows at once (a row without removed edges reads the group's distance table);
+        the search may stop once every row's ``stop_at`` node (local ids) is reached."""
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        e_lo, e_hi = int(self.indptr[lo]), int(self.indptr[hi])
+        rows = torch.arange(goals.shape[0])
+        dist = torch.full((goals.shape[0], hi - lo), _UNREACHABLE, dtype=torch.int64)
+        table = self._table_offsets[group]
+        search = torch.ones_like(goals, dtype=torch.bool)
+        if table >= 0:
+            search = ~alive.all(-1)
+            n = hi - lo
+            plain = ~search
+            index = table + goals[plain].unsqueeze(-1) * n + torch.arange(n)
+            dist[plain] = self.dense_distances[index].to(torch.int64)
+        if not bool(search.any()):
+            return dist
+        src = self.edge_source[e_lo:e_hi] - lo
+        dst = self.indices[e_lo:e_hi] - lo
+        dist[rows[search], goals[search]] = 0
+        frontier = torch.zeros_like(dist, dtype=torch.bool)
+        frontier[rows[search], goals[search]] = True
+        level = 0
+        while True:
+            hit_rows, hit_edges = (frontier[:, src] & alive).nonzero(as_tuple=True)
+            reached = torch.zeros_like(frontier)
+            reached[hit_rows, dst[hit_edges]] = True
+            reached &= dist < 0
+            if not bool(reached.any()):
+                break
+            level += 1
+            dist[reached] = level
+            frontier = reached
+            if stop_at is not None and bool((dist[rows, stop_at] >= 0).all()):
+                break
+        return dist
+
+    def _steps(
+        self, group: int, dist: torch.Tensor, nodes: torch.Tensor, alive: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One hop down each row's distance field ``dist`` ``[N, n]`` from ``nodes`` (local
+        ids ``[N]``) over its ``alive`` edges: global ``(next_node, edge_id, distance)``."""
+        lo, hi = self._offsets[group], self._offsets[group + 1]
+        e_lo, e_hi = int(self.indptr[lo]), int(self.indptr[hi])
+        src = self.edge_source[e_lo:e_hi] - lo
+        dst = self.indices[e_lo:e_hi] - lo
+        d = dist.gather(1, nodes.unsqueeze(-1))  # [N, 1]
+        closer = dist[:, dst] == d - 1
+        ok = (src == nodes.unsqueeze(-1)) & alive & closer & (d > 0)
+        scores = torch.where(ok, self.edge_counts[e_lo:e_hi], -1)
+        best = scores.argmax(-1)
+        found = ok.any(-1)
+        d = d.squeeze(-1)
+        nxt = torch.where(found, dst[best] + lo, _UNREACHABLE)
+        edge = torch.where(found, best + e_lo, _UNREACHABLE)
+        distance = torch.where(found, d, torch.where(d == 0, 0, _UNREACHABLE))
+        nxt = torch.where(d == 0, nodes + lo, nxt)
+        return nxt, edge, distance
 
     # ------------------------------------------------------------------ #
     # Persistence
@@ -987,17 +1114,18 @@ class CodeGraph(nn.Module):
                 f"or a code [{len(self.code_sizes)}], got {node!r}."
             ) from None
 
-    def _check_edge_ids(self, edge: Any, name: str) -> torch.Tensor:
-        """Integer edge ids (any shape) in ``-1..E-1`` as an int64 CPU tensor."""
+    def _check_edge_ids(self, edge: Any, name: str, high: int | None = None) -> torch.Tensor:
+        """Integer ids (any shape) in ``-1..high`` (default: the edge ids) as an int64 CPU
+        tensor."""
         if isinstance(edge, torch.Tensor):
             if edge.dtype.is_floating_point or edge.dtype.is_complex or edge.dtype == torch.bool:
                 raise ValueError(f"{name} ids must be integers, got {_describe(edge)}.")
             edge = edge.to(torch.int64).cpu()
         else:
             edge = torch.tensor(check_int(name, edge), dtype=torch.int64)
-        total = int(self.indices.shape[0])
-        if edge.numel() and (int(edge.min()) < -1 or int(edge.max()) >= total):
-            raise ValueError(f"{name} ids must lie in -1..{total - 1}, got {edge.tolist()}.")
+        top = int(self.indices.shape[0]) - 1 if high is None else int(high)
+        if edge.numel() and (int(edge.min()) < -1 or int(edge.max()) > top):
+            raise ValueError(f"{name} ids must lie in -1..{top}, got {edge.tolist()}.")
         return edge
 
     def _removed(self, removed: torch.Tensor | None) -> torch.Tensor:

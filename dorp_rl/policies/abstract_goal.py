@@ -54,7 +54,7 @@ key                        dtype / shape       meaning
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import torch
@@ -69,7 +69,7 @@ from dorp_rl.modules.encoder import module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.policies.config import DORPConfig
-from dorp_rl.policies.recovery import PlanDecision, RecoveryRule, recovery_rules
+from dorp_rl.policies.recovery import PlanDecision, RecoveryRule, Waypoints, recovery_rules
 from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY, PolicyState, StateKey
 from dorp_rl.validation import MissingKeyError, check_keywords, check_seed, derive_seed
 
@@ -255,6 +255,13 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
         self.num_onehots = len(graph.code_sizes)
+        # bool [G, C]: each group's one-hots; int64 [G]: each group's place in ``order``
+        self._group_onehots = torch.zeros(graph.num_groups, self.num_onehots, dtype=torch.bool)
+        for group, members in enumerate(graph.groups):
+            self._group_onehots[group, members] = True
+        self._group_rank = torch.arange(graph.num_groups)
+        if not isinstance(config.order, str):
+            self._group_rank[list(config.order)] = torch.arange(graph.num_groups)
         if rules is None:
             rules = recovery_rules(config, goal_code_term=code_term)
         self.rules = list(rules)
@@ -530,8 +537,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         state["dorp_stale_removals"][hop_reached] = 0
         for rule in self.rules:
             rule.on_reached(state, hop_reached)
-        for row in missed.nonzero().squeeze(-1).tolist():
-            self._remove_edge(state, row)
+        self._remove_edges(state, missed)
         return reached, missed
 
     def _choose_waypoints(
@@ -546,10 +552,26 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         mode = state["dorp_mode"].squeeze(-1)
         need = active & ~at_goal & ((mode != _WAYPOINT) | hop_over)
         need &= ~state["dorp_failed"].squeeze(-1)
-        new_waypoint = torch.zeros(need.shape[0], dtype=torch.bool)
-        for row in need.nonzero().squeeze(-1).tolist():
-            new_waypoint[row] = self._next_waypoint(state, row)
-        return new_waypoint
+        chosen = torch.zeros_like(need)
+        for rule in self.rules:  # a rule's waypoint first (a re-entry under way)
+            waypoints = rule.next_waypoints(state, need & ~chosen)
+            if waypoints is not None:
+                taken = need & ~chosen & (waypoints.node >= 0)
+                self._set_waypoints(state, taken, waypoints)
+                chosen |= taken
+        left = need & ~chosen
+        waypoints, first_group = self._shortest_hops(state, left)
+        stuck = left & (waypoints.node < 0)
+        retry = self._first_taken(stuck, lambda rule, rows: rule.when_stuck(state, rows))
+        if retry.any():  # a rule changed the state (restored edges): search once more
+            waypoints = waypoints.where(retry, self._shortest_hops(state, retry)[0])
+        found = left & (waypoints.node >= 0)
+        no_path = left & ~found
+        state["dorp_failed"][no_path] = True
+        state["dorp_end"][no_path] = _NO_PATH
+        state["dorp_end_group"][no_path] = first_group[no_path].unsqueeze(-1)
+        self._set_waypoints(state, found, waypoints)
+        return chosen | found
 
     def _spend_goal_budget(
         self, state: dict[str, torch.Tensor], at_goal: torch.Tensor
@@ -698,133 +720,125 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             stalled = rule.goal_stalls(state, rows, planned, cost)
             if stalled is None:
                 continue
-            taken = torch.zeros_like(stalled)
-            for row in stalled.nonzero().squeeze(-1).tolist():
-                if self.removal_limit_reached(state, row):
-                    continue
-                if any(other.on_goal_stall(state, row) for other in self.rules):
-                    taken[row] = True
-                    self.count_removal(state, row)
+            open_rows = stalled & ~self._removal_limit_reached(state)
+            taken = self._first_taken(
+                open_rows, lambda other, rows: other.on_goal_stall(state, rows)
+            )
+            self._count_removals(state, taken)
             decision = rule.after_goal_stalls(state, rows, stalled, taken)
             self._apply(decision, state, wp_state, gp_state)
 
-    def _remove_edge(self, state: dict[str, torch.Tensor], row: int) -> None:
-        """The current waypoint was not reached in time: remove its edge for this task
-        (unless a rule handles the failed hop); past ``max_removed_edges`` since the last
-        waypoint reached, give up."""
-        edge = int(state["dorp_edge"][row])
-        removed = state["dorp_removed"][row]
-        if self.removal_limit_reached(state, row):
-            state["dorp_failed"][row] = True
-            state["dorp_end"][row] = _REMOVAL_LIMIT
-            state["dorp_end_group"][row] = state["dorp_group"][row]
-            return
-        handled = any(rule.instead_of_removal(state, row, edge) for rule in self.rules)
-        if not handled and edge >= 0:
-            free = (removed < 0).nonzero()
-            count = int(state["dorp_replans"][row])
-            removed[int(free[0]) if free.numel() else count % removed.shape[0]] = edge
-        self.count_removal(state, row)
-
-    def removal_limit_reached(self, state: dict[str, torch.Tensor], row: int) -> bool:
-        """``row`` removed ``max_removed_edges`` edges since it last reached a waypoint."""
-        return int(state["dorp_stale_removals"][row]) >= self.max_removed_edges
-
-    def count_removal(self, state: dict[str, torch.Tensor], row: int) -> None:
-        """Counts one more removal (or re-entry) of ``row``, in all and since its last waypoint."""
-        state["dorp_replans"][row] += 1
-        state["dorp_stale_removals"][row] += 1
-
-    def _next_waypoint(self, state: dict[str, torch.Tensor], row: int) -> bool:
-        """Sets the next waypoint of ``row``; marks the row failed when no group has a path."""
-        for rule in self.rules:
-            chosen = rule.next_waypoint(state, row)
-            if chosen is not None:
-                self.set_waypoint(state, row, *chosen)
-                return True
-        code, goal = state["code"][row], state["goal_code"][row]
-        removed = state["dorp_removed"][row]
-        current = int(state["dorp_group"][row]) if int(state["dorp_mode"][row]) == _WAYPOINT else -1
-        ranked = self._group_order(code, goal, current)
-        best = self._best_hop(code, goal, removed, ranked, current)
-        if best is None and any(rule.when_stuck(state, row) for rule in self.rules):
-            best = self._best_hop(code, goal, removed, ranked, current)
-        if best is None:
-            state["dorp_failed"][row] = True
-            state["dorp_end"][row] = _NO_PATH
-            state["dorp_end_group"][row] = ranked[0] if ranked else -1
-            return False
-        self.set_waypoint(state, row, *best)
-        return True
-
-    def _group_order(self, code: torch.Tensor, goal: torch.Tensor, current: int) -> list[int]:
-        differing = [
-            g
-            for g, members in enumerate(self.graph.groups)
-            if bool((code[members] != goal[members]).any())
-        ]
-        if isinstance(self.order, tuple):
-            ranked = [g for g in self.order if g in differing]
-        else:
-            ranked = differing
-        # Finish the group being moved before starting another (the authors' sequential
-        # execution); "nearest" ranks the others by path length in _best_hop.
-        if current in ranked:
-            ranked.remove(current)
-            ranked.insert(0, current)
-        return ranked
-
-    def _best_hop(
+    def _first_taken(
         self,
-        code: torch.Tensor,
-        goal: torch.Tensor,
-        removed: torch.Tensor,
-        ranked: list[int],
-        current: int,
-    ) -> tuple[int, int, int, int] | None:
-        """``(group, next node, edge, distance)`` of the hop to take, ``None`` if no path."""
-        graph = self.graph
-        best: tuple[int, int, int, int] | None = None
-        for group in ranked:
-            node = int(graph.node_of(code, group))
-            target = int(graph.node_of(goal, group))
-            if node < 0 or target < 0:
-                continue
-            nxt, edge, distance = graph.next_waypoint(node, target, removed)
-            if nxt < 0:
-                continue
-            if best is None or (
-                self.order == "nearest" and distance < best[3] and group != current
-            ):
-                best = (group, nxt, edge, distance)
-            if self.order != "nearest" or group == current:
+        rows: torch.Tensor,
+        ask: Callable[[RecoveryRule, torch.Tensor], torch.Tensor | None],
+    ) -> torch.Tensor:
+        """Offers ``rows`` to the rules in turn (``ask(rule, rows left)``); each row goes to
+        the first rule that takes it. Returns the rows taken."""
+        taken = torch.zeros_like(rows)
+        for rule in self.rules:
+            left = rows & ~taken
+            if not left.any():
                 break
-        return best
+            took = ask(rule, left)
+            if took is not None:
+                taken |= took & left
+        return taken
 
-    def set_waypoint(
-        self,
-        state: dict[str, torch.Tensor],
-        row: int,
-        group: int,
-        nxt: int,
-        edge: int,
-        distance: int,
+    def _remove_edges(self, state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
+        """5. The waypoints of ``rows`` were not reached in time: remove their edges for the
+        task (unless a rule handles the failed hop); past ``max_removed_edges`` since the
+        last waypoint reached, give up."""
+        limit = rows & self._removal_limit_reached(state)
+        state["dorp_failed"][limit] = True
+        state["dorp_end"][limit] = _REMOVAL_LIMIT
+        state["dorp_end_group"][limit] = state["dorp_group"][limit]
+        rows = rows & ~limit
+        handled = self._first_taken(rows, lambda rule, r: rule.instead_of_removal(state, r))
+        edge = state["dorp_edge"].squeeze(-1)
+        drop = (rows & ~handled & (edge >= 0)).nonzero().squeeze(-1)
+        removed = state["dorp_removed"]
+        free = removed < 0  # the first free slot, else the oldest by count
+        slot = torch.where(
+            free.any(-1),
+            free.long().argmax(-1),
+            state["dorp_replans"].squeeze(-1) % removed.shape[1],
+        )
+        removed[drop, slot[drop]] = edge[drop]
+        self._count_removals(state, rows)
+
+    def _removal_limit_reached(self, state: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Rows that removed ``max_removed_edges`` edges since they last reached a waypoint."""
+        return state["dorp_stale_removals"].squeeze(-1) >= self.max_removed_edges
+
+    @staticmethod
+    def _count_removals(state: dict[str, torch.Tensor], rows: torch.Tensor) -> None:
+        """Counts one more removal (or re-entry) of ``rows``, in all and since their last
+        waypoint."""
+        state["dorp_replans"][rows] += 1
+        state["dorp_stale_removals"][rows] += 1
+
+    def _shortest_hops(
+        self, state: dict[str, torch.Tensor], rows: torch.Tensor
+    ) -> tuple[Waypoints, torch.Tensor]:
+        """2-3. For ``rows``, the group to move and the next hop on its shortest path:
+        among the groups whose code differs from the goal's and that have a path left,
+        the one being moved, else the first in ``order`` ("nearest": the shortest path,
+        ties in index order). Returns the :class:`Waypoints` (node -1: no group has a
+        path) and the first group in that order (-1: none differs), each ``[rows]``."""
+        out = Waypoints.none(rows.shape[0])
+        first = torch.full((rows.shape[0],), -1, dtype=torch.int64)
+        index = rows.nonzero().squeeze(-1)
+        n, groups = index.shape[0], self.graph.num_groups
+        if not n:
+            return out, first
+        code, goal = state["code"][index], state["goal_code"][index]
+        differing = ((code != goal).unsqueeze(1) & self._group_onehots).any(-1)  # [n, G]
+        moving = state["dorp_mode"][index, 0] == _WAYPOINT
+        current = torch.where(moving, state["dorp_group"][index, 0], -1)
+        rank = self._group_rank.expand(n, groups).clone()
+        rank[current.unsqueeze(-1) == torch.arange(groups)] = -1  # finish it first
+        # the next hop of every differing group of every row, in one search
+        group = torch.arange(groups).repeat(n)
+        node = self.graph.nodes_of(code.repeat_interleave(groups, 0), group)
+        target = self.graph.nodes_of(goal.repeat_interleave(groups, 0), group)
+        ask = differing.reshape(-1) & (node >= 0) & (target >= 0)
+        hop = Waypoints(group, *(torch.full_like(group, -1) for _ in range(3)))
+        if ask.any():
+            removed = state["dorp_removed"][index].repeat_interleave(groups, 0)[ask]
+            found = self.graph.next_waypoints(node[ask], target[ask], removed)
+            hop.node[ask], hop.edge[ask], hop.distance[ask] = found
+        has_path = (hop.node >= 0).reshape(n, groups)
+        score = rank
+        if self.order == "nearest":  # the moving group first, then by distance
+            score = torch.where(rank < 0, -1, hop.distance.reshape(n, groups) * (groups + 1) + rank)
+        never = torch.iinfo(torch.int64).max
+        best = torch.where(has_path, score, never).argmin(-1)
+        pick = torch.arange(n) * groups + best
+        chosen = has_path.any(-1)
+        for mine, theirs in zip(out, hop, strict=True):
+            mine[index[chosen]] = theirs[pick[chosen]]
+        lead = torch.where(differing, rank, never).argmin(-1)
+        first[index] = torch.where(differing.any(-1), lead, -1)
+        return out, first
+
+    def _set_waypoints(
+        self, state: dict[str, torch.Tensor], rows: torch.Tensor, waypoints: Waypoints
     ) -> None:
-        """Makes node ``nxt`` of ``group`` (over ``edge``, ``distance`` hops from the
-        target) the waypoint of ``row``, with a full budget."""
-        graph = self.graph
-        members = graph.groups[group]
-        subgoal = state["code"][row].clone()
-        subgoal[members] = graph.node_code(nxt)
-        state["subgoal_code"][row] = subgoal
-        state["subgoal_mask"][row] = False
-        state["subgoal_mask"][row, members] = True
-        state["dorp_group"][row] = group
-        state["dorp_edge"][row] = edge
-        state["dorp_distance"][row] = distance
-        state["dorp_budget"][row] = self.waypoint_budget
+        """4. Makes each row's ``waypoints.node`` (of its group, over its edge, its
+        distance from the target) the waypoint of ``rows``, with a full budget."""
+        index = rows.nonzero().squeeze(-1)
+        if not index.numel():
+            return
+        codes, onehots = self.graph.node_codes(waypoints.node[index])
+        state["subgoal_code"][index] = torch.where(onehots, codes, state["code"][index])
+        state["subgoal_mask"][index] = onehots
+        state["dorp_group"][index, 0] = waypoints.group[index]
+        state["dorp_edge"][index, 0] = waypoints.edge[index]
+        state["dorp_distance"][index, 0] = waypoints.distance[index]
+        state["dorp_budget"][index] = self.waypoint_budget
         for rule in self.rules:
-            rule.on_waypoint(state, row)
+            rule.on_waypoint(state, rows)
 
     def _action_prior(self, state: dict[str, torch.Tensor], index: torch.Tensor) -> torch.Tensor:
         """``[len(index), A]``: the hop's one-hots' action shares, mixed with uniform draws."""

@@ -33,7 +33,7 @@ Settings come from :class:`~dorp_rl.policies.DORPConfig` (:func:`recovery_rules`
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
@@ -46,7 +46,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "PlanDecision",
-    "Waypoint",
+    "Waypoints",
     "AvoidNoops",
     "ForgetBlocked",
     "GoalRelaxation",
@@ -76,19 +76,46 @@ class PlanDecision:
     restart: torch.Tensor | None = None
 
 
-#: A waypoint a rule chooses: ``(group, node, edge, distance)``, as the shortest path's.
-Waypoint = tuple[int, int, int, int]
+class Waypoints(NamedTuple):
+    """Waypoints chosen for a batch of rows, each int64 ``[rows]``: the ``group`` moved,
+    the ``node`` to reach (-1: none chosen for that row), the ``edge`` of the hop and the
+    ``distance`` in hops to the group's goal code (as the shortest path's)."""
+
+    group: torch.Tensor
+    node: torch.Tensor
+    edge: torch.Tensor
+    distance: torch.Tensor
+
+    @classmethod
+    def none(cls, rows: int) -> Waypoints:
+        """No waypoint for any of ``rows`` rows."""
+        return cls(*(torch.full((rows,), -1, dtype=torch.int64) for _ in range(4)))
+
+    def where(self, rows: torch.Tensor, other: Waypoints) -> Waypoints:
+        """``other``'s waypoints on ``rows`` (bool ``[rows]``), these elsewhere."""
+        return Waypoints(*(torch.where(rows, b, a) for a, b in zip(self, other, strict=True)))
 
 
 class RecoveryRule:
     """A part of the DORP policy; every hook does nothing unless a rule overrides it.
 
-    ``state`` is the policy's state (``{key: [rows, width]}``, CPU), ``rows`` a bool mask
-    ``[rows]`` and ``row`` one row index. A rule keeps its own keys of the state (its
-    :meth:`state_keys`) and returns its decisions (masks, a waypoint, whether it takes a
-    matter over), which the policy applies: no rule calls back into the policy or writes
-    a planner's state. Hooks returning ``bool`` answer whether the rule took the matter
-    over (the first rule that does wins).
+    ``state`` is the policy's state (``{key: [rows, width]}``, CPU) and ``rows`` a bool
+    mask ``[rows]``: every hook answers for a batch of rows at once. A rule keeps its own
+    keys of the state (its :meth:`state_keys`) and returns its decisions (masks,
+    waypoints, the rows whose matter it takes over), which the policy applies: no rule
+    calls back into the policy or writes a planner's state. Of the rows offered to the
+    rules in turn, each goes to the first rule that takes it.
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.policies.recovery import RecoveryRule
+        >>> class GiveUpEarly(RecoveryRule):
+        ...     "Spends no removal on a hop that fails: the task is given up instead."
+        ...     def instead_of_removal(self, state, rows):
+        ...         return rows
+        >>> state = {"dorp_edge": torch.tensor([[3], [4]])}
+        >>> GiveUpEarly().instead_of_removal(state, torch.tensor([True, False])).tolist()
+        [True, False]
     """
 
     policy: AbstractGoalPolicy
@@ -126,20 +153,23 @@ class RecoveryRule:
     def on_reached(self, state: State, rows: torch.Tensor) -> None:
         """``rows`` just reached their waypoint (its edge is still ``dorp_edge``)."""
 
-    def instead_of_removal(self, state: State, row: int, edge: int) -> bool:
-        """The hop over ``edge`` failed: handle it instead of removing the edge?"""
-        return False
-
-    def next_waypoint(self, state: State, row: int) -> Waypoint | None:
-        """A waypoint for ``row`` instead of the shortest path's (``None``: the usual one)."""
+    def instead_of_removal(self, state: State, rows: torch.Tensor) -> torch.Tensor | None:
+        """The hops of ``rows`` (over their ``dorp_edge``) failed: the rows whose failure
+        the rule handles instead of removing the edge (``None``: none)."""
         return None
 
-    def when_stuck(self, state: State, row: int) -> bool:
-        """No group has a path left: change the state so that the search is tried again?"""
-        return False
+    def next_waypoints(self, state: State, rows: torch.Tensor) -> Waypoints | None:
+        """Waypoints for some of ``rows`` instead of the shortest path's (a row with
+        ``node`` -1, or ``None`` for all: the usual one)."""
+        return None
 
-    def on_waypoint(self, state: State, row: int) -> None:
-        """A new waypoint was set for ``row``."""
+    def when_stuck(self, state: State, rows: torch.Tensor) -> torch.Tensor | None:
+        """No group of ``rows`` has a path left: the rows whose state the rule changed so
+        that the search is tried again (``None``: none)."""
+        return None
+
+    def on_waypoint(self, state: State, rows: torch.Tensor) -> None:
+        """New waypoints were set for ``rows``."""
 
     def goal_budget_scale(self, state: State) -> torch.Tensor | None:
         """``[rows]`` factors of the goal phase's step budget."""
@@ -158,11 +188,11 @@ class RecoveryRule:
         ``cost``): the rows whose goal phase stopped progressing (``None``: none)."""
         return None
 
-    def on_goal_stall(self, state: State, row: int) -> bool:
-        """The goal phase of ``row`` stopped progressing: take it over before it relaxes?
-        A rule that does spends one of the task's removals (``max_removed_edges``), and
-        is not asked once they are spent."""
-        return False
+    def on_goal_stall(self, state: State, rows: torch.Tensor) -> torch.Tensor | None:
+        """The goal phases of ``rows`` stopped progressing: the rows the rule takes over
+        before they relax (``None``: none). Each row taken spends one of the task's
+        removals (``max_removed_edges``); rows that spent them are not offered."""
+        return None
 
     def after_goal_stalls(
         self, state: State, rows: torch.Tensor, stalled: torch.Tensor, taken: torch.Tensor
@@ -192,8 +222,8 @@ class MissedPlans(RecoveryRule):
     def state_keys(self) -> tuple[StateKey, ...]:
         return (StateKey("dorp_misses", doc="plans for this waypoint that reached it nowhere"),)
 
-    def on_waypoint(self, state: State, row: int) -> None:
-        state["dorp_misses"][row] = 0
+    def on_waypoint(self, state: State, rows: torch.Tensor) -> None:
+        state["dorp_misses"][rows] = 0
 
     def after_waypoint_plan(
         self, state: State, planned: torch.Tensor, cost: torch.Tensor
@@ -242,13 +272,12 @@ class RestoreWhenStuck(RecoveryRule):
     def on_reached(self, state: State, rows: torch.Tensor) -> None:
         state["dorp_restored"][rows] = False
 
-    def when_stuck(self, state: State, row: int) -> bool:
-        removed = state["dorp_removed"][row]
-        if bool(state["dorp_restored"][row]) or not bool((removed >= 0).any()):
-            return False
-        removed.fill_(-1)
-        state["dorp_restored"][row] = True
-        return True
+    def when_stuck(self, state: State, rows: torch.Tensor) -> torch.Tensor:
+        removed = state["dorp_removed"]
+        restore = rows & ~state["dorp_restored"].squeeze(-1) & (removed >= 0).any(-1)
+        removed[restore] = -1
+        state["dorp_restored"][restore] = True
+        return restore
 
 
 class Reentry(RecoveryRule):
@@ -281,22 +310,40 @@ class Reentry(RecoveryRule):
             StateKey("dorp_reentries", doc="re-entries started"),
         )
 
-    # -- bookkeeping
-    def _may_reenter(self, state: State, row: int, edge: int) -> bool:
-        slots = state["dorp_reentered"][row]
-        return (
-            self.max_reentries > 0 and not bool((slots == edge).any()) and bool((slots < 0).any())
-        )
+    # -- bookkeeping (``index``: int64 row indices)
+    def _may_reenter(self, state: State, index: torch.Tensor, edge: torch.Tensor) -> torch.Tensor:
+        """bool ``[len(index)]``: ``edge`` was not re-entered yet and a slot is free."""
+        slots = state["dorp_reentered"][index]
+        fresh = ~(slots == edge.unsqueeze(-1)).any(-1) & (slots < 0).any(-1)
+        return fresh & (self.max_reentries > 0)
 
-    def _note(self, state: State, row: int, edge: int) -> None:
-        slots = state["dorp_reentered"][row]
-        slots[int((slots < 0).nonzero()[0])] = edge
-        state["dorp_reentries"][row] += 1
+    def _note(self, state: State, index: torch.Tensor, edge: torch.Tensor) -> None:
+        slots = state["dorp_reentered"][index]
+        slots[torch.arange(index.shape[0]), (slots < 0).long().argmax(-1)] = edge
+        state["dorp_reentered"][index] = slots
+        state["dorp_reentries"][index] += 1
 
-    def _end(self, state: State, row: int) -> None:
-        state["dorp_via"][row] = -1
-        state["dorp_via_ban"][row] = -1
-        state["dorp_via_left"][row] = False
+    def _start(
+        self, state: State, index: torch.Tensor, via: torch.Tensor, ban: torch.Tensor
+    ) -> None:
+        state["dorp_via"][index, 0] = via
+        state["dorp_via_ban"][index, 0] = ban
+
+    def _end(self, state: State, index: torch.Tensor) -> None:
+        state["dorp_via"][index] = -1
+        state["dorp_via_ban"][index] = -1
+        state["dorp_via_left"][index] = False
+
+    def _has_path(
+        self, nodes: torch.Tensor, goals: torch.Tensor, avoid: torch.Tensor, ask: torch.Tensor
+    ) -> torch.Tensor:
+        """bool ``[N]``: of the ``ask`` rows, those with a path from ``nodes`` to ``goals``
+        that avoids the edges ``avoid`` ``[N, S]`` (False elsewhere)."""
+        out = torch.zeros_like(ask)
+        if ask.any():
+            nxt = self.policy.graph.next_waypoints(nodes[ask], goals[ask], avoid[ask])[0]
+            out[ask] = nxt >= 0
+        return out
 
     # -- hooks
     def on_reached(self, state: State, rows: torch.Tensor) -> None:
@@ -307,95 +354,103 @@ class Reentry(RecoveryRule):
         leaving, the re-entry is over."""
         graph = self.policy.graph
         via = state["dorp_via"].squeeze(-1)
-        for row in (active & (via >= 0)).nonzero().squeeze(-1).tolist():
-            group = int(graph.group_of_edge(int(state["dorp_via_ban"][row])))
-            node = int(graph.node_of(state["code"][row], group))
-            if node != int(via[row]):
-                state["dorp_via_left"][row] = True
-            elif bool(state["dorp_via_left"][row]):
-                self._end(state, row)
+        index = (active & (via >= 0)).nonzero().squeeze(-1)
+        if not index.numel():
+            return
+        group = graph.group_of_edge(state["dorp_via_ban"][index, 0])
+        away = graph.nodes_of(state["code"][index], group) != via[index]
+        was_away = state["dorp_via_left"][index, 0]
+        state["dorp_via_left"][index[away]] = True
+        self._end(state, index[~away & was_away])
 
     def delays_goal(self, state: State) -> torch.Tensor:
         return state["dorp_via"].squeeze(-1) >= 0
 
-    def instead_of_removal(self, state: State, row: int, edge: int) -> bool:
-        """Only when removing ``edge`` leaves the group no path to its goal code, the group
-        entered the hop's source code by a hop and still sits in it (or drifted back to
-        the code it came from), and this edge has not had its re-entry yet."""
-        if not self.hops:
-            return False
+    def instead_of_removal(self, state: State, rows: torch.Tensor) -> torch.Tensor:
+        """Only where removing the edge leaves the group no path to its goal code, the
+        group entered the hop's source code by a hop and still sits in it (or drifted back
+        to the code it came from), and this edge has not had its re-entry yet."""
+        taken = torch.zeros_like(rows)
+        index = rows.nonzero().squeeze(-1)
+        if not self.hops or not index.numel():
+            return taken
         graph = self.policy.graph
-        entry = int(state["dorp_entry_edge"][row])
-        if edge < 0 or entry < 0 or not self._may_reenter(state, row, edge):
-            return False
-        source = int(graph.edge_source[edge])
-        if int(graph.indices[entry]) != source:
-            return False  # entered some other node: the entry edge says nothing here
-        group = int(graph.group_of_edge(edge))
-        node = int(graph.node_of(state["code"][row], group))
-        if node not in (source, int(graph.edge_source[entry])):
-            return False  # drifted elsewhere than the hop's code or the one it came from
-        target = int(graph.node_of(state["goal_code"][row], group))
+        edge, entry = state["dorp_edge"][index, 0], state["dorp_entry_edge"][index, 0]
+        ok = (edge >= 0) & (entry >= 0) & self._may_reenter(state, index, edge)
+        source = graph.edge_source[edge.clamp(min=0)]
+        entry_source = graph.edge_source[entry.clamp(min=0)]
+        # entered the hop's code by the entry edge (else it says nothing here)
+        ok &= graph.indices[entry.clamp(min=0)] == source
+        group = torch.where(ok, graph.group_of_edge(edge), -1)
+        node = graph.nodes_of(state["code"][index], group)
+        ok &= (node == source) | (node == entry_source)  # not drifted elsewhere
+        target = graph.nodes_of(state["goal_code"][index], group)
         # Edges that failed once and wait for their re-entry are no way round either.
-        doubtful = state["dorp_reentered"][row]
-        without = torch.cat([state["dorp_removed"][row], doubtful, torch.tensor([edge])])
-        if graph.next_waypoint(source, target, without)[0] >= 0:
-            return False  # another path is left: removing the edge loses nothing
-        state["dorp_via"][row] = source
-        state["dorp_via_ban"][row] = entry
-        state["dorp_via_left"][row] = node != source  # already back where it came from
-        self._note(state, row, edge)
-        return True
+        avoid = torch.cat(
+            [state["dorp_removed"][index], state["dorp_reentered"][index], edge.unsqueeze(-1)], -1
+        )
+        ok &= ~self._has_path(source, target, avoid, ok)  # removing it loses the way
+        self._start(state, index[ok], source[ok], entry[ok])
+        state["dorp_via_left"][index[ok], 0] = node[ok] != source[ok]  # back where it came from
+        self._note(state, index[ok], edge[ok])
+        taken[index[ok]] = True
+        return taken
 
-    def next_waypoint(self, state: State, row: int) -> Waypoint | None:
+    def next_waypoints(self, state: State, rows: torch.Tensor) -> Waypoints | None:
         """At ``dorp_via`` before leaving: back over the entry edge. Elsewhere: a shortest
         path back to ``dorp_via`` not over the entry edge. Back at ``dorp_via`` after
         leaving, or with no such path: the re-entry ends and the usual path follows."""
-        via, ban = int(state["dorp_via"][row]), int(state["dorp_via_ban"][row])
-        if via < 0:
+        via = state["dorp_via"].squeeze(-1)
+        index = (rows & (via >= 0)).nonzero().squeeze(-1)
+        if not index.numel():
             return None
         graph = self.policy.graph
-        group = int(graph.group_of_edge(ban))
-        node = int(graph.node_of(state["code"][row], group))
-        removed = state["dorp_removed"][row]
-        step = None
-        if node == via and not bool(state["dorp_via_left"][row]):
-            back = int(graph.edge_reverse[ban])
-            if not bool(((removed == ban) | (removed == back)).any()):
-                step = (int(graph.edge_source[ban]), back, 1)
-        elif node != via and node >= 0:
-            avoid = torch.cat([removed, torch.tensor([ban])])
-            nxt, edge, distance = graph.next_waypoint(node, via, avoid)
-            if nxt >= 0:
-                step = (nxt, edge, distance)
-        if step is None:
-            self._end(state, row)
-            return None
-        return (group, *step)
+        ban = state["dorp_via_ban"][index, 0]
+        group = graph.group_of_edge(ban)
+        node = graph.nodes_of(state["code"][index], group)
+        removed = state["dorp_removed"][index]
+        target = via[index]
+        step = Waypoints.none(index.shape[0])._replace(group=group)
+        back = graph.edge_reverse[ban]
+        open_back = ~((removed == ban.unsqueeze(-1)) | (removed == back.unsqueeze(-1))).any(-1)
+        leave = (node == target) & ~state["dorp_via_left"][index, 0] & open_back
+        step.node[leave] = graph.edge_source[ban[leave]]
+        step.edge[leave] = back[leave]
+        step.distance[leave] = 1
+        way_in = (node != target) & (node >= 0)
+        if way_in.any():
+            avoid = torch.cat([removed, ban.unsqueeze(-1)], -1)[way_in]
+            found = graph.next_waypoints(node[way_in], target[way_in], avoid)
+            step.node[way_in], step.edge[way_in], step.distance[way_in] = found
+        self._end(state, index[step.node < 0])
+        out = Waypoints.none(rows.shape[0])
+        for mine, theirs in zip(out, step, strict=True):
+            mine[index] = theirs
+        return out
 
-    def on_goal_stall(self, state: State, row: int) -> bool:
-        """Only when the group of the last hop entered its goal node by that hop, another
+    def on_goal_stall(self, state: State, rows: torch.Tensor) -> torch.Tensor:
+        """Only where the group of the last hop entered its goal node by that hop, another
         way into it exists and this entry has not been re-entered already."""
+        taken = torch.zeros_like(rows)
+        index = rows.nonzero().squeeze(-1)
+        if not index.numel():
+            return taken
         graph = self.policy.graph
-        entry = int(state["dorp_entry_edge"][row])
-        if entry < 0 or int(state["dorp_via"][row]) >= 0:
-            return False
-        if not self._may_reenter(state, row, entry):
-            return False
-        node, source = int(graph.indices[entry]), int(graph.edge_source[entry])
-        group = int(graph.group_of_edge(entry))
-        if int(graph.node_of(state["code"][row], group)) != node:
-            return False
-        if int(graph.node_of(state["goal_code"][row], group)) != node:
-            return False
-        without = torch.cat([state["dorp_removed"][row], torch.tensor([entry])])
-        if graph.next_waypoint(source, node, without)[0] < 0:
-            return False  # no other way in
-        state["dorp_via"][row] = node
-        state["dorp_via_ban"][row] = entry
-        state["dorp_via_left"][row] = False
-        self._note(state, row, entry)
-        return True
+        entry = state["dorp_entry_edge"][index, 0]
+        ok = (entry >= 0) & (state["dorp_via"][index, 0] < 0)
+        ok &= self._may_reenter(state, index, entry)
+        node = graph.indices[entry.clamp(min=0)]
+        source = graph.edge_source[entry.clamp(min=0)]
+        group = torch.where(ok, graph.group_of_edge(entry), -1)
+        ok &= graph.nodes_of(state["code"][index], group) == node
+        ok &= graph.nodes_of(state["goal_code"][index], group) == node
+        avoid = torch.cat([state["dorp_removed"][index], entry.unsqueeze(-1)], -1)
+        ok = self._has_path(source, node, avoid, ok)  # another way in
+        self._start(state, index[ok], node[ok], entry[ok])
+        state["dorp_via_left"][index[ok]] = False
+        self._note(state, index[ok], entry[ok])
+        taken[index[ok]] = True
+        return taken
 
 
 class GoalRelaxation(RecoveryRule):
@@ -562,20 +617,19 @@ class AvoidNoops(RecoveryRule):
         hashes = state["dorp_noop_frames"][active]
         seen = state["dorp_noop_actions"][active].unflatten(-1, (self.memory, -1))
         ring = state["dorp_noop_next"][active]
-        # where each row's current frame is remembered ([rows, memory])
+        # where each row's current frame is remembered ([rows, memory]): its first slot,
+        # else (a new frame to remember) the oldest slot, written afresh
         found = (hashes == now) & seen.any(-1)
-        for row in unchanged.nonzero().squeeze(-1).tolist():
-            slots = found[row].nonzero().squeeze(-1)
-            if slots.numel():
-                slot = int(slots[0])
-            else:  # a new frame to remember, in place of the oldest
-                slot = int(ring[row, 0])
-                ring[row, 0] = (slot + 1) % self.memory
-                hashes[row, slot] = now[row, 0]
-                seen[row, slot] = False
-                found[row] = False
-                found[row, slot] = True
-            seen[row, slot, last[row, 0]] = True
+        known = found.any(-1)
+        slot = torch.where(known, found.long().argmax(-1), ring[:, 0])
+        new = (unchanged & ~known).nonzero().squeeze(-1)
+        ring[new, 0] = (slot[new] + 1) % self.memory
+        hashes[new, slot[new]] = now[new, 0]
+        seen[new, slot[new]] = False
+        found[new] = False
+        found[new, slot[new]] = True
+        noted = unchanged.nonzero().squeeze(-1)
+        seen[noted, slot[noted], last[noted, 0]] = True
         current = (seen & found.unsqueeze(-1)).any(-2)
         state[NOOPS_KEY][active] = current
         state["dorp_noop_frames"][active] = hashes
