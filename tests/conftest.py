@@ -65,9 +65,11 @@ def tiny_configs() -> type[TinyConfigs]:
     return TinyConfigs
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def one_torch_thread() -> Iterator[None]:
-    """Tiny tensors: thread hand-offs cost more than they save; restores the count after."""
+    """Tiny tensors: thread hand-offs cost more than they save (far more on a busy 2-core
+    machine); one torch thread for the module, the count restored after. A module asks for
+    it with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
     yield

@@ -323,9 +323,13 @@ def test_graphs_over_one_codes_variant_share_one_encoding(tmp_path, dorp, monkey
 
 
 def test_threads_sets_torch_threads(tmp_path, dorp) -> None:
-    torch.set_num_threads(2)  # restored by the fixture
-    dorp(tmp_path, "collect", *dorp.CODES, "--threads", "1")
-    assert torch.get_num_threads() == 1
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        dorp(tmp_path, "collect", *dorp.CODES, "--threads", "1")
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(previous)
 
 
 @pytest.mark.parametrize(

@@ -39,13 +39,7 @@ SHORT_LENGTH = 10  # trajectory length of the short key-wall walks used by sampl
 METADATA = "play_data.json"
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny tensors: run torch single-threaded in this module and restore it after."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ---------------------------------------------------------------------- #

@@ -23,14 +23,7 @@ from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModel
 from dorp_rl.envs.planning import StatelessEnvModel, distinct_rows, frame_hash, row_hashes
 from dorp_rl.planners import CodeGraph, PixelDistanceCost, RandomShootingPlanner
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny tensors on a busy 2-core machine: run single-threaded, restore after."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class CountingBlocksEnv(PushBlocksEnv):

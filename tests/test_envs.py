@@ -43,14 +43,7 @@ ENV_FACTORIES = {
 KEY_ENVS = {"key-wall": KeyWallEnv, "key-corridor": KeyCorridorEnv}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """The tensors here are tiny: thread hand-offs cost more than they save (far more on a
-    busy 2-core machine), so this module runs torch single-threaded and restores it after."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @functools.cache

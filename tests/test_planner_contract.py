@@ -1,11 +1,10 @@
 """The planners' public fast-path contract: what a planning env and a cost declare.
 
 A planning env may declare ``imagine_candidates(td, actions, next_keys)`` (candidates
-rolled out without stepping, some values left lazy); a cost may declare
-``forward_lazy(rollout, lazy)`` (reading lazy values without materialising them), and
-:class:`~dorp_rl.planners.CostSequence` passes lazy values on to its members. The
-planners only ask these declarations, so every combination plans exactly as stepping
-the env one step at a time and calling the cost on materialised values does.
+rolled out without stepping, some values left lazy); every cost reads the one
+:class:`~dorp_rl.planners.CandidateRollout` the planner makes, and may read a lazy value
+for less (``rollout.lazy_value``, ``rollout.frames``). So every combination plans exactly
+as stepping the env one step at a time and calling the cost on computed values does.
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ from torchrl.envs.transforms import Transform
 from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, OracleCodeEncoder
 from dorp_rl.envs.planning import ImaginedFrames, LazyValue
 from dorp_rl.planners import (
+    CandidateRollout,
     CategoricalCEMPlanner,
     CodeMatchCost,
     CostSequence,
@@ -28,8 +28,7 @@ from dorp_rl.planners import (
     RandomShootingPlanner,
     RolloutCost,
     WeightedCostSum,
-    materialize_lazy,
-    run_cost_lazy,
+    score_rollout,
 )
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -134,10 +133,10 @@ class DistanceToTarget(RolloutCost):
 class LazyDistanceToTarget(DistanceToTarget):
     """The same cost, reading a lazy position without materialising it."""
 
-    def per_step_cost_lazy(self, rollout, lazy):
-        positions = lazy.get(POSITION)
+    def per_step_cost(self, rollout):
+        positions = rollout.lazy_value(POSITION)
         if not isinstance(positions, Positions):
-            return super().per_step_cost_lazy(rollout, lazy)
+            return super().per_step_cost(rollout)
         return (positions.values - rollout["target"]).abs().squeeze(-1).to(torch.float32)
 
 
@@ -239,14 +238,14 @@ class SteppedModel(GroundTruthModelEnv):
 
 
 class HalfPixelCost(PixelDistanceCost):
-    """A user's cost: overrides ``per_step_cost`` and nothing lazy."""
+    """A user's cost: overrides ``per_step_cost`` (the one method a cost has)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
         self.saw_pixels: list[bool] = []
 
     def per_step_cost(self, rollout):
-        self.saw_pixels.append(PIXELS in rollout.keys(True, True))
+        self.saw_pixels.append(PIXELS in rollout)
         return super().per_step_cost(rollout) / 2
 
 
@@ -279,7 +278,7 @@ def test_a_cost_overriding_per_step_cost_in_a_cost_sequence_gets_its_override():
     half = HalfPixelCost(out_key="half")
     cost = CostSequence(
         PixelDistanceCost(out_key="pixel"),  # reads the lazy frames
-        half,  # gets them drawn, so that its override is what runs
+        half,  # its override runs, on the same rollout
         WeightedCostSum({"half": 1.0, "pixel": 0.0}, step_aggregation="min"),
     )
     out = plan_gt(GroundTruthModelEnv(env), cost, td)
@@ -352,24 +351,25 @@ def test_a_cost_overriding_forward_gets_its_override_on_drawn_frames():
         assert (out == plan_gt(SteppedModel(env), cost, td, step_aggregation="min")).all()
 
 
-def test_the_lazy_methods_of_a_cost_equal_its_plain_ones_on_drawn_frames():
+def test_a_cost_reads_imagined_frames_as_it_reads_drawn_ones():
     env, td = rearrangement()
     planner = RandomShootingPlanner(
         GroundTruthModelEnv(env), PixelDistanceCost(blur_sigmas=(2.0,)), planning_horizon=3
     )
     decisions = torch.randint(0, 8, (2, 16, 3), generator=torch.Generator().manual_seed(0))
-    rollout, lazy = planner.imagine_lazy(td, decisions)
-    assert list(lazy) == [PIXELS] and isinstance(lazy[PIXELS], ImaginedFrames)
-    assert isinstance(lazy[PIXELS], LazyValue) and PIXELS not in rollout.keys(True, True)
-    fast = planner.cost.forward_lazy(rollout.clone(), lazy)["cost"]
-    drawn = materialize_lazy(rollout.clone(), lazy)
-    assert torch.equal(drawn[PIXELS], lazy[PIXELS].pixels())
+    rollout = planner.imagine(td, decisions)
+    imagined = rollout.lazy_value(PIXELS)
+    assert isinstance(imagined, ImaginedFrames) and isinstance(imagined, LazyValue)
+    assert PIXELS not in rollout.td.keys(True, True) and PIXELS in rollout
+    assert rollout.frames(PIXELS) is imagined  # frames stay undrawn for the cost
+    fast = planner.cost(rollout)["cost"]
+    assert PIXELS not in rollout.td.keys(True, True)  # the cost drew only distinct frames
+    drawn = planner.imagine(td, decisions).materialized()
+    assert torch.equal(drawn[PIXELS], imagined.pixels())
     assert torch.equal(fast, planner.cost(drawn)["cost"])
-    assert torch.equal(fast, planner.cost(planner.imagine(td, decisions))["cost"])
-    # Values the rollout already holds are kept.
-    marker = torch.zeros_like(drawn[PIXELS])
-    kept = materialize_lazy(rollout.clone().set(PIXELS, marker), lazy)
-    assert kept[PIXELS] is marker
+    # get() computes a lazy value once and keeps it
+    again = planner.imagine(td, decisions)
+    assert again.get(PIXELS) is again.get(PIXELS) and again.lazy_value(PIXELS) is None
 
 
 def test_a_plain_tensordict_sequential_cost_works_with_the_true_dynamics():
@@ -386,13 +386,14 @@ def test_a_plain_tensordict_sequential_cost_works_with_the_true_dynamics():
     plain = plan_gt(GroundTruthModelEnv(env), TensorDictSequential(*members()), td)
     assert (plain == plan_gt(GroundTruthModelEnv(env), CostSequence(*members()), td)).all()
     assert (plain == plan_gt(SteppedModel(env), TensorDictSequential(*members()), td)).all()
-    # Through run_cost_lazy a plain sequence gets the frames drawn into the rollout.
+    # Through score_rollout a plain sequence gets the frames drawn into the rollout.
     planner = RandomShootingPlanner(
         GroundTruthModelEnv(env), TensorDictSequential(*members()), planning_horizon=3
     )
     decisions = torch.zeros(2, 4, 3, dtype=torch.long)
-    rollout, lazy = planner.imagine_lazy(td, decisions)
-    assert PIXELS in run_cost_lazy(planner.cost, rollout, lazy).keys(True, True)
+    rollout = planner.imagine(td, decisions)
+    assert isinstance(rollout, CandidateRollout) and rollout.lazy_value(PIXELS) is not None
+    assert PIXELS in score_rollout(planner.cost, rollout).keys(True, True)
 
 
 def test_an_env_subclass_overriding_step_is_stepped_through_its_step():

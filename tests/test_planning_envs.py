@@ -15,14 +15,7 @@ from torchrl.envs.utils import check_env_specs
 from dorp_rl.envs import KeyWallEnv, ObjectRearrangementEnv
 from dorp_rl.envs.planning import DEFAULT_PREDICT_CHUNK, GroundTruthModelEnv, VideoModelEnv
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny tensors on a busy 2-core machine: run single-threaded, restore after."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 class ShiftModel:

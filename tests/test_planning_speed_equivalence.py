@@ -31,7 +31,7 @@ from dorp_rl.planners import (
     RandomShootingPlanner,
     RolloutCost,
     WeightedCostSum,
-    run_cost_lazy,
+    score_rollout,
 )
 
 PIXELS = ("next", "pixels")
@@ -97,10 +97,10 @@ def make_cost(name: str, env):
 
 def both_paths(planner, td, decisions):
     """Per-step costs ``[b, N, H]`` through the generic path and the fast path."""
-    generic = planner.cost(planner.imagine(td, decisions))[planner.cost_key]
-    rollout, lazy = planner.imagine_lazy(td, decisions)
-    assert "pixels" not in rollout.get("next", TensorDict()).keys()  # nothing drawn up front
-    fast = run_cost_lazy(planner.cost, rollout, lazy)[planner.cost_key]
+    generic = planner.cost(planner.imagine(td, decisions).materialized())[planner.cost_key]
+    rollout = planner.imagine(td, decisions)
+    assert "pixels" not in rollout.td.get("next", TensorDict()).keys()  # nothing drawn up front
+    fast = score_rollout(planner.cost, rollout)[planner.cost_key]
     return generic, fast
 
 
@@ -207,7 +207,7 @@ def test_cached_costs_stay_right_when_hashes_collide(monkeypatch, name):
     ]
     for seed in range(3):  # the first call fills the cache, the next ones read it
         decisions = torch.randint(0, 12, (2, 16, 3), generator=torch.Generator().manual_seed(seed))
-        fast = [run_cost_lazy(p.cost, *p.imagine_lazy(td, decisions))[p.cost_key] for p in planners]
+        fast = [score_rollout(p.cost, p.imagine(td, decisions))[p.cost_key] for p in planners]
         assert torch.equal(fast[0], fast[1])
 
 
@@ -377,9 +377,9 @@ def test_code_match_cost_draws_only_frames_its_cache_misses():
 
     env.render_state = counting_render
     decisions = torch.randint(0, 12, (3, 100, 4), generator=torch.Generator().manual_seed(7))
-    rollout, lazy = planner.imagine_lazy(td, decisions)
-    frames = lazy[PIXELS]
-    first = run_cost_lazy(planner.cost, rollout, lazy)["cost"]
+    rollout = planner.imagine(td, decisions)
+    frames = rollout.lazy_value(PIXELS)
+    first = score_rollout(planner.cost, rollout)["cost"]
     drawn_first = sum(drawn)
     distinct = frames.distinct()[2].max() + 1
     # An empty cache: every distinct imagined frame once, except those equal to one of the
@@ -389,10 +389,9 @@ def test_code_match_cost_draws_only_frames_its_cache_misses():
     assert len(imagined) == distinct < 3 * 100 * 4 and starts & imagined
     assert drawn_first == len(imagined - starts)
     drawn.clear()
-    rollout, lazy = planner.imagine_lazy(td, decisions)
-    again = run_cost_lazy(planner.cost, rollout, lazy)["cost"]
+    again = score_rollout(planner.cost, planner.imagine(td, decisions))["cost"]
     assert sum(drawn) == 0 and torch.equal(first, again)  # all in the cache: none drawn
-    generic = planner.cost(planner.imagine(td, decisions))["cost"]
+    generic = planner.cost(planner.imagine(td, decisions).materialized())["cost"]
     assert torch.equal(first, generic)
 
 
@@ -420,10 +419,9 @@ def test_code_match_cost_refuses_out_of_range_codes_on_both_paths():
     )
     decisions = torch.zeros(3, 8, 3, dtype=torch.long)
     with pytest.raises(RuntimeError, match="out of bounds"):
-        planner.cost(planner.imagine(td, decisions))
-    rollout, lazy = planner.imagine_lazy(td, decisions)
+        planner.cost(planner.imagine(td, decisions).materialized())
     with pytest.raises(RuntimeError, match="out of bounds"):
-        run_cost_lazy(planner.cost, rollout, lazy)
+        planner.cost(planner.imagine(td, decisions))
 
 
 @pytest.mark.parametrize("distinct", [1, 3])

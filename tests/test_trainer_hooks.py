@@ -256,6 +256,15 @@ def test_hook_state_is_checkpointed_and_resumed(tmp_path, tiny_configs):
     assert resumed.resumed_from_step == 3 and step.call_count == 2
 
 
+@pytest.fixture
+def two_threads():
+    """torch at two threads for one test, the count before restored after."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(previous)
+
+
 class ThreadsHook(TrainerHook):
     """Records torch's thread count at every step."""
 
@@ -267,8 +276,7 @@ class ThreadsHook(TrainerHook):
         return False
 
 
-def test_threads_apply_while_training_and_are_restored(tmp_path, tiny_configs):
-    torch.set_num_threads(2)  # the one_torch_thread fixture restores torch's setting
+def test_threads_apply_while_training_and_are_restored(tmp_path, tiny_configs, two_threads):
     trainer = WorldModelTrainer(tiny_configs.world_model(tmp_path / "wm", num_steps=2, threads=1))
     hook = trainer.register_hook("threads", ThreadsHook())
     trainer.train()

@@ -4,11 +4,12 @@ The planners are :class:`torchrl.modules.planners.MPCPlannerBase` subclasses, on
 file as in torchrl (``base.py``, ``random_shooting.py``, ``cem.py``), that sample
 discrete action sequences, roll them out in a planning env
 (:class:`dorp_rl.envs.GroundTruthModelEnv`, :class:`dorp_rl.envs.VideoModelEnv`) and
-minimise a cost over the imagined rollout. Costs (``costs.py``) are TensorDict modules
-that write a per-step cost ``[B, N, H]``; they compose with :class:`CostSequence` (a
-:class:`~tensordict.nn.TensorDictSequential` that passes lazily computed predictions on)
-and :class:`WeightedCostSum`. What a planning env and a cost declare to take the fast
-path (``imagine_candidates``, ``forward_lazy``) is in ``base.py``'s docstring.
+minimise a cost over the imagined rollout, one :class:`CandidateRollout`
+(``rollout.py``) whatever the env. Costs (``costs/``) are TensorDict modules that write a
+per-step cost ``[B, N, H]``; they compose with :class:`CostSequence` (a
+:class:`~tensordict.nn.TensorDictSequential` run on one rollout) and
+:class:`WeightedCostSum`. What a planning env declares to imagine candidates in bulk
+(``imagine_candidates``) is in ``base.py``'s docstring.
 :class:`CodeGraph` (``code_graph.py``) holds which codes follow each other in play data
 and finds DORP's shortest paths over them; :func:`coupled_groups` (``coupling.py``) reads
 from the play data which one-hots it plans together.
@@ -29,7 +30,6 @@ from dorp_rl.planners.costs import (
     CodeMatchCost,
     CostSequence,
     FirstArrival,
-    ImaginedFrameCost,
     LatentGoalCost,
     MissingRolloutKeyError,
     NegativeRewardCost,
@@ -38,16 +38,17 @@ from dorp_rl.planners.costs import (
     RolloutCost,
     WeightedCostSum,
     check_step_aggregation,
-    materialize_lazy,
-    run_cost_lazy,
+    score_rollout,
 )
 from dorp_rl.planners.coupling import GroupChoice, coupled_groups
 from dorp_rl.planners.play_codes import encode_transitions, encoder_fingerprint
 from dorp_rl.planners.random_shooting import RandomShootingPlanner
+from dorp_rl.planners.rollout import CandidateRollout
 
 __all__ = [
     "EXECUTIONS",
     "STEP_AGGREGATIONS",
+    "CandidateRollout",
     "CategoricalCEMPlanner",
     "CodeGraph",
     "CodeMatchCost",
@@ -61,7 +62,6 @@ __all__ = [
     "ObjectMapCost",
     "PixelDistanceCost",
     "RandomShootingPlanner",
-    "ImaginedFrameCost",
     "RolloutCost",
     "WeightedCostSum",
     "aggregate_steps",
@@ -70,9 +70,8 @@ __all__ = [
     "encode_transitions",
     "encoder_fingerprint",
     "finished_rows",
-    "materialize_lazy",
     "resolve_groups",
-    "run_cost_lazy",
+    "score_rollout",
     "improves",
     "select_best",
 ]

@@ -25,9 +25,11 @@ Scoring
     candidate that gets there earliest wins). It is not a loss reduction: it decides
     which candidate is best, and for ``"min"`` how much of it is executed open loop.
 
-Planning envs and costs: the fast-path contract
-    A planner steps its env one horizon step at a time (``env.step`` / ``step_mdp``, any
-    non-batch-locked torchrl ``EnvBase``) unless the env's class declares
+Planning envs and costs: one rollout
+    :meth:`DiscreteMPCPlanner.imagine` rolls the candidates out into one
+    :class:`~dorp_rl.planners.CandidateRollout`, which every cost reads. It steps the
+    env one horizon step at a time (``env.step`` / ``step_mdp``, any non-batch-locked
+    torchrl ``EnvBase``) unless the env's class declares
     ``imagine_candidates(td, actions, next_keys)``: from the rows ``td [b]``, the actions
     ``[b, N, H]`` and the ``("next", key)`` entries the cost reads (``None``: all), it
     returns ``(rollout, lazy)``, a rollout ``[b, N, H]`` holding ``action`` and the
@@ -35,14 +37,11 @@ Planning envs and costs: the fast-path contract
     demand (:class:`~dorp_rl.envs.planning.LazyValue`, e.g. undrawn
     :class:`~dorp_rl.envs.planning.ImaginedFrames` for ``("next", "pixels")``); or
     ``None``, and the planner steps it
-    (:meth:`~dorp_rl.envs.GroundTruthModelEnv.imagine_candidates` is one). Lazy values
-    reach the cost through :func:`~dorp_rl.planners.run_cost_lazy`: a cost whose class
-    declares ``forward_lazy(rollout, lazy)`` (:class:`~dorp_rl.planners.RolloutCost`,
-    :class:`~dorp_rl.planners.CostSequence`) reads them as it can; any other module
-    gets those it reads materialised, then is called. Both declarations are looked up
-    on the class (a ``TransformedEnv``, which forwards attributes to its base env, is
-    stepped through its transforms), and both must compute what stepping and
-    ``forward`` compute: the plans are the same either way.
+    (:meth:`~dorp_rl.envs.GroundTruthModelEnv.imagine_candidates` is one). The values
+    must be those that stepping gives: the plans are the same either way. The
+    declaration is looked up on the class (a ``TransformedEnv``, which forwards
+    attributes to its base env, is stepped through its transforms). The cost runs
+    through :func:`~dorp_rl.planners.score_rollout`.
 
 Pruning
     With ``prune=True`` the best sequence of a call is shortened afterwards: each round
@@ -113,8 +112,9 @@ from dorp_rl.planners.costs import (
     STEP_AGGREGATIONS,
     MissingRolloutKeyError,
     check_step_aggregation,
-    run_cost_lazy,
+    score_rollout,
 )
+from dorp_rl.planners.rollout import CandidateRollout
 from dorp_rl.validation import MissingKeyError, check_bool, check_int, check_seed
 
 __all__ = [
@@ -543,8 +543,8 @@ class DiscreteMPCPlanner(MPCPlannerBase):
         self, td: TensorDictBase, decisions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Scores candidates ``[b, N, H / r]``: (score ``[b, N]``, best step ``[b, N]``)."""
-        rollout, lazy = self.imagine_lazy(td, decisions)
-        out = run_cost_lazy(self.cost, rollout, lazy)
+        rollout = self.imagine(td, decisions)
+        out = score_rollout(self.cost, rollout)
         name = type(self.cost).__name__
         if not isinstance(out, TensorDictBase):
             raise ValueError(
@@ -570,16 +570,31 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             score = score.masked_fill(starts.to(score.device), torch.inf)
         return score, step
 
-    def imagine(self, td: TensorDictBase, decisions: torch.Tensor) -> TensorDictBase:
+    def imagine(self, td: TensorDictBase, decisions: torch.Tensor) -> CandidateRollout:
         """Rolls candidate decisions ``[b, N, H / r]`` out from rows ``td [b]``.
 
-        Returns the rollout tensordict ``[b, N, H]`` described in
-        :mod:`dorp_rl.planners.costs`: ``action``, the ``("next", ...)`` keys the cost
-        reads (all of them if it has no ``in_keys``) stacked over steps, and the root
-        keys of ``td`` broadcast without copies.
+        Returns the :class:`~dorp_rl.planners.CandidateRollout` ``[b, N, H]`` described
+        in :mod:`dorp_rl.planners.costs`: ``action``, the ``("next", ...)`` keys the cost
+        reads (all of them if it has no ``in_keys``) over the steps, and the root keys of
+        ``td`` broadcast without copies. The env's ``imagine_candidates`` gives it where
+        the env's class declares one (some values may stay lazy), else the env is
+        stepped (module docstring).
         """
         rows, n = decisions.shape[:2]
         actions = decisions.repeat_interleave(self.action_repeat, dim=-1).to(td.device)
+        if callable(getattr(type(self.env), "imagine_candidates", None)):
+            next_keys = list(self._next_keys) if self._cost_keys else None
+            imagined = self.env.imagine_candidates(td, actions, next_keys)
+            if imagined is not None:
+                rollout, lazy = imagined
+                lazy = {unravel_key(k): v for k, v in lazy.items()}
+                self._check_imagined(rollout, lazy, (rows, n, self.planning_horizon))
+                return CandidateRollout(self._with_root(rollout, td), lazy)
+        return CandidateRollout(self._with_root(self._step_candidates(td, actions), td))
+
+    def _step_candidates(self, td: TensorDictBase, actions: torch.Tensor) -> TensorDictBase:
+        """The rollout ``[b, N, H]`` of ``actions`` (per env step) by stepping the env."""
+        rows, n = actions.shape[:2]
         current = td.select(*self._env_in_keys, strict=False).unsqueeze(1).expand(rows, n)
         outputs = []
         for t in range(self.planning_horizon):
@@ -594,7 +609,7 @@ class DiscreteMPCPlanner(MPCPlannerBase):
                 next_td = next_td.select(*wanted, strict=False)
             outputs.append(next_td)
             current = self.env.step_mdp(current)
-        rollout = TensorDict(
+        return TensorDict(
             {
                 self.action_key: actions.unsqueeze(-1) if self._action_shape == (1,) else actions,
                 "next": torch.stack(outputs, dim=2),
@@ -602,32 +617,6 @@ class DiscreteMPCPlanner(MPCPlannerBase):
             batch_size=[rows, n, self.planning_horizon],
             device=td.device,
         )
-        return self._with_root(rollout, td)
-
-    def imagine_lazy(
-        self, td: TensorDictBase, decisions: torch.Tensor
-    ) -> tuple[TensorDictBase, dict[NestedKey, Any]]:
-        """The rollout ``[b, N, H]`` of candidate decisions and the values left lazy in it.
-
-        When the planning env's class declares ``imagine_candidates`` (the planning-env
-        contract, see the module docstring) and it returns a result for the keys the
-        cost reads, that is the rollout (plus the root keys of ``td``, as in
-        :meth:`imagine`) and its lazy values, e.g. ``{("next", "pixels"):
-        ImaginedFrames}``; otherwise :meth:`imagine` steps the env and nothing is lazy.
-        Either way the cost's scores are the same (:func:`~dorp_rl.planners.run_cost_lazy`
-        hands lazy values to costs that read them and materialises them for the others).
-        """
-        if callable(getattr(type(self.env), "imagine_candidates", None)):
-            rows, n = decisions.shape[:2]
-            actions = decisions.repeat_interleave(self.action_repeat, dim=-1).to(td.device)
-            next_keys = list(self._next_keys) if self._cost_keys else None
-            imagined = self.env.imagine_candidates(td, actions, next_keys)
-            if imagined is not None:
-                rollout, lazy = imagined
-                lazy = {unravel_key(k): v for k, v in lazy.items()}
-                self._check_imagined(rollout, lazy, (rows, n, self.planning_horizon))
-                return self._with_root(rollout, td), lazy
-        return self.imagine(td, decisions), {}
 
     # ------------------------------------------------------------------ #
     # Internals

@@ -1,9 +1,9 @@
 """Cross-entropy method over per-step categorical distributions (discrete CEM).
 
 Each optimisation step's candidates are rolled out and scored by
-:class:`~dorp_rl.planners.DiscreteMPCPlanner`: through the env's ``imagine_candidates``
-and the cost's ``forward_lazy`` when they declare them, else by stepping the env and
-calling the cost (``base.py``'s docstring has the contract).
+:class:`~dorp_rl.planners.DiscreteMPCPlanner`: into one :class:`~dorp_rl.planners.CandidateRollout` (through the env's
+``imagine_candidates`` when it declares one, else by stepping it) that the cost reads
+(``base.py``'s docstring has the contract).
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ from dorp_rl.envs.planning.base import (
     check_planning_action,
 )
 from dorp_rl.envs.planning.frame_hash import distinct_rows, int64_columns, row_hashes
-from dorp_rl.envs.planning.imagined_frames import ImaginedFrames
+from dorp_rl.envs.planning.imagined_frames import HeldFrames, ImaginedFrames, RolloutFrames
 from dorp_rl.envs.planning.stateless import StatelessEnvModel
 from dorp_rl.envs.planning.true_dynamics import GroundTruthModelEnv
 from dorp_rl.envs.planning.video_model import DEFAULT_PREDICT_CHUNK, VideoModelEnv
@@ -53,9 +53,11 @@ __all__ = [
     "DEFAULT_PREDICT_CHUNK",
     "FramePredictor",
     "GroundTruthModelEnv",
+    "HeldFrames",
     "ImaginedFrames",
     "LazyValue",
     "PlanningEnvBase",
+    "RolloutFrames",
     "StatelessEnvModel",
     "VideoModelEnv",
     "check_planning_action",

@@ -16,7 +16,9 @@ from dorp_rl.envs.planning.base import _FRAME, _FRAME_BYTES
 from dorp_rl.envs.planning.frame_hash import distinct_rows, int64_columns
 
 __all__ = [
+    "HeldFrames",
     "ImaginedFrames",
+    "RolloutFrames",
 ]
 
 
@@ -27,9 +29,9 @@ class ImaginedFrames:
     sequences leads to, i.e. the ``("next", "state")`` of every step, whose
     ``("next", "pixels")`` are ``render_state(states)``; it is the lazy
     ``("next", "pixels")`` of :meth:`GroundTruthModelEnv.imagine_candidates` (a
-    :class:`LazyValue`). Costs that know this class ask it for what they need instead
-    of the frames themselves (see
-    :meth:`dorp_rl.planners.RolloutCost.per_step_cost_lazy`):
+    :class:`LazyValue`). Costs read it as they read :class:`HeldFrames` (through
+    :meth:`dorp_rl.planners.CandidateRollout.frames`), asking for what they need instead
+    of the frames themselves:
 
     - :meth:`pixels` (also :meth:`materialize`): all frames, uint8 ``[*L, 3, 16, 16]``
       (drawn once, then kept);
@@ -148,7 +150,7 @@ class ImaginedFrames:
             when not known).
         """
         n = self.numel
-        if not self._has_parts:
+        if not self._has_parts or n <= 1:
             return self._distinct_drawn(extra)
         parts = self._flat_parts()
         num_bytes = _FRAME_BYTES + (0 if extra is None else 8 * extra.shape[1])
@@ -186,16 +188,7 @@ class ImaginedFrames:
 
     def _distinct_drawn(self, extra: torch.Tensor | None):
         """:meth:`distinct` by drawing every frame and calling :func:`distinct_rows`."""
-        n = self.numel
-        flat = self.pixels().reshape(n, *_FRAME)
-        if extra is None:
-            rows, inverse = distinct_rows(flat)
-            return rows, None, inverse, None
-        rows, inverse = distinct_rows(
-            torch.cat([flat.reshape(n, -1), extra.contiguous().view(torch.uint8)], -1)
-        )
-        frames = rows[:, :_FRAME_BYTES].reshape(-1, *_FRAME)
-        return frames, int64_columns(rows[:, _FRAME_BYTES:]), inverse, None
+        return HeldFrames(self.pixels()).distinct(extra)
 
     def squared_distances(self, goals: torch.Tensor, owner: torch.Tensor) -> torch.Tensor | None:
         """Exact squared L2 distances int64 ``[n]`` of the frames to their goal images.
@@ -222,3 +215,65 @@ class ImaginedFrames:
         parts = self._flat_parts()
         index = owner.unsqueeze(-1) * per_part.shape[1] + parts
         return goal_norms[owner] + per_part.reshape(-1)[index].sum(-1)
+
+
+class HeldFrames:
+    """Frames a rollout holds as a tensor ``[*L, C, H, W]`` (a stepped env's), read through
+    the interface of :class:`ImaginedFrames`, so that a cost has one implementation for
+    both: :meth:`pixels`, :meth:`distinct` (:func:`distinct_rows` on uint8 frames; other
+    dtypes, and a single frame, are not deduplicated) and :meth:`squared_distances`
+    (``None``: the cost computes them from the frames).
+
+    Examples:
+        >>> import torch
+        >>> from dorp_rl.envs.planning import HeldFrames
+        >>> pixels = torch.zeros(2, 3, 3, 4, 4, dtype=torch.uint8)
+        >>> pixels[1] = 7
+        >>> frames, _, inverse, _ = HeldFrames(pixels).distinct()
+        >>> frames.shape[0], inverse.tolist()
+        (2, [0, 0, 0, 1, 1, 1])
+    """
+
+    def __init__(self, pixels: torch.Tensor) -> None:
+        if pixels.dim() < 3:
+            raise ValueError(f"frames must be [*L, C, H, W], got shape {list(pixels.shape)}.")
+        self._pixels = pixels
+        self.shape = pixels.shape[:-3]
+        self.frame_shape = pixels.shape[-3:]
+
+    @property
+    def numel(self) -> int:
+        return int(self.shape.numel())
+
+    def pixels(self) -> torch.Tensor:
+        """The frames ``[*L, C, H, W]``."""
+        return self._pixels
+
+    def materialize(self) -> torch.Tensor:
+        return self._pixels
+
+    def distinct(
+        self, extra: torch.Tensor | None = None, *, draw: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, None]:
+        """As :meth:`ImaginedFrames.distinct` (``draw`` is moot: the frames are held)."""
+        n = self.numel
+        flat = self._pixels.reshape(n, *self.frame_shape)
+        if flat.dtype != torch.uint8 or n <= 1:
+            return flat, extra, None, None
+        if extra is None:
+            rows, inverse = distinct_rows(flat)
+            return rows, None, inverse, None
+        width = flat[0].numel()
+        rows, inverse = distinct_rows(
+            torch.cat([flat.reshape(n, -1), extra.contiguous().view(torch.uint8)], -1)
+        )
+        frames = rows[:, :width].reshape(-1, *self.frame_shape)
+        return frames, int64_columns(rows[:, width:]), inverse, None
+
+    def squared_distances(self, goals: torch.Tensor, owner: torch.Tensor) -> None:
+        """``None``: held frames have no parts to add up (the cost compares the frames)."""
+        return None
+
+
+#: The frames of a rollout as a cost reads them: held, or imagined and drawn on demand.
+RolloutFrames = HeldFrames | ImaginedFrames

@@ -14,7 +14,7 @@ acting envs and hands the cost one tensordict of batch shape ``[B, N, H]``:
 Each cost is a :class:`~tensordict.nn.TensorDictModuleBase`: it reads its ``in_keys``
 and writes a per-step cost, float ``[B, N, H]`` (lower is better), under its
 ``out_key`` (``"cost"`` by default), so costs compose like any TensorDict modules, best
-in a :class:`CostSequence` (a ``TensorDictSequential`` that passes lazy values on)::
+in a :class:`CostSequence` (a ``TensorDictSequential`` run on one rollout)::
 
     CostSequence(
         PixelDistanceCost(out_key="pixel_cost"),
@@ -22,18 +22,17 @@ in a :class:`CostSequence` (a ``TensorDictSequential`` that passes lazy values o
         WeightedCostSum({"pixel_cost": 1.0, "code_cost": 0.5}),  # writes "cost"
     )
 
-Lazy values
-    A planning env may leave some predictions out of the rollout and hand them over
-    lazily (its ``imagine_candidates``; the true dynamics give ``("next", "pixels")``
-    as undrawn :class:`~dorp_rl.envs.planning.ImaginedFrames`). The planner then calls
-    :func:`run_cost_lazy`: a cost declaring ``forward_lazy(rollout, lazy)`` gets them
-    as they are, any other module gets those it reads materialised
-    (:func:`materialize_lazy`). :class:`RolloutCost` declares it: its
-    :meth:`~RolloutCost.per_step_cost_lazy` materialises what it reads and calls
-    :meth:`~RolloutCost.per_step_cost`, and :class:`PixelDistanceCost` and
-    :class:`CodeMatchCost` read imagined frames for less, with the same results. A
-    subclass that redefines ``per_step_cost`` (or ``forward``) without its lazy
-    counterpart gets the materialising default, so its override is what runs.
+One rollout
+    The planner hands the cost a :class:`~dorp_rl.planners.CandidateRollout`, whatever
+    the planning env: ``rollout.get(key)`` gives a tensor, ``rollout.frames(key)`` the
+    frames, held (a stepped env's) or imagined and drawn only when needed (the true
+    dynamics' undrawn :class:`~dorp_rl.envs.planning.ImaginedFrames`), with one
+    interface for both: their distinct frames by the one frame hash, and exact distances
+    to goal images where the env gives them without drawing. So each cost has one
+    implementation, :meth:`RolloutCost.per_step_cost`. :func:`score_rollout` runs any
+    cost module on a rollout (a module that is not a :class:`RolloutCost` gets the
+    values it reads computed into the tensordict); called on a plain tensordict, a cost
+    reads it as a rollout with nothing lazy.
 
 A cost also says, with its ``step_aggregation``, how a planner should fold the ``H``
 per-step costs of one candidate into that candidate's score (it is not a loss
@@ -56,12 +55,10 @@ rollout raises :class:`MissingRolloutKeyError` (both a ``KeyError`` and a
 
 from dorp_rl.planners.costs.base import (
     STEP_AGGREGATIONS,
-    ImaginedFrameCost,
     MissingRolloutKeyError,
     RolloutCost,
     check_step_aggregation,
-    materialize_lazy,
-    run_cost_lazy,
+    score_rollout,
 )
 from dorp_rl.planners.costs.code_match import CodeMatchCost, check_step_penalty
 from dorp_rl.planners.costs.composition import CostSequence, FirstArrival, WeightedCostSum
@@ -69,7 +66,6 @@ from dorp_rl.planners.costs.goal_image import LatentGoalCost, ObjectMapCost, Pix
 from dorp_rl.planners.costs.reward import NegativeRewardCost
 
 __all__ = [
-    "ImaginedFrameCost",
     "STEP_AGGREGATIONS",
     "CodeMatchCost",
     "CostSequence",
@@ -83,6 +79,5 @@ __all__ = [
     "WeightedCostSum",
     "check_step_aggregation",
     "check_step_penalty",
-    "materialize_lazy",
-    "run_cost_lazy",
+    "score_rollout",
 ]

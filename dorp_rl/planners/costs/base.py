@@ -1,26 +1,26 @@
-"""The base of the costs: the rollout they read, how a planner folds their per-step
-costs (``step_aggregation``), and how lazy values reach them (:func:`run_cost_lazy`).
+"""The base of the costs: the rollout they read (a
+:class:`~dorp_rl.planners.CandidateRollout`), how a planner folds their per-step costs
+(``step_aggregation``), and how a planner runs any cost module on a rollout
+(:func:`score_rollout`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from collections.abc import Callable
 
 import torch
 from tensordict import NestedKey, TensorDictBase, unravel_key
 from tensordict.nn import TensorDictModuleBase
 
-from dorp_rl.envs.planning import ImaginedFrames
+from dorp_rl.envs.planning import RolloutFrames
+from dorp_rl.planners.rollout import CandidateRollout
 
 __all__ = [
-    "ImaginedFrameCost",
     "STEP_AGGREGATIONS",
     "MissingRolloutKeyError",
     "RolloutCost",
     "check_step_aggregation",
-    "materialize_lazy",
-    "run_cost_lazy",
+    "score_rollout",
 ]
 
 
@@ -35,11 +35,11 @@ class MissingRolloutKeyError(KeyError, ValueError):
         return str(self.args[0]) if self.args else ""
 
 
-def get_rollout_key(rollout: TensorDictBase, key: NestedKey, cost_name: str) -> torch.Tensor:
+def get_rollout_key(rollout: CandidateRollout, key: NestedKey, cost_name: str) -> torch.Tensor:
     """``rollout.get(key)``, or a :class:`MissingRolloutKeyError` that names the key."""
     value = rollout.get(key, None)
     if value is None:
-        available = sorted(str(k) for k in rollout.keys(True, True))
+        available = sorted(str(k) for k in rollout.keys())
         hint = (
             "the planning env does not produce it"
             if isinstance(unravel_key(key), tuple) and unravel_key(key)[0] == "next"
@@ -74,68 +74,42 @@ def compact_broadcast(tensor: torch.Tensor, keep_last: int) -> torch.Tensor:
     return tensor
 
 
-def materialize_lazy(
-    rollout: TensorDictBase,
-    lazy: Mapping[NestedKey, Any],
-    keys: Sequence[NestedKey] | None = None,
-) -> TensorDictBase:
-    """Writes the ``lazy`` values (those of ``keys``; ``None``: all) into ``rollout``.
-
-    Values the rollout already holds are left as they are; a lazy value is a tensor or a
-    :class:`~dorp_rl.envs.planning.LazyValue` (its ``materialize()`` gives the tensor).
-    Returns ``rollout``.
-    """
-    wanted = None if keys is None else {unravel_key(k) for k in keys}
-    for key, value in lazy.items():
-        key = unravel_key(key)
-        if (wanted is not None and key not in wanted) or key in rollout.keys(True, True):
-            continue
-        rollout.set(key, value if isinstance(value, torch.Tensor) else value.materialize())
-    return rollout
-
-
-def lazy_frames(
-    rollout: TensorDictBase, lazy: Mapping[NestedKey, Any], key: NestedKey
-) -> ImaginedFrames | None:
-    """``lazy[key]`` if it is :class:`~dorp_rl.envs.planning.ImaginedFrames` the rollout does
-    not hold drawn (a cost may then read the states behind them), else ``None``."""
-    frames = lazy.get(key)
-    if not isinstance(frames, ImaginedFrames) or key in rollout.keys(True, True):
-        return None
+def get_rollout_frames(
+    rollout: CandidateRollout | TensorDictBase, key: NestedKey, cost_name: str
+) -> RolloutFrames:
+    """``rollout.frames(key)`` (held or imagined frames; a plain tensordict's are held), or
+    a :class:`MissingRolloutKeyError`."""
+    frames = CandidateRollout.of(rollout).frames(key)
+    if frames is None:
+        get_rollout_key(rollout, key, cost_name)  # raises, naming the key
     return frames
 
 
-def run_cost_lazy(
-    cost: Callable, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-) -> TensorDictBase:
-    """Runs ``cost`` on ``rollout`` whose ``lazy`` values are not materialised yet.
+def score_rollout(cost: Callable, rollout: CandidateRollout) -> TensorDictBase:
+    """Runs ``cost`` on the candidates' ``rollout``; returns the rollout tensordict with the
+    cost's outputs.
 
-    A cost whose class declares ``forward_lazy(rollout, lazy)`` (:class:`RolloutCost`,
-    :class:`CostSequence`) is handed the lazy values; any other module gets those it
-    reads (its ``in_keys``; all of them when it declares none) materialised into the
-    rollout and is called as usual. Without lazy values it is simply ``cost(rollout)``.
-    Returns the rollout with the cost's outputs.
+    A :class:`RolloutCost` (and a :class:`~dorp_rl.planners.CostSequence`) reads the
+    rollout itself, lazy values included; any other module (a ``TensorDictModule``, a
+    ``TensorDictSequential``, a cost class that redefines ``forward``) is called on the
+    tensordict with the values it reads (its ``in_keys``; all when it declares none)
+    computed.
     """
-    if not lazy:
-        out = cost(rollout)
-    elif callable(getattr(type(cost), "forward_lazy", None)):
-        out = cost.forward_lazy(rollout, lazy)
-    else:
-        materialize_lazy(rollout, lazy, getattr(cost, "in_keys", None) or None)
-        out = cost(rollout)
-    return rollout if out is None else out
+    if callable(getattr(cost, "score", None)):
+        return cost.score(rollout)
+    td = rollout.materialized(getattr(cost, "in_keys", None) or None)
+    out = cost(td)
+    return td if out is None else out
 
 
 class RolloutCost(TensorDictModuleBase):
     """Base class of the costs: writes a per-step cost float ``[*B, N, H]`` under ``out_key``.
 
-    Subclasses set ``in_keys`` (the keys they read) and implement
-    :meth:`per_step_cost`; :meth:`forward` writes its result into the rollout and
-    returns the rollout, as TensorDict modules do. Planners whose env leaves values
-    lazy call :meth:`forward_lazy` (through :meth:`per_step_cost_lazy`), which by
-    default materialises them; a subclass that redefines :meth:`per_step_cost` or
-    :meth:`forward` without :meth:`per_step_cost_lazy` / :meth:`forward_lazy` gets that
-    default back (``__init_subclass__``), so its own method is what runs.
+    Subclasses set ``in_keys`` (the keys they read) and implement :meth:`per_step_cost`
+    of a :class:`~dorp_rl.planners.CandidateRollout` (``rollout.get(key)`` for tensors,
+    ``rollout.frames(key)`` for frames that may be imagined and drawn only when needed):
+    one implementation, whatever the planning env. Called on a tensordict, as TensorDict
+    modules are, the cost writes its result into it and returns it.
 
     Args:
         out_key: where the per-step cost is written (``out_keys == [out_key]``).
@@ -169,86 +143,24 @@ class RolloutCost(TensorDictModuleBase):
         #: check them against the planning env once per call and hand them over as uint8
         self.root_frame_keys: list[NestedKey] = []
 
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
         """The per-step cost, float ``[*B, N, H]``, of a rollout ``[*B, N, H]``."""
         raise NotImplementedError
 
-    def forward(self, rollout: TensorDictBase) -> TensorDictBase:
-        rollout.set(self.out_key, self.per_step_cost(rollout))
-        return rollout
+    def score(self, rollout: CandidateRollout) -> TensorDictBase:
+        """Writes :meth:`per_step_cost` into ``rollout``; returns its tensordict. (A
+        subclass that redefines ``forward`` is run on the tensordict with its ``in_keys``
+        computed.)"""
+        if type(self).forward is not RolloutCost.forward:
+            td = rollout.materialized(self.in_keys or None)
+            out = self(td)
+            return td if out is None else out
+        return self.forward(rollout)
 
-    def per_step_cost_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-    ) -> torch.Tensor:
-        """:meth:`per_step_cost` of ``rollout`` completed by the ``lazy`` values.
-
-        ``lazy`` maps rollout keys the planning env left out of ``rollout`` (e.g.
-        ``("next", "pixels")``) to values computed on demand
-        (:class:`~dorp_rl.envs.planning.LazyValue`, such as
-        :class:`~dorp_rl.envs.planning.ImaginedFrames`). This default materialises the
-        ones among :attr:`in_keys` into the rollout and calls :meth:`per_step_cost`; a
-        cost that can read a lazy value for less (distinct frames only, distances from
-        the states) overrides it, with exactly the same result.
-        """
-        materialize_lazy(rollout, lazy, self.in_keys)
-        return self.per_step_cost(rollout)
-
-    def forward_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-    ) -> TensorDictBase:
-        """:meth:`forward` through :meth:`per_step_cost_lazy`: what ``forward`` writes on
-        the rollout with its lazy values materialised (see :func:`run_cost_lazy`)."""
-        rollout.set(self.out_key, self.per_step_cost_lazy(rollout, lazy))
-        return rollout
-
-    def __init_subclass__(cls, **kwargs) -> None:
-        # The contract: a class's lazy methods compute what its own per_step_cost /
-        # forward compute. A subclass that redefines one of those without redefining its
-        # lazy counterpart gets the default that materialises the lazy values and calls
-        # the redefined method, so that its override is what runs.
-        super().__init_subclass__(**kwargs)
-        own = vars(cls)
-        if "per_step_cost" in own and "per_step_cost_lazy" not in own:
-            cls.per_step_cost_lazy = RolloutCost.per_step_cost_lazy
-        if "forward" in own and "forward_lazy" not in own:
-            cls.forward_lazy = _forward_materialized
+    def forward(self, rollout: TensorDictBase | CandidateRollout) -> TensorDictBase:
+        candidates = CandidateRollout.of(rollout)
+        candidates.set(self.out_key, self.per_step_cost(candidates))
+        return candidates.td
 
     def extra_repr(self) -> str:
         return f"out_key={self.out_key!r}, step_aggregation={self.step_aggregation!r}"
-
-
-class ImaginedFrameCost(RolloutCost):
-    """A cost of the imagined frames under ``pixels_key`` that reads them for less when
-    they come as lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`.
-
-    Subclasses set ``pixels_key`` and implement ``_per_step_cost(rollout, imagined)``:
-    ``imagined`` is the lazy frames, or ``None`` when the rollout holds the frames; both
-    must give the same costs. Lazy values of other kinds are materialised first.
-    """
-
-    pixels_key: NestedKey
-
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
-        return self._per_step_cost(rollout, None)
-
-    def per_step_cost_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-    ) -> torch.Tensor:
-        frames = lazy_frames(rollout, lazy, self.pixels_key)
-        if frames is None:
-            return super().per_step_cost_lazy(rollout, lazy)
-        return self._per_step_cost(rollout, frames)
-
-    def _per_step_cost(
-        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
-    ) -> torch.Tensor:
-        raise NotImplementedError
-
-
-def _forward_materialized(
-    self: RolloutCost, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-) -> TensorDictBase:
-    """``forward_lazy`` of a cost that redefines ``forward``: materialise, then call it."""
-    materialize_lazy(rollout, lazy, self.in_keys or None)
-    out = self(rollout)
-    return rollout if out is None else out

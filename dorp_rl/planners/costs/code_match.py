@@ -8,16 +8,18 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-from tensordict import NestedKey, TensorDictBase, unravel_key
+from tensordict import NestedKey, unravel_key
 from torch import nn
 
-from dorp_rl.envs.planning import ImaginedFrames, distinct_rows
+from dorp_rl.envs.planning import HeldFrames, RolloutFrames
 from dorp_rl.planners.costs.base import (
-    ImaginedFrameCost,
+    RolloutCost,
     compact_broadcast,
+    get_rollout_frames,
     get_rollout_key,
 )
 from dorp_rl.planners.costs.caches import EncodingCache
+from dorp_rl.planners.rollout import CandidateRollout
 from dorp_rl.validation import check_float, check_int
 
 __all__ = [
@@ -39,7 +41,7 @@ def check_step_penalty(value: float, name: str = "step_penalty") -> float:
         raise ValueError(f"{err} (so that a match at step 25 still costs less than 0.5)") from None
 
 
-class CodeMatchCost(ImaginedFrameCost):
+class CodeMatchCost(RolloutCost):
     """0 once the encoder's code of a predicted frame is the target code, else 1.
 
     DORP's waypoint cost. At each step the predicted frame is encoded; the step
@@ -174,42 +176,29 @@ class CodeMatchCost(ImaginedFrameCost):
         return chosen
 
     @torch.no_grad()
-    def _encode(
-        self, pixels: torch.Tensor | None, imagined: ImaginedFrames | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Codes ``[*S, C]`` and probabilities ``[*S, C, Z]`` of frames ``[*S, *frame_shape]``.
-
-        The frames are ``pixels``, or ``imagined`` (of which only distinct ones that the
-        cache does not hold are drawn).
-        """
-        code, prob, inverse = self._encode_distinct(pixels, imagined)
+    def _encode(self, frames: RolloutFrames) -> tuple[torch.Tensor, torch.Tensor]:
+        """Codes ``[*L, C]`` and probabilities ``[*L, C, Z]`` of frames ``[*L, ...]`` (held
+        or imagined: of imagined ones only the distinct frames the cache lacks are drawn)."""
+        code, prob, inverse = self._encode_distinct(frames)
         if inverse is not None:
             code, prob = code[inverse], prob[inverse]
-        lead = pixels.shape[:-3] if imagined is None else imagined.shape
+        lead = frames.shape
         return code.reshape(*lead, code.shape[-1]), prob.reshape(*lead, *prob.shape[-2:])
 
     @torch.no_grad()
     def _encode_distinct(
-        self, pixels: torch.Tensor | None, imagined: ImaginedFrames | None = None
+        self, frames: RolloutFrames
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Codes ``[m, C]`` and probabilities ``[m, C, Z]`` of the distinct frames, and the
-        ``inverse [n]`` from every flat frame to its distinct one (``None``: ``m = n``)."""
+        ``inverse [n]`` from every flat frame to its distinct one (``None``: ``m = n``).
+        Imagined frames repeat a lot, within a call and across calls: each distinct frame
+        is encoded once, and frames seen in earlier calls not at all."""
         module = self.encoder if isinstance(self.encoder, nn.Module) else None
         was_training = module.training if module is not None else False
         if module is not None:
             module.eval()
         try:
-            inverse = keys = None
-            if imagined is not None and imagined.numel > 1:
-                flat, _, inverse, keys = imagined.distinct(draw=False)
-            else:
-                if imagined is not None:
-                    pixels = imagined.pixels()
-                flat = pixels.reshape(-1, *pixels.shape[-3:])
-                if flat.dtype == torch.uint8 and flat.shape[0] > 1:
-                    # Imagined frames repeat a lot, within a call and across calls: encode
-                    # each distinct frame once, and frames seen in earlier calls not at all.
-                    flat, inverse = distinct_rows(flat)
+            flat, _, inverse, keys = frames.distinct(draw=False)
             if inverse is None and not callable(flat) and flat.shape[0] > 1:
                 # deduplication found two frames sharing a hash: keep them out of the
                 # cache, which is keyed by hashes
@@ -229,9 +218,7 @@ class CodeMatchCost(ImaginedFrameCost):
             probs.append(prob)
         return torch.cat(codes), torch.cat(probs)
 
-    def _per_step_cost(
-        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
-    ) -> torch.Tensor:
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
         name = type(self).__name__
         if rollout.batch_dims < 2:
             raise ValueError(
@@ -239,29 +226,22 @@ class CodeMatchCost(ImaginedFrameCost):
             )
         if self.code_key is not None:
             return self._cost_of_predicted_codes(rollout)
-        predicted = (
-            None if imagined is not None else get_rollout_key(rollout, self.pixels_key, name)
-        )
+        frames = get_rollout_frames(rollout, self.pixels_key, name)
         start = get_rollout_key(rollout, self.start_pixels_key, name)
         target = get_rollout_key(rollout, self.target_key, name)
         if target.dtype.is_floating_point or target.dtype == torch.bool:
             raise ValueError(f"{self.target_key!r} must hold integer codes, got {target.dtype}.")
         # All candidates and steps share the start frame: encode it once per row.
-        start_code = self._encode(start[..., :1, :1, :, :, :])[0]  # [*B, 1, 1, C]
-        inverse = None
-        if imagined is None:
-            code, probs = self._encode(predicted)  # [*B, N, H, C], [*B, N, H, C, Z]
+        start_code = self._encode(HeldFrames(start[..., :1, :1, :, :, :]))[0]  # [*B, 1, 1, C]
+        # Codes and probabilities of the distinct frames, [m, C] and [m, C, Z]: the
+        # [*B, N, H, C, Z] probabilities are never materialised (see below).
+        code, distinct_probs, inverse = self._encode_distinct(frames)
+        lead = frames.shape
+        if inverse is None:
+            code = code.reshape(*lead, code.shape[-1])
+            probs = distinct_probs.reshape(*lead, *distinct_probs.shape[-2:])
         else:
-            # Codes and probabilities of the distinct frames, [m, C] and [m, C, Z]: the
-            # [*B, N, H, C, Z] probabilities are never materialised (see below).
-            code, probs, inverse = self._encode_distinct(None, imagined)
-            if inverse is None:
-                lead = imagined.shape
-                code = code.reshape(*lead, code.shape[-1])
-                probs = probs.reshape(*lead, *probs.shape[-2:])
-            else:
-                distinct_probs = probs
-                code = code[inverse].reshape(*imagined.shape, code.shape[-1])
+            code = code[inverse].reshape(*lead, code.shape[-1])
         num_onehots = code.shape[-1]
         if target.shape[-1] != num_onehots:
             raise ValueError(
@@ -269,9 +249,9 @@ class CodeMatchCost(ImaginedFrameCost):
                 f"got shape {list(target.shape)}."
             )
         chosen = self._chosen(rollout, num_onehots, code.device)
-        self._check_target(target, chosen, probs.shape[-1])
+        num_codes = distinct_probs.shape[-1]
+        self._check_target(target, chosen, num_codes)
         wanted = torch.where(chosen, target.to(code.device), start_code)  # [*B, N, H, C]
-        num_codes = probs.shape[-1]
         if inverse is not None and bool(((wanted < 0) | (wanted >= num_codes)).any()):
             # Out-of-range codes: let gather refuse them as on the drawn path.
             probs = distinct_probs[inverse].reshape(*code.shape, num_codes)
@@ -293,7 +273,7 @@ class CodeMatchCost(ImaginedFrameCost):
             cost = cost + self.step_penalty * steps * match.to(cost.dtype)
         return cost
 
-    def _chosen(self, rollout: TensorDictBase, num_onehots: int, device: Any) -> torch.Tensor:
+    def _chosen(self, rollout: CandidateRollout, num_onehots: int, device: Any) -> torch.Tensor:
         """Bool mask of the one-hots that must reach the target (per row, or fixed)."""
         if self.onehots_key is not None:
             name = type(self).__name__
@@ -302,7 +282,7 @@ class CodeMatchCost(ImaginedFrameCost):
         chosen[self.onehots if self.onehots is not None else slice(None)] = True
         return chosen
 
-    def _cost_of_predicted_codes(self, rollout: TensorDictBase) -> torch.Tensor:
+    def _cost_of_predicted_codes(self, rollout: CandidateRollout) -> torch.Tensor:
         """Per-step costs from the codes the planning env predicted (``code_key``)."""
         name = type(self).__name__
         code = get_rollout_key(rollout, self.code_key, name)
@@ -313,7 +293,7 @@ class CodeMatchCost(ImaginedFrameCost):
                 f"{self.code_key!r} and {self.target_key!r} must hold integer codes, got "
                 f"{code.dtype} and {target.dtype}."
             )
-        start_code = self._encode(start[..., :1, :1, :, :, :])[0]  # [*B, 1, 1, C]
+        start_code = self._encode(HeldFrames(start[..., :1, :1, :, :, :]))[0]  # [*B, 1, 1, C]
         num_onehots = code.shape[-1]
         if target.shape[-1] != num_onehots or start_code.shape[-1] != num_onehots:
             raise ValueError(

@@ -17,8 +17,9 @@ from dorp_rl.planners.costs.base import (
     MissingRolloutKeyError,
     RolloutCost,
     get_rollout_key,
-    run_cost_lazy,
+    score_rollout,
 )
+from dorp_rl.planners.rollout import CandidateRollout
 from dorp_rl.validation import check_float
 
 __all__ = [
@@ -29,17 +30,16 @@ __all__ = [
 
 
 class CostSequence(TensorDictSequential):
-    """A :class:`~tensordict.nn.TensorDictSequential` of costs that passes lazy values on.
+    """A :class:`~tensordict.nn.TensorDictSequential` of costs run on one rollout.
 
-    Called on a rollout it is the plain sequence: each cost in turn, in the order given.
-    A planner whose env leaves some predictions lazy (``("next", "pixels")`` of
+    Each cost in turn, in the order given, on the same
+    :class:`~dorp_rl.planners.CandidateRollout` (:func:`score_rollout`): frames a
+    planning env left lazy (``("next", "pixels")`` of
     :class:`~dorp_rl.envs.GroundTruthModelEnv` as undrawn
-    :class:`~dorp_rl.envs.planning.ImaginedFrames`) calls :meth:`forward_lazy`
-    instead, which hands those values to every member through :func:`run_cost_lazy`:
-    costs that read them lazily do, the others get them materialised. A plain
-    ``TensorDictSequential`` works with the planners too, with every lazy value it
-    reads materialised first. The costs are given in order (``CostSequence(a, b, c)``
-    or one list), not as a mapping.
+    :class:`~dorp_rl.envs.planning.ImaginedFrames`) stay lazy for the costs that read
+    them for less. A plain ``TensorDictSequential`` works with the planners too, with
+    every value it reads computed first. The costs are given in order
+    (``CostSequence(a, b, c)`` or one list), not as a mapping.
 
     Examples:
         >>> from dorp_rl.planners import CostSequence, PixelDistanceCost, WeightedCostSum
@@ -63,12 +63,10 @@ class CostSequence(TensorDictSequential):
     def forward(self, rollout: TensorDictBase, *args: Any, **kwargs: Any) -> TensorDictBase:
         if args or kwargs:
             return super().forward(rollout, *args, **kwargs)
-        return self.forward_lazy(rollout, {})
+        return self.score(CandidateRollout.of(rollout))
 
-    def forward_lazy(
-        self, rollout: TensorDictBase, lazy: Mapping[NestedKey, Any]
-    ) -> TensorDictBase:
-        """Runs the costs in order on ``rollout``, handing each the ``lazy`` values.
+    def score(self, rollout: CandidateRollout) -> TensorDictBase:
+        """Runs the costs in order on ``rollout``; returns its tensordict.
 
         A term that only the last member (a :class:`WeightedCostSum`) reads, weighted by
         a per-row weight that is 0 in every row, is not computed: it is written as zeros
@@ -84,8 +82,10 @@ class CostSequence(TensorDictSequential):
                     shape = rollout.batch_size
                     rollout.set(member.out_key, torch.zeros(shape, device=weight.device))
                     continue
-            rollout = run_cost_lazy(member, rollout, lazy)
-        return rollout
+            out = score_rollout(member, rollout)
+            if out is not rollout.td:  # a member that returned another tensordict
+                rollout = CandidateRollout(out, rollout.lazy)
+        return rollout.td
 
     def _terms_read_by_sum_only(self) -> dict[int, NestedKey]:
         """Index of each cost whose one output only a final :class:`WeightedCostSum`
@@ -192,7 +192,7 @@ class WeightedCostSum(RolloutCost):
         weight_keys = [w for w in self.weights.values() if not isinstance(w, float)]
         self.in_keys = list(dict.fromkeys([*self.weights, *weight_keys]))
 
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
         name = type(self).__name__
         total = None
         for key, weight in self.weights.items():
@@ -271,7 +271,7 @@ class FirstArrival(RolloutCost):
         self.threshold = check_float("threshold", threshold)
         self.in_keys = list(dict.fromkeys([self.cost_key, self.reached_key]))
 
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
         name = type(self).__name__
         cost = get_rollout_key(rollout, self.cost_key, name).to(torch.float32)
         reached = get_rollout_key(rollout, self.reached_key, name).reshape(cost.shape)

@@ -10,17 +10,18 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
-from tensordict import NestedKey, TensorDictBase, unravel_key
+from tensordict import NestedKey, unravel_key
 from torch import nn
 
-from dorp_rl.envs.planning import ImaginedFrames, distinct_rows, int64_columns, row_hashes
+from dorp_rl.envs.planning import row_hashes
 from dorp_rl.planners.costs.base import (
-    ImaginedFrameCost,
     RolloutCost,
     compact_broadcast,
+    get_rollout_frames,
     get_rollout_key,
 )
 from dorp_rl.planners.costs.caches import KeyedCache
+from dorp_rl.planners.rollout import CandidateRollout
 from dorp_rl.validation import check_float, check_int
 
 __all__ = [
@@ -34,7 +35,7 @@ __all__ = [
 _PAIR_KEY_FACTOR = 0x9E3779B97F4A7C15 - 2**64
 
 
-class _GoalFrameCost(ImaginedFrameCost):
+class _GoalFrameCost(RolloutCost):
     """A cost of each predicted frame against the goal image (the shared keys and blurs)."""
 
     def _set_frame_keys(
@@ -131,23 +132,19 @@ class PixelDistanceCost(_GoalFrameCost):
         super().__init__(out_key=out_key, step_aggregation=step_aggregation)
         self._set_frame_keys(goal_key, pixels_key, chunk_size, blur_sigmas, cache_size)
 
-    def _per_step_cost(
-        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
-    ) -> torch.Tensor:
-        """The costs; from imagined states (``imagined``), exact distances without drawing
-        every frame.
-
-        When the frames are lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`: without
-        ``blur_sigmas``, each squared distance is an integer below ``2**24`` (checked),
-        which float32 holds exactly whatever the summation order, so it is computed in
-        integers from the frames' parts; the blurred terms are computed on the distinct
-        (frame, goal) pairs, of which only the distinct frames are drawn.
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
+        """The costs. Without ``blur_sigmas``, frames that can give their exact squared
+        distances without being drawn (lazy :class:`~dorp_rl.envs.planning.ImaginedFrames`
+        of an env whose frames are sums of parts) do, when each is an integer below
+        ``2**24`` (checked), which float32 holds exactly whatever the summation order; the
+        blurred terms are computed on the distinct (frame, goal) pairs, of which only the
+        distinct frames are drawn.
         """
-        pairs = _GoalPairs(rollout, imagined, self.pixels_key, self.goal_key, type(self).__name__)
+        pairs = _GoalPairs(rollout, self.pixels_key, self.goal_key, type(self).__name__)
         goals = pairs.goals.reshape(pairs.goals.shape[0], -1).to(torch.float32)
-        if imagined is not None and not self.blur_sigmas:
+        if not self.blur_sigmas:
             goal_rows = pairs.goals.reshape(goals.shape)
-            squared = imagined.squared_distances(goal_rows, pairs.owner)
+            squared = pairs.frames.squared_distances(goal_rows, pairs.owner)
             if squared is not None and (squared.numel() == 0 or int(squared.max()) < 2**24):
                 # Exactly what the float loop below gives: every partial sum of the
                 # squared differences is an integer below 2**24, which float32 holds.
@@ -220,20 +217,10 @@ class _GoalPairs:
     """
 
     def __init__(
-        self,
-        rollout: TensorDictBase,
-        imagined: ImaginedFrames | None,
-        pixels_key: NestedKey,
-        goal_key: NestedKey,
-        name: str,
+        self, rollout: CandidateRollout, pixels_key: NestedKey, goal_key: NestedKey, name: str
     ) -> None:
-        self.imagined = imagined
-        self.pixels = None
-        if imagined is None:
-            self.pixels = get_rollout_key(rollout, pixels_key, name)
-            self.frame_shape, self.lead = self.pixels.shape[-3:], self.pixels.shape[:-3]
-        else:
-            self.frame_shape, self.lead = imagined.frame_shape, imagined.shape
+        self.frames = get_rollout_frames(rollout, pixels_key, name)
+        self.frame_shape, self.lead = self.frames.frame_shape, self.frames.shape
         goal = get_rollout_key(rollout, goal_key, name)
         if tuple(self.frame_shape) != tuple(goal.shape[-3:]):
             raise ValueError(
@@ -251,26 +238,10 @@ class _GoalPairs:
         """``(frames [m, *frame_shape], owner [m], inverse [n] | None)``: with ``dedupe``,
         each distinct (frame, goal) pair once (imagined frames: only those are drawn),
         and ``inverse`` from every step to its pair (``None``: every step, in order)."""
-        imagined, owner = self.imagined, self.owner
-        if imagined is None:
-            frames = self.pixels.reshape(-1, *self.frame_shape)
-            if dedupe and frames.dtype == torch.uint8 and frames.shape[0] > 1:
-                rows = frames.reshape(frames.shape[0], -1)
-                owner_bytes = owner.unsqueeze(-1).contiguous().view(torch.uint8)
-                pairs, inverse = distinct_rows(torch.cat([rows, owner_bytes], -1))
-                if inverse is not None:
-                    width = rows.shape[1]
-                    frames = pairs[:, :width].reshape(-1, *self.frame_shape)
-                    return (
-                        frames,
-                        int64_columns(pairs[:, width:]).squeeze(-1),
-                        inverse,
-                    )
-            return frames, owner, None
-        if dedupe and imagined.numel > 1:
-            distinct, goal_index, inverse, _ = imagined.distinct(owner.unsqueeze(-1))
-            return distinct, goal_index.squeeze(-1), inverse
-        return imagined.pixels().reshape(-1, *self.frame_shape), owner, None
+        if not dedupe:
+            return self.frames.pixels().reshape(-1, *self.frame_shape), self.owner, None
+        frames, owner, inverse, _ = self.frames.distinct(self.owner.unsqueeze(-1))
+        return frames, owner.squeeze(-1), inverse
 
 
 class LatentGoalCost(RolloutCost):
@@ -327,7 +298,7 @@ class LatentGoalCost(RolloutCost):
         self.in_keys = [self.latent_key, self.goal_key]
         self.root_frame_keys = [self.goal_key]
 
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
         name = type(self).__name__
         latent = get_rollout_key(rollout, self.latent_key, name)
         lead = latent.shape[:-1]
@@ -422,10 +393,8 @@ class ObjectMapCost(_GoalFrameCost):
         return torch.cat([self.encoder.object_maps(c) for c in frames.split(self.chunk_size)])
 
     @torch.no_grad()
-    def _per_step_cost(
-        self, rollout: TensorDictBase, imagined: ImaginedFrames | None
-    ) -> torch.Tensor:
-        pairs = _GoalPairs(rollout, imagined, self.pixels_key, self.goal_key, type(self).__name__)
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
+        pairs = _GoalPairs(rollout, self.pixels_key, self.goal_key, type(self).__name__)
         frames, owner, inverse = pairs.distinct()
         module = self.encoder if isinstance(self.encoder, nn.Module) else None
         was_training = module.training if module is not None else False

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import torch
-from tensordict import NestedKey, TensorDictBase, unravel_key
+from tensordict import NestedKey, unravel_key
 
 from dorp_rl.planners.costs.base import RolloutCost, get_rollout_key
+from dorp_rl.planners.rollout import CandidateRollout
 
 __all__ = [
     "NegativeRewardCost",
@@ -53,7 +54,7 @@ class NegativeRewardCost(RolloutCost):
         self.done_key = None if done_key is None else unravel_key(done_key)
         self.in_keys = [self.reward_key] + ([] if self.done_key is None else [self.done_key])
 
-    def per_step_cost(self, rollout: TensorDictBase) -> torch.Tensor:
+    def per_step_cost(self, rollout: CandidateRollout) -> torch.Tensor:
         name = type(self).__name__
         reward = get_rollout_key(rollout, self.reward_key, name)
         cost = -reward.reshape(rollout.batch_size).to(torch.float32)
