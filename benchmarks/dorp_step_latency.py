@@ -67,9 +67,7 @@ def worker(setting: str, tasks: int, steps: int, threads: int) -> dict:
     timed(policy, "policy")
     task = make_task_set(env, tasks, seed=1).select("state", "goal_state")
     td = env.reset(task, set_state=True)
-    rollout = env.rollout(
-        steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False
-    )
+    rollout = env.rollout(steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False)
     digest = hashlib.sha1(rollout["action"].numpy().tobytes()).hexdigest()[:12]
     return {
         "policy_ms": 1000 * statistics.median(calls["policy"]),
