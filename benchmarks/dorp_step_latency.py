@@ -5,7 +5,8 @@ profile, oracle codes, the true dynamics as the low level) runs seeded tasks of
 rearrangement (2 and 3 objects) and key-wall; every policy call is timed (loop,
 graph search, both planners), and so is every call of the waypoint planner alone. Each
 measurement runs in a fresh worker process, alternating between this checkout and the
-reference one (``--reference``: the root of another checkout with its own ``.venv``),
+reference one (``--reference``: the root of another checkout with its own ``.venv``;
+which of the two runs first alternates too),
 so a change to the loop or the planning path is compared with the code before it on
 the same machine at the same time; the ratio of the medians is taken pair by pair and
 its median printed. Only the timings differ between the two: both run the same tasks
@@ -119,8 +120,9 @@ def main() -> None:
     print(f"{args.tasks} tasks x {args.steps} policy calls, {args.threads} thread(s)")
     for setting in args.settings:
         results: dict[str, list[dict]] = {name: [] for name in runs}
-        for _ in range(args.pairs):
-            for name, (python, root) in runs.items():
+        for pair in range(args.pairs):  # A B, B A, ...: neither always runs first
+            order = list(runs.items()) if pair % 2 == 0 else list(runs.items())[::-1]
+            for name, (python, root) in order:
                 results[name].append(measure(python, root, args, setting))
         for name, rows in results.items():
             policy = statistics.median(r["policy_ms"] for r in rows)
