@@ -19,6 +19,7 @@ import statistics
 import time
 
 import torch
+from bench_threads import add_threads_argument, parse_with_threads
 
 from dorp_rl.data import collect_play_data
 from dorp_rl.envs import ObjectRearrangementEnv
@@ -52,14 +53,8 @@ def main() -> None:
         "--checkpoint", default="outputs/codes/rearrangement5-seed0/checkpoints/last.pt"
     )
     parser.add_argument("--queries", type=int, default=50)
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    add_threads_argument(parser)
+    args = parse_with_threads(parser)
     env = ObjectRearrangementEnv(num_objects=5, batch_size=(256,))
     encoder = load_encoder(args.checkpoint, env)
     start = time.perf_counter()

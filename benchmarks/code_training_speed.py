@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable
 
 import torch
+from bench_threads import add_threads_argument, parse_with_threads
 from tensordict import TensorDict
 
 from dorp_rl.modules import (
@@ -94,14 +95,8 @@ def main() -> None:
         "--quick", action="store_true", help="skip map_stride=1 above 32 x 32 (the slow steps)"
     )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    add_threads_argument(parser)
+    args = parse_with_threads(parser)
     if 16 not in args.sizes:
         args.sizes = [16, *args.sizes]
 

@@ -30,6 +30,7 @@ import statistics
 import time
 
 import torch
+from bench_threads import add_threads_argument, parse_with_threads
 from tensordict import TensorDict
 
 from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv
@@ -68,14 +69,8 @@ def main() -> None:
     parser.add_argument("--candidates", type=int, default=1000)
     parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    add_threads_argument(parser)
+    args = parse_with_threads(parser)
     torch.manual_seed(0)
 
     env = ObjectRearrangementEnv(args.objects, batch_size=(args.batch,), seed=0)

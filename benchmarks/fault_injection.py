@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from bench_threads import add_threads_argument, parse_with_threads
 from tensordict import TensorDict
 
 from dorp_rl.data import collect_play_data, load_play_data
@@ -1372,17 +1373,11 @@ def classify(item: Fault) -> tuple[str, str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
+    add_threads_argument(parser)
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--show", nargs="*", default=["silent", "unclear"])
     parser.add_argument("--only", default=None, help="run the categories containing this")
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    args = parse_with_threads(parser)
     rows = []
     start = time.perf_counter()
     for item in FAULTS:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 
 import torch
+from bench_threads import add_threads_argument, parse_with_threads
 
 from dorp_rl.envs import KeyWallEnv, key_event_states, key_room_diagnostics
 from dorp_rl.trainers.representation import load_encoder
@@ -30,15 +31,8 @@ from dorp_rl.trainers.representation import load_encoder
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint")
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps "
-        "far slower)",
-    )
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    add_threads_argument(parser)
+    args = parse_with_threads(parser)
 
     env = KeyWallEnv()
     encoder = load_encoder(args.checkpoint, env=env)

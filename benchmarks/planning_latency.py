@@ -50,6 +50,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from bench_threads import add_threads_argument
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
@@ -128,12 +129,7 @@ class TimedModel:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
+    add_threads_argument(parser)
     parser.add_argument("--candidates", type=int, default=1000)
     parser.add_argument("--planning-horizon", type=int, default=14)
     parser.add_argument("--objects", type=int, default=3, help="blocks in the rearrangement env")

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from bench_threads import add_threads_argument
 
 from dorp_rl.trainers import RepresentationConfig, RepresentationTrainer
 from dorp_rl.viz import write_diagnostic_plots
@@ -132,12 +133,7 @@ def main() -> None:
     parser.add_argument(
         "--steps-scale", type=float, default=1.0, help="multiplies every run's steps"
     )
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
+    add_threads_argument(parser)
     parser.add_argument(
         "--candidates",
         type=int,

@@ -46,6 +46,7 @@ import statistics
 import time
 
 import torch
+from bench_threads import add_threads_argument
 from tensordict import TensorDictBase
 
 from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, OracleCodeEncoder
@@ -134,12 +135,7 @@ def time_rollouts(k: int, variant: str, args) -> tuple[float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
+    add_threads_argument(parser)
     parser.add_argument("--objects", type=int, nargs="+", default=[1, 5])
     parser.add_argument("--batch", type=int, default=10, help="acting rows planned per call")
     parser.add_argument("--candidates", type=int, default=1000)

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import torch
+from bench_threads import add_threads_argument
 
 from dorp_rl.checkpoint import load_checkpoint
 from dorp_rl.data import SequenceSampler, changed_pixels, collect_play_data, event_transitions
@@ -103,12 +104,7 @@ def main() -> None:
     parser.add_argument("--model-preset", default="default", choices=["small", "default"])
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
+    add_threads_argument(parser)
     parser.add_argument("--out-dir", type=Path, default=None)
     parser.add_argument("--resume", action="store_true", help="continue the last checkpoint")
     parser.add_argument("--json", type=Path, default=None, help="write the results here")

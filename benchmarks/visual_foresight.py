@@ -26,6 +26,7 @@ import math
 from pathlib import Path
 
 import torch
+from bench_threads import add_threads_argument
 
 from dorp_rl.envs import GroundTruthModelEnv, ObjectRearrangementEnv, VideoModelEnv
 from dorp_rl.eval import evaluate_policy, make_task_set
@@ -59,12 +60,7 @@ def main() -> None:
         "--tasks-per-rollout", type=int, default=None, help="default: 10 gt, 1 video"
     )
     parser.add_argument("--checkpoint", default=DEFAULT_CHECKPOINT, help="'{k}': objects")
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads (default 1: one per job; on a shared 2-core CPU more made steps far slower)",
-    )
+    add_threads_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="planner seed")
     parser.add_argument(
         "--step-aggregation",
