@@ -73,9 +73,9 @@ class CandidateRollout:
     def device(self) -> torch.device | None:
         return self.td.device
 
-    def keys(self) -> set[NestedKey]:
+    def keys(self) -> frozenset[NestedKey]:
         """Every key of the rollout, computed or lazy (leaves, nested keys as tuples)."""
-        return set(self.td.keys(True, True)) | set(self.lazy)
+        return frozenset(self.td.keys(True, True)) | frozenset(self.lazy)
 
     def __contains__(self, key: NestedKey) -> bool:
         return unravel_key(key) in self.keys()
