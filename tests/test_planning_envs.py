@@ -152,6 +152,32 @@ def test_world_model_env_chunks_large_batches_by_default():
     assert torch.equal(chunked, whole)
 
 
+def test_video_model_env_is_torchrl_s_model_based_env_around_its_frame_predictor():
+    """torchrl's ModelBasedEnvBase steps it: the world model (the predictor as a TensorDict
+    module) on a copy of the input; the goal image rides along, the input is untouched."""
+    from torchrl.envs.model_based import ModelBasedEnvBase
+
+    from dorp_rl.envs.planning import FramePredictorModel
+
+    env = VideoModelEnv(ShiftModel(), num_actions=4)
+    assert isinstance(env, ModelBasedEnvBase) and isinstance(env.world_model, FramePredictorModel)
+    gen = torch.Generator().manual_seed(0)
+    pixels = torch.randint(0, 256, (2, 5, 3, 16, 16), dtype=torch.uint8, generator=gen)
+    td = TensorDict(
+        pixels=pixels,
+        goal_pixels=pixels.flip(0),
+        action=torch.randint(0, 4, (2, 5, 1), generator=gen),
+        batch_size=(2, 5),
+    )
+    out = env.step(td.clone())["next"]
+    expected = env.world_model(td.clone())
+    assert torch.equal(out["pixels"], expected["pixels"])
+    assert torch.equal(out["goal_pixels"], td["goal_pixels"])
+    assert not out["done"].any() and not out["reward"].any()
+    with pytest.raises(KeyError, match="needs 'pixels'"):
+        env.step(td.exclude("pixels"))
+
+
 def test_world_model_env_with_a_perfect_model_matches_ground_truth():
     env = ObjectRearrangementEnv(num_objects=1, seed=4)
     truth = GroundTruthModelEnv(env)

@@ -41,22 +41,29 @@ from dorp_rl.envs.planning.base import (
     FramePredictor,
     LazyValue,
     PlanningEnvBase,
+    PlanningEnvSpecs,
     check_planning_action,
 )
 from dorp_rl.envs.planning.frame_hash import distinct_rows, int64_columns, row_hashes
 from dorp_rl.envs.planning.imagined_frames import HeldFrames, ImaginedFrames, RolloutFrames
 from dorp_rl.envs.planning.stateless import StatelessEnvModel
 from dorp_rl.envs.planning.true_dynamics import GroundTruthModelEnv
-from dorp_rl.envs.planning.video_model import DEFAULT_PREDICT_CHUNK, VideoModelEnv
+from dorp_rl.envs.planning.video_model import (
+    DEFAULT_PREDICT_CHUNK,
+    FramePredictorModel,
+    VideoModelEnv,
+)
 
 __all__ = [
     "DEFAULT_PREDICT_CHUNK",
     "FramePredictor",
+    "FramePredictorModel",
     "GroundTruthModelEnv",
     "HeldFrames",
     "ImaginedFrames",
     "LazyValue",
     "PlanningEnvBase",
+    "PlanningEnvSpecs",
     "RolloutFrames",
     "StatelessEnvModel",
     "VideoModelEnv",

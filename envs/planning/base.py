@@ -26,6 +26,7 @@ __all__ = [
     "FramePredictor",
     "LazyValue",
     "PlanningEnvBase",
+    "PlanningEnvSpecs",
     "check_planning_action",
 ]
 
@@ -67,16 +68,14 @@ def check_planning_action(
     return check_action(action, num_actions, shape=shape)
 
 
-class PlanningEnvBase(CheckedRolloutLength, EnvBase):
-    """Specs and flags shared by the planning envs (``batch_size=()``, any leading shape)."""
+class PlanningEnvSpecs:
+    """The specs and outputs the planning envs share (a mixin): ``pixels`` and
+    ``goal_pixels`` frames, a one-of-``num_actions`` action, a zero reward and done flags
+    that stay ``False`` (imagined rollouts run for the whole horizon)."""
 
     _supports_set_state = True
 
-    def __init__(self, num_actions: int, device: torch.device | str | None) -> None:
-        num_actions = check_int("num_actions", num_actions, low=1)
-        device = check_device(device, optional=True)
-        super().__init__(device=torch.device("cpu") if device is None else device, batch_size=())
-        self.__dict__["_batch_locked"] = False
+    def _declare_planning_specs(self, num_actions: int) -> None:
         self.num_actions = num_actions
         image = Bounded(low=0, high=255, shape=_FRAME, dtype=torch.uint8, device=self.device)
         self.observation_spec = Composite(
@@ -115,3 +114,15 @@ class PlanningEnvBase(CheckedRolloutLength, EnvBase):
         if goal_pixels is not None:
             out.set("goal_pixels", goal_pixels)
         return out
+
+
+class PlanningEnvBase(PlanningEnvSpecs, CheckedRolloutLength, EnvBase):
+    """A stateless planning env over any leading shape (``batch_size=()``) with the shared
+    specs (:class:`PlanningEnvSpecs`)."""
+
+    def __init__(self, num_actions: int, device: torch.device | str | None) -> None:
+        num_actions = check_int("num_actions", num_actions, low=1)
+        device = check_device(device, optional=True)
+        super().__init__(device=torch.device("cpu") if device is None else device, batch_size=())
+        self.__dict__["_batch_locked"] = False
+        self._declare_planning_specs(num_actions)

@@ -1,30 +1,36 @@
-"""A learned video prediction model as a planning env (:class:`VideoModelEnv`): the next
-frame from the current frame and the action.
+"""A learned video prediction model as a planning env (:class:`VideoModelEnv`, a torchrl
+:class:`~torchrl.envs.model_based.ModelBasedEnvBase`): the next frame from the current
+frame and the action, by its world model (:class:`FramePredictorModel`).
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.model_based import ModelBasedEnvBase
 
 from dorp_rl.envs.grid_base import (
+    CheckedRolloutLength,
     describe_foreign_colours,
     foreign_colours,
 )
 from dorp_rl.envs.planning.base import (
     _FRAME,
     FramePredictor,
-    PlanningEnvBase,
+    PlanningEnvSpecs,
     check_planning_action,
 )
 from dorp_rl.envs.planning.frame_hash import _distinct_pairs
 from dorp_rl.frames import check_frames, frames_to_uint8
 from dorp_rl.validation import (
+    check_device,
     check_int,
 )
 
 __all__ = [
     "DEFAULT_PREDICT_CHUNK",
+    "FramePredictorModel",
     "VideoModelEnv",
 ]
 
@@ -36,8 +42,114 @@ __all__ = [
 DEFAULT_PREDICT_CHUNK = 1024
 
 
-class VideoModelEnv(PlanningEnvBase):
+class FramePredictorModel(TensorDictModuleBase):
+    """The world model of :class:`VideoModelEnv`: a frame predictor as a TensorDict module.
+
+    Reads ``pixels`` and ``action`` and writes the next ``pixels`` (with a zero
+    ``reward`` and ``False`` done flags: imagined rollouts run for the whole horizon),
+    predicting each distinct (frame, action) pair once when ``deduplicate``, in chunks of
+    ``chunk_size`` frames (see :class:`VideoModelEnv` for the arguments).
+    """
+
+    def __init__(
+        self,
+        model: FramePredictor,
+        num_actions: int,
+        *,
+        deterministic: bool = True,
+        chunk_size: int | None = DEFAULT_PREDICT_CHUNK,
+        deduplicate: bool | None = None,
+    ) -> None:
+        super().__init__()
+        if not callable(getattr(model, "predict", None)):
+            raise ValueError(
+                f"model must have a predict(pixels, action, deterministic=True) method, "
+                f"got {type(model).__name__}."
+            )
+        if chunk_size is not None and int(chunk_size) < 1:
+            raise ValueError(f"chunk_size must be >= 1 or None, got {chunk_size}.")
+        num_actions = check_int("num_actions", num_actions, low=1)
+        model_actions = getattr(model, "num_actions", None)
+        if isinstance(model_actions, int) and model_actions != num_actions:
+            raise ValueError(
+                f"num_actions={num_actions} does not match the model, which was trained with "
+                f"{model_actions} actions: the planner would plan with the wrong actions. Pass "
+                "the acting env's num_actions with a model trained on that env."
+            )
+        self.model = model
+        self.num_actions = num_actions
+        self.deterministic = bool(deterministic)
+        self.chunk_size = None if chunk_size is None else int(chunk_size)
+        if deduplicate and not self.deterministic:
+            raise ValueError(
+                "deduplicate=True needs deterministic=True: a stochastic model gives "
+                "different frames for equal inputs."
+            )
+        self.deduplicate = self.deterministic if deduplicate is None else bool(deduplicate)
+        self.in_keys = ["pixels", "action"]
+        self.out_keys = ["pixels", "reward", "done", "terminated", "truncated"]
+
+    def predict_frames(self, pixels: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]`` (or floats in ``[0, 1]``),
+        int ``[*B, 1]`` -> uint8 ``[*B, 3, 16, 16]``."""
+        pixels = frames_to_uint8(pixels, "pixels", shape=_FRAME)
+        shape = pixels.shape[:-3]
+        action = check_planning_action(action, self.num_actions, shape)
+        flat_pixels = pixels.reshape(-1, *_FRAME)
+        flat_action = action.reshape(-1, 1)
+        inverse = None
+        if self.deduplicate and flat_pixels.shape[0] > 1:
+            flat_pixels, flat_action, inverse = _distinct_pairs(flat_pixels, flat_action)
+        n = flat_pixels.shape[0]
+        step = n if self.chunk_size is None else self.chunk_size
+        outputs = []
+        with torch.no_grad():
+            for start in range(0, max(n, 1), max(step, 1)):
+                chunk = self.model.predict(
+                    flat_pixels[start : start + step],
+                    flat_action[start : start + step],
+                    deterministic=self.deterministic,
+                )
+                outputs.append(chunk)
+        out = outputs[0] if len(outputs) == 1 else torch.cat(outputs)
+        if (
+            not isinstance(out, torch.Tensor)
+            or out.dtype != torch.uint8
+            or tuple(out.shape) != (n, *_FRAME)
+        ):
+            got = (
+                f"{out.dtype} {list(out.shape)}"
+                if isinstance(out, torch.Tensor)
+                else type(out).__name__
+            )
+            raise ValueError(
+                f"model.predict must return uint8 [{n}, 3, 16, 16] for {n} frames, got {got}."
+            )
+        if inverse is not None:
+            out = out[inverse]
+        return out.reshape(*shape, *_FRAME)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        pixels = tensordict.get("pixels", None)
+        if pixels is None:
+            raise KeyError("VideoModelEnv.step needs 'pixels' (the current frame).")
+        shape = tensordict.batch_size
+        action = check_planning_action(tensordict.get("action"), self.num_actions, shape)
+        false = torch.zeros((*shape, 1), dtype=torch.bool, device=pixels.device)
+        tensordict.set("pixels", self.predict_frames(pixels, action))
+        tensordict.set("reward", torch.zeros((*shape, 1), device=pixels.device))
+        for key in ("done", "terminated", "truncated"):
+            tensordict.set(key, false.clone())
+        return tensordict
+
+
+class VideoModelEnv(PlanningEnvSpecs, CheckedRolloutLength, ModelBasedEnvBase):
     """A video prediction model as a planning env: next ``pixels`` from ``pixels`` and ``action``.
+
+    A torchrl :class:`~torchrl.envs.model_based.ModelBasedEnvBase` whose ``world_model``
+    is a :class:`FramePredictorModel` around ``model``; stepped by torchrl's own
+    ``_step`` (the world model on a shallow copy of the input, its outputs selected by
+    the specs).
 
     ``model`` is any object with ``predict(pixels, action, deterministic=True)``
     mapping uint8 ``[N, 3, 16, 16]`` and int64 ``[N, 1]`` to uint8 ``[N, 3, 16, 16]``
@@ -91,34 +203,38 @@ class VideoModelEnv(PlanningEnvBase):
         deduplicate: bool | None = None,
         device: torch.device | str | None = None,
     ) -> None:
-        if not callable(getattr(model, "predict", None)):
-            raise ValueError(
-                f"model must have a predict(pixels, action, deterministic=True) method, "
-                f"got {type(model).__name__}."
-            )
-        if chunk_size is not None and int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be >= 1 or None, got {chunk_size}.")
-        num_actions = check_int("num_actions", num_actions, low=1)
-        model_actions = getattr(model, "num_actions", None)
-        if isinstance(model_actions, int) and model_actions != num_actions:
-            raise ValueError(
-                f"num_actions={num_actions} does not match the model, which was trained with "
-                f"{model_actions} actions: the planner would plan with the wrong actions. Pass "
-                "the acting env's num_actions with a model trained on that env."
-            )
+        world_model = FramePredictorModel(
+            model,
+            num_actions,
+            deterministic=deterministic,
+            chunk_size=chunk_size,
+            deduplicate=deduplicate,
+        )
+        device = check_device(device, optional=True)
         if device is None and isinstance(model, torch.nn.Module):
             param = next(iter(model.parameters()), None)
             device = param.device if param is not None else None
-        super().__init__(num_actions, device)
-        self.model = model
-        self.deterministic = bool(deterministic)
-        self.chunk_size = None if chunk_size is None else int(chunk_size)
-        if deduplicate and not self.deterministic:
-            raise ValueError(
-                "deduplicate=True needs deterministic=True: a stochastic model gives "
-                "different frames for equal inputs."
-            )
-        self.deduplicate = self.deterministic if deduplicate is None else bool(deduplicate)
+        super().__init__(
+            world_model, device=torch.device("cpu") if device is None else device, batch_size=()
+        )
+        self._declare_planning_specs(world_model.num_actions)
+
+    @property
+    def model(self) -> FramePredictor:
+        """The frame predictor."""
+        return self.world_model.model
+
+    @property
+    def deterministic(self) -> bool:
+        return self.world_model.deterministic
+
+    @property
+    def chunk_size(self) -> int | None:
+        return self.world_model.chunk_size
+
+    @property
+    def deduplicate(self) -> bool:
+        return self.world_model.deduplicate
 
     def _set_seed(self, seed: int | None) -> None:
         """Nothing to seed: a stochastic model draws from torch's global generator."""
@@ -158,53 +274,5 @@ class VideoModelEnv(PlanningEnvBase):
         return self._outputs(shape, frames["pixels"], frames["goal_pixels"], reward=False)
 
     def predict_frames(self, pixels: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Next frames for any leading shape: uint8 ``[*B, 3, 16, 16]`` (or floats in ``[0, 1]``),
-        int ``[*B, 1]`` -> uint8 ``[*B, 3, 16, 16]``."""
-        pixels = frames_to_uint8(pixels, "pixels", shape=_FRAME)
-        shape = pixels.shape[:-3]
-        action = check_planning_action(action, self.num_actions, shape)
-        flat_pixels = pixels.reshape(-1, *_FRAME)
-        flat_action = action.reshape(-1, 1)
-        inverse = None
-        if self.deduplicate and flat_pixels.shape[0] > 1:
-            flat_pixels, flat_action, inverse = _distinct_pairs(flat_pixels, flat_action)
-        n = flat_pixels.shape[0]
-        step = n if self.chunk_size is None else self.chunk_size
-        outputs = []
-        with torch.no_grad():
-            for start in range(0, max(n, 1), max(step, 1)):
-                chunk = self.model.predict(
-                    flat_pixels[start : start + step],
-                    flat_action[start : start + step],
-                    deterministic=self.deterministic,
-                )
-                outputs.append(chunk)
-        out = outputs[0] if len(outputs) == 1 else torch.cat(outputs)
-        if (
-            not isinstance(out, torch.Tensor)
-            or out.dtype != torch.uint8
-            or tuple(out.shape) != (n, *_FRAME)
-        ):
-            got = (
-                f"{out.dtype} {list(out.shape)}"
-                if isinstance(out, torch.Tensor)
-                else type(out).__name__
-            )
-            raise ValueError(
-                f"model.predict must return uint8 [{n}, 3, 16, 16] for {n} frames, got {got}."
-            )
-        if inverse is not None:
-            out = out[inverse]
-        return out.reshape(*shape, *_FRAME)
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        pixels = tensordict.get("pixels", None)
-        if pixels is None:
-            raise KeyError("VideoModelEnv.step needs 'pixels' (the current frame).")
-        action = check_planning_action(
-            tensordict.get("action"), self.num_actions, tensordict.batch_size
-        )
-        next_pixels = self.predict_frames(pixels, action)
-        return self._outputs(
-            tensordict.batch_size, next_pixels, tensordict.get("goal_pixels", None), reward=True
-        )
+        """Next frames for any leading shape (:meth:`FramePredictorModel.predict_frames`)."""
+        return self.world_model.predict_frames(pixels, action)
