@@ -18,6 +18,12 @@
 What the policy does where this loop fails (misses, blocked hops, codes covering two
 places, a stalled goal phase) are its recovery rules (:mod:`dorp_rl.policies.recovery`),
 each its own part with its own state keys, turned on by :class:`~dorp_rl.policies.DORPConfig`.
+They return decisions (row masks, :class:`~dorp_rl.policies.recovery.Waypoints`,
+:class:`~dorp_rl.policies.recovery.PlanDecision`) that the loop applies.
+
+Every step runs on all rows at once: the loop and the rules act on bool masks over the
+rows, and the graph answers every row's shortest-path question of a step in one search
+(:meth:`~dorp_rl.planners.CodeGraph.next_waypoints`); no step loops over rows in Python.
 
 All plan state lives in the tensordict (``[*B, ...]`` per env), declared once
 (:class:`~dorp_rl.policies.state.PolicyState`: the primer, the reset values and the
