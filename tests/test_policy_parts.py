@@ -149,6 +149,13 @@ def test_a_users_rule_decides_a_failed_hop_without_touching_the_loop():
     assert td["kept_hops"].squeeze(-1).tolist() == [0, 1, 0, 1]
     removed = td["dorp_removed"][:, 0]
     assert torch.equal(removed[::2], edge[::2, 0]) and (removed[1::2] == -1).all()
+    # make_dorp_policy takes the rule too, before the config's own
+    made = make_dorp_policy(env, oracle, graph, seed=0, rules=[KeepOddRowsEdges()], **SMALL)
+    assert [type(r).__name__ for r in made.rules] == [
+        "KeepOddRowsEdges",
+        *[type(r).__name__ for r in policy.rules[1:]],
+    ]
+    assert "kept_hops" in made.make_tensordict_primer().primers.keys()
 
 
 def test_a_goal_cost_without_the_code_term_needs_a_zero_weight(one_object):

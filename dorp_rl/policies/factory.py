@@ -28,6 +28,7 @@ from dorp_rl.planners.random_shooting import RandomShootingPlanner
 from dorp_rl.policies.abstract_goal import AbstractGoalPolicy
 from dorp_rl.policies.config import DORPConfig
 from dorp_rl.policies.low_level import TRUE_DYNAMICS, make_planning_env
+from dorp_rl.policies.recovery import RecoveryRule, recovery_rules
 from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY
 from dorp_rl.validation import check_float, check_keywords, check_seed, derive_seed, keyword_names
 
@@ -172,6 +173,7 @@ def make_dorp_policy(
     *,
     low_level: str | EnvBase | nn.Module = "gt",
     seed: int | None = None,
+    rules: Sequence[RecoveryRule] = (),
     **overrides: Any,
 ) -> AbstractGoalPolicy:
     """Assembles a DORP policy for ``env`` from checkpoints or objects.
@@ -186,6 +188,8 @@ def make_dorp_policy(
             (:class:`~dorp_rl.envs.VideoModelEnv`, ...), a video prediction model, or the
             path of a world-model checkpoint (:func:`~dorp_rl.policies.make_planning_env`).
         seed: seeds the planners (the goal planner with a derived seed).
+        rules: recovery rules of your own (:class:`~dorp_rl.policies.RecoveryRule`),
+            offered each decision before the ones ``config`` turns on.
         **overrides: :class:`DORPConfig` fields changed from ``config``, and more
             arguments of the planners (``optim_steps``, ``top_k``, ... of
             :class:`~dorp_rl.planners.CategoricalCEMPlanner`).
@@ -335,8 +339,13 @@ def make_dorp_policy(
         **shared,
         **(cem_only if goal_kind == "cem" else rs_only),
     )
+    own = list(rules)
+    with_own = None
+    if own:
+        code_term = "goal_code_weight" in goal.in_keys
+        with_own = [*own, *recovery_rules(config, goal_code_term=code_term)]
     return AbstractGoalPolicy(
-        encoder, graph, waypoint, goal, config, actions=DiscreteActions.of(env)
+        encoder, graph, waypoint, goal, config, rules=with_own, actions=DiscreteActions.of(env)
     )
 
 
