@@ -146,6 +146,20 @@ def _union(masks: Iterable[torch.Tensor | None]) -> torch.Tensor | None:
     return out
 
 
+def _give_up(
+    state: dict[str, torch.Tensor],
+    rows: torch.Tensor,
+    ending: int,
+    group: torch.Tensor | None = None,
+) -> None:
+    """Marks ``rows`` as given up for ``ending`` (:data:`ENDINGS`), with the group left
+    without a way on (``group`` ``[rows, 1]``; ``None``: leave ``dorp_end_group``)."""
+    state["dorp_failed"][rows] = True
+    state["dorp_end"][rows] = ending
+    if group is not None:
+        state["dorp_end_group"][rows] = group[rows]
+
+
 class AbstractGoalPolicy(TensorDictModuleBase):
     """The DORP policy: code-graph waypoints for a low-level discrete MPC planner.
 
@@ -573,9 +587,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             waypoints = waypoints.where(retry, self._shortest_hops(state, retry)[0])
         found = left & (waypoints.node >= 0)
         no_path = left & ~found
-        state["dorp_failed"][no_path] = True
-        state["dorp_end"][no_path] = _NO_PATH
-        state["dorp_end_group"][no_path] = first_group[no_path].unsqueeze(-1)
+        _give_up(state, no_path, _NO_PATH, first_group.unsqueeze(-1))
         self._set_waypoints(state, found, waypoints)
         return chosen | found
 
@@ -590,8 +602,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             if scale is not None:
                 allowed = allowed * scale
             spent = at_goal & (state["dorp_goal_steps"].squeeze(-1) >= allowed)
-            state["dorp_failed"][spent] = True
-            state["dorp_end"][spent] = _GOAL_STALLED
+            _give_up(state, spent, _GOAL_STALLED)
             at_goal = at_goal & ~spent
         return at_goal
 
@@ -756,9 +767,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         task (unless a rule handles the failed hop); past ``max_removed_edges`` since the
         last waypoint reached, give up."""
         limit = rows & self._removal_limit_reached(state)
-        state["dorp_failed"][limit] = True
-        state["dorp_end"][limit] = _REMOVAL_LIMIT
-        state["dorp_end_group"][limit] = state["dorp_group"][limit]
+        _give_up(state, limit, _REMOVAL_LIMIT, state["dorp_group"])
         rows = rows & ~limit
         handled = self._first_taken(rows, lambda rule, r: rule.instead_of_removal(state, r))
         edge = state["dorp_edge"].squeeze(-1)
