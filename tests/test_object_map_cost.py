@@ -22,6 +22,7 @@ from dorp_rl.planners import (
     RandomShootingPlanner,
 )
 from dorp_rl.policies import make_dorp_policy
+from dorp_rl.policies.action_priors import goal_action_prior
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -192,16 +193,18 @@ def test_the_goal_planner_draws_the_actions_of_the_objects_off_their_goal_place(
     goal = torch.tensor([[[2, 2], [10, 8]]])
     moved = torch.tensor([[[2, 2], [13, 2]], [[6, 9], [10, 8]]])  # block 1, then block 0 off
     pixels, goal_pixels = env.render_state(moved), env.render_state(goal).expand(2, 3, 16, 16)
-    prior = policy._goal_action_prior(pixels, goal_pixels)
+
+    def goal_prior(pixels, goal_pixels):
+        return goal_action_prior(encoder, graph, pixels, goal_pixels, 8, mix=0.8)
+
+    prior = goal_prior(pixels, goal_pixels)
     uniform = 0.2 / 8
     expected = torch.full((2, 8), uniform)
     expected[0, 4:] += 0.8 / 4
     expected[1, :4] += 0.8 / 4
     assert torch.allclose(prior, expected)
     # Every object at its place: uniform draws.
-    assert torch.allclose(
-        policy._goal_action_prior(goal_pixels, goal_pixels), torch.full((2, 8), 1 / 8)
-    )
+    assert torch.allclose(goal_prior(goal_pixels, goal_pixels), torch.full((2, 8), 1 / 8))
     td = env.rollout(4, policy, break_when_any_done=False)
     assert td.batch_size == (2, 4)
     # Without object maps or action counts it is refused by name.

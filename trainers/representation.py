@@ -34,7 +34,7 @@ from dorp_rl.metrics.code_information import (
 )
 from dorp_rl.metrics.diagnostics import play_object_diagnostics
 from dorp_rl.modules import DiscreteCodeEncoder, EncoderConfig, choose_map_stride, make_similarity
-from dorp_rl.modules.encoder import competing_maps
+from dorp_rl.modules.encoder import competing_maps, eval_mode
 from dorp_rl.modules.similarity import SIMILARITIES
 from dorp_rl.objectives import CPCLoss
 from dorp_rl.planners.play_codes import encode_transitions
@@ -1048,9 +1048,8 @@ class RepresentationTrainer(OfflineTrainer):
         """The first ``count`` stored play transitions and their codes (both frames, in
         eval mode; the encoder's mode is restored)."""
         sample = self.buffer[: min(len(self.buffer), count)]
-        was_training = self.encoder.training
-        transitions = encode_transitions(sample, self.encoder.eval())
-        self.encoder.train(was_training)
+        with eval_mode(self.encoder):
+            transitions = encode_transitions(sample, self.encoder)
         return sample, transitions
 
     def permute_onehots(self, order: Sequence[int]) -> None:

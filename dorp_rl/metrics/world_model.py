@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDictBase
 
 from dorp_rl.frames import check_frames, frames_to_unit_float
+from dorp_rl.modules.encoder import eval_mode
 from dorp_rl.modules.video import VideoPredictionModel
 
 
@@ -65,11 +66,9 @@ def open_loop_accuracy(
         shape=model.frame_shape,
     )
     device = model.palette.device
-    was_training = model.training
-    model.eval()
     exact = torch.zeros(horizon, dtype=torch.float64)
     squared = torch.zeros(horizon, dtype=torch.float64)
-    try:
+    with eval_mode(model):
         for start in range(0, n, chunk_size):
             window = sequences[start : start + chunk_size]
             first = window[:, 0].get("pixels").to(device)
@@ -79,8 +78,6 @@ def open_loop_accuracy(
             exact += (pred == true).flatten(2).all(-1).double().sum(0).cpu()
             diff = (pred.float() - true.float()) / 255.0
             squared += diff.pow(2).flatten(2).mean(-1).double().sum(0).cpu()
-    finally:
-        model.train(was_training)
     exact /= n
     squared /= n
     return {
@@ -128,13 +125,11 @@ def latent_open_loop_accuracy(
         )
     n, horizon = sequences.shape
     loss = LatentWorldModelLoss(model, code_encoder)
-    was_training = model.training
-    model.eval()
     right = torch.zeros(horizon)
     pixels_right = torch.zeros(horizon)
     decoder = getattr(model, "frame_decoder", None) is not None
     device = next(iter(model.parameters())).device
-    try:
+    with eval_mode(model):
         for start in range(0, n, chunk_size):
             chunk = sequences[start : start + chunk_size].to(device)
             frames, action = loss._read(chunk)
@@ -144,8 +139,6 @@ def latent_open_loop_accuracy(
             if decoder:
                 error = (model.decode(latents) - frames_to_unit_float(frames[:, 1:])).abs()
                 pixels_right += (error <= pixel_tolerance).float().flatten(2).mean(-1).sum(0).cpu()
-    finally:
-        model.train(was_training)
     code_accuracy = (right / n).tolist()
     return {
         "code_accuracy": code_accuracy,

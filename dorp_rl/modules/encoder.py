@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -149,6 +150,31 @@ def module_device(module: nn.Module) -> torch.device:
     for tensor in (*module.parameters(), *module.buffers()):
         return tensor.device
     return torch.device("cpu")
+
+
+@contextmanager
+def eval_mode(module: object) -> Iterator[None]:
+    """Runs the block with ``module`` in eval mode and restores its mode after (also on
+    an error); anything that is not an ``nn.Module`` (a function, ``None``) is left as is.
+
+    Examples:
+        >>> from torch import nn
+        >>> layer = nn.Dropout().train()
+        >>> with eval_mode(layer):
+        ...     layer.training
+        False
+        >>> layer.training
+        True
+    """
+    if not isinstance(module, nn.Module):
+        yield
+        return
+    was_training = module.training
+    module.eval()
+    try:
+        yield
+    finally:
+        module.train(was_training)
 
 
 def check_pixels(
@@ -458,16 +484,12 @@ class DiscreteCodeEncoder(nn.Module):
         Takes what :meth:`forward` takes (uint8 or floats in ``[0, 1]``, tensors or numpy
         arrays).
         """
-        was_training = self.training
-        self.eval()
-        try:
+        with eval_mode(self):
             device = self.code_mask.device
             pixels = as_tensor(pixels, "pixels")
             flat = pixels.reshape(-1, *pixels.shape[-3:])
             codes = [self(chunk.to(device))[0] for chunk in flat.split(chunk_size)]
             return torch.cat(codes).reshape(*pixels.shape[:-3], self.num_onehots)
-        finally:
-            self.train(was_training)
 
     def as_tensordict_module(
         self,

@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.objectives import LossModule
 
 from dorp_rl.frames import frames_to_unit_float
-from dorp_rl.modules.encoder import module_device
+from dorp_rl.modules.encoder import eval_mode, module_device
 from dorp_rl.modules.latent import LatentWorldModel, check_latent_model
 from dorp_rl.validation import MissingKeyError, check_bool, check_float, check_int
 
@@ -154,13 +154,9 @@ class LatentWorldModelLoss(LossModule):
         """The code encoder's codes ``[N, K]`` and probabilities ``[N, K, Z]`` of the
         frames ``[*B, C, H, W]`` flattened, in eval mode (its mode restored after)."""
         encoder = self.code_encoder
-        was_training = encoder.training
-        encoder.eval()
-        try:
+        with eval_mode(encoder):
             flat = frames.reshape(-1, *frames.shape[-3:]).to(module_device(encoder))
             code, probs = encoder(flat)
-        finally:
-            encoder.train(was_training)
         return code.to(frames.device), probs.to(frames.device)
 
     def target_codes(self, frames: torch.Tensor) -> torch.Tensor:

@@ -26,36 +26,10 @@ rows, and the graph answers every row's shortest-path question of a step in one 
 (:meth:`~dorp_rl.planners.CodeGraph.next_waypoints`); no step loops over rows in Python.
 
 All plan state lives in the tensordict (``[*B, ...]`` per env), declared once
-(:class:`~dorp_rl.policies.state.PolicyState`: the primer, the reset values and the
-dtypes) and restarted on ``is_init``, so one instance serves a batch of envs with
-different goals, partial resets and collector workers. Rows whose ``done`` is set, or
-that failed, are not planned for (action 0). The loop's own keys:
-
-=========================  ==================  ===========================================
-key                        dtype / shape       meaning
-=========================  ==================  ===========================================
-``code``, ``goal_code``    int64 ``[C]``       codes of the current frame and of the goal
-``subgoal_code``           int64 ``[C]``       the waypoint (other one-hots: current codes)
-``subgoal_mask``           bool ``[C]``        the one-hots the waypoint concerns
-``dorp_mode``              int64 ``[1]``       0 new, 1 waypoint, 2 goal image, 3 failed,
-                                               4 done (:data:`MODES`)
-``dorp_group``             int64 ``[1]``       group being moved
-``dorp_distance``          int64 ``[1]``       hops left on its path (incl. the waypoint)
-``dorp_budget``            int64 ``[1]``       steps left to reach the waypoint
-``dorp_edge``              int64 ``[1]``       graph edge of the current hop (-1: none)
-``dorp_removed``           int64 ``[R]``       edges removed for this task (-1: free slot)
-``dorp_replans``           int64 ``[1]``       edges removed so far
-``dorp_stale_removals``    int64 ``[1]``       edges removed since a waypoint was last reached
-``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
-``dorp_plans``             int64 ``[1]``       waypoint plans made (fresh low-level plans)
-``dorp_waypoint_steps``    int64 ``[1]``       steps spent moving to waypoints
-``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
-``dorp_failed``            bool ``[1]``        the task is given up
-``dorp_end``               int64 ``[1]``       why: 0 not given up, 1 no path left, 2 goal
-                                               phase out of budget, 3 edge-removal limit
-                                               (:data:`ENDINGS`)
-``dorp_end_group``         int64 ``[1]``       the group left without a path (-1: none)
-=========================  ==================  ===========================================
+(:func:`~dorp_rl.policies.state.loop_state_keys` lists the loop's keys, each rule its
+own) and restarted on ``is_init``, so one instance serves a batch of envs with different
+goals, partial resets and collector workers. Rows whose ``done`` is set, or that failed,
+are not planned for (action 0).
 """
 
 from __future__ import annotations
@@ -71,23 +45,35 @@ from torchrl.envs import Compose, TensorDictPrimer
 
 from dorp_rl.envs.spec import DiscreteActions
 from dorp_rl.frames import check_task_frames
-from dorp_rl.modules.encoder import module_device
+from dorp_rl.modules.encoder import eval_mode, module_device
 from dorp_rl.planners.base import DiscreteMPCPlanner, finished_rows
 from dorp_rl.planners.code_graph import CodeGraph
+from dorp_rl.policies.action_priors import goal_action_prior, waypoint_action_prior
+from dorp_rl.policies.checks import check_policy_parts
 from dorp_rl.policies.config import DORPConfig
-from dorp_rl.policies.recovery import PlanDecision, RecoveryRule, Waypoints, recovery_rules
-from dorp_rl.policies.state import GOAL_PRIOR_KEY, NOOPS_KEY, PRIOR_KEY, PolicyState, StateKey
+from dorp_rl.policies.records import task_records
+from dorp_rl.policies.recovery import (
+    PlanDecision,
+    RecoveryRule,
+    RuleContext,
+    Waypoints,
+    recovery_rules,
+)
+from dorp_rl.policies.state import (
+    ENDINGS,
+    GOAL_PRIOR_KEY,
+    MODES,
+    NOOPS_KEY,
+    PRIOR_KEY,
+    PolicyState,
+    loop_state_keys,
+)
 from dorp_rl.validation import MissingKeyError, check_keywords, check_seed, derive_seed
 
-__all__ = ["ENDINGS", "LOOP_FIELDS", "MODES", "AbstractGoalPolicy"]
+__all__ = ["LOOP_FIELDS", "AbstractGoalPolicy"]
 
-#: Values of ``dorp_mode``.
-MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
-_NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = range(5)
-#: Values of ``dorp_end``: why the policy gave a task up (the ``outcome`` of
-#: :meth:`AbstractGoalPolicy.task_records`).
-ENDINGS = {"running": 0, "no_path": 1, "goal_stalled": 2, "removal_limit": 3}
-_RUNNING, _NO_PATH, _GOAL_STALLED, _REMOVAL_LIMIT = range(4)
+_NEW, _WAYPOINT, _GOAL, _FAILED, _DONE = (MODES[m] for m in MODES)
+_RUNNING, _NO_PATH, _GOAL_STALLED, _REMOVAL_LIMIT = (ENDINGS[e] for e in ENDINGS)
 #: The :class:`~dorp_rl.policies.DORPConfig` fields the policy itself reads (the others
 #: shape the planners :func:`~dorp_rl.policies.make_dorp_policy` gives it).
 LOOP_FIELDS = (
@@ -119,22 +105,6 @@ _PLANNER_INPUTS = (
     "goal_code_weight",
     NOOPS_KEY,
 )
-
-
-def _check_action_prior(
-    name: str, mix: float, planner: DiscreteMPCPlanner, key: str, missing: str | None
-) -> None:
-    """Refuses a prior share ``mix > 0`` whose planner does not sample from ``key``, or
-    (``missing``: what it lacks) whose parts cannot make the prior."""
-    if mix <= 0:
-        return
-    if planner.action_prior_key != key:
-        raise ValueError(
-            f"{name}={mix} needs a planner that samples from {key!r} "
-            f"(action_prior_key={key!r}), got action_prior_key={planner.action_prior_key!r}."
-        )
-    if missing is not None:
-        raise ValueError(f"{name}={mix} needs {missing} pass {name}=0.")
 
 
 def _union(masks: Iterable[torch.Tensor | None]) -> torch.Tensor | None:
@@ -222,44 +192,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         if config is not None and not isinstance(config, DORPConfig):
             raise ValueError(f"config must be a DORPConfig, got {type(config).__name__}.")
         config = (config or DORPConfig()).replace(**overrides)
-        self._check_parts(encoder, graph, waypoint_planner, goal_planner, goal_pixels_key)
-        if not isinstance(config.order, str) and sorted(config.order) != list(
-            range(graph.num_groups)
-        ):
-            raise ValueError(
-                f"order must list every group index 0..{graph.num_groups - 1} once, "
-                f"got {list(config.order)}."
-            )
+        check_policy_parts(encoder, graph, waypoint_planner, goal_planner, config, goal_pixels_key)
         code_term = "goal_code_weight" in goal_planner.in_keys
-        if config.goal_code_weight > 0 and not code_term:
-            raise ValueError(
-                f"goal_code_weight={config.goal_code_weight} but the goal planner's cost "
-                "does not read 'goal_code_weight' (use WeightedCostSum({..., "
-                "'goal_code_cost': 'goal_code_weight'}) or set goal_code_weight=0)."
-            )
-        mix = config.action_prior_mix or 0.0
-        _check_action_prior(
-            "action_prior_mix",
-            mix,
-            waypoint_planner,
-            PRIOR_KEY,
-            None
-            if graph.action_counts is not None
-            else "a graph with the play data's action counts (CodeGraph.from_play_data "
-            "records them); this one has none: rebuild it, or",
-        )
-        goal_mix = config.goal_action_prior_mix or 0.0
-        has_maps = callable(getattr(encoder, "object_maps", None))
-        _check_action_prior(
-            "goal_action_prior_mix",
-            goal_mix,
-            goal_planner,
-            GOAL_PRIOR_KEY,
-            None
-            if graph.action_counts is not None and has_maps
-            else "a graph with the play data's action counts and an encoder with "
-            "object_maps (a DiscreteCodeEncoder):",
-        )
         self.config = config
         self.encoder = encoder
         self.graph = graph
@@ -269,8 +203,8 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.waypoint_budget = config.waypoint_budget
         self.max_removed_edges = config.max_removed_edges
         self.goal_budget = config.goal_budget
-        self.action_prior_mix = float(mix)
-        self.goal_action_prior_mix = float(goal_mix)
+        self.action_prior_mix = float(config.action_prior_mix or 0.0)
+        self.goal_action_prior_mix = float(config.goal_action_prior_mix or 0.0)
         self.actions = actions
         self.pixels_key = pixels_key
         self.goal_pixels_key = goal_pixels_key
@@ -288,10 +222,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         for rule in self.rules:
             if not isinstance(rule, RecoveryRule):
                 raise ValueError(f"rules must be RecoveryRule parts, got {type(rule).__name__}.")
-            rule.bind(self)
-        self.state = PolicyState(
-            [*self._loop_keys(), *(k for r in self.rules for k in r.state_keys())]
-        )
+            rule.bind(RuleContext(graph, waypoint_planner, goal_planner))
+        loop_keys = loop_state_keys(self.num_onehots, self.max_removed_edges)
+        self.state = PolicyState([*loop_keys, *(k for r in self.rules for k in r.state_keys())])
         if code_term and "goal_code_weight" not in self.state:
             raise ValueError(
                 "the goal planner's cost reads 'goal_code_weight' but no rule writes it "
@@ -307,64 +240,6 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                 ["action", *names, *waypoint_planner.state_keys, *goal_planner.state_keys]
             )
         )
-
-    @staticmethod
-    def _check_parts(encoder, graph, waypoint_planner, goal_planner, goal_pixels_key) -> None:
-        if not isinstance(graph, CodeGraph):
-            raise ValueError(f"graph must be a dorp_rl CodeGraph, got {type(graph).__name__}.")
-        if not callable(encoder) or not hasattr(encoder, "code_sizes"):
-            raise ValueError(
-                f"encoder must be callable and have code_sizes, got {type(encoder).__name__}."
-            )
-        graph.check_encoder(encoder)
-        for name, planner in (
-            ("waypoint_planner", waypoint_planner),
-            ("goal_planner", goal_planner),
-        ):
-            if not isinstance(planner, DiscreteMPCPlanner):
-                raise ValueError(
-                    f"{name} must be a dorp_rl DiscreteMPCPlanner, got {type(planner).__name__}."
-                )
-        if waypoint_planner.plan_key == goal_planner.plan_key:
-            raise ValueError(
-                "waypoint_planner and goal_planner share their state keys "
-                f"({waypoint_planner.plan_key!r}): give them different key_prefix values."
-            )
-        for key in ("subgoal_code", "subgoal_mask"):
-            if key not in waypoint_planner.in_keys:
-                raise ValueError(
-                    f"the waypoint planner's cost must read {key!r} (CodeMatchCost(encoder, "
-                    f"'subgoal_code', onehots='subgoal_mask')); it reads {waypoint_planner.in_keys}."
-                )
-        if goal_pixels_key not in goal_planner.in_keys:
-            raise ValueError(
-                f"the goal planner's cost must read {goal_pixels_key!r} (PixelDistanceCost); "
-                f"it reads {goal_planner.in_keys}."
-            )
-
-    def _loop_keys(self) -> list[StateKey]:
-        c, r = self.num_onehots, max(1, self.max_removed_edges)
-        return [
-            StateKey("code", width=c),
-            StateKey("goal_code", width=c),
-            StateKey("subgoal_code", width=c),
-            StateKey("subgoal_mask", torch.bool, width=c),
-            StateKey("dorp_mode"),
-            StateKey("dorp_group"),
-            StateKey("dorp_distance"),
-            StateKey("dorp_budget"),
-            StateKey("dorp_edge", fill=-1),
-            StateKey("dorp_removed", width=r, fill=-1),
-            StateKey("dorp_replans"),
-            StateKey("dorp_stale_removals"),
-            StateKey("dorp_waypoints"),
-            StateKey("dorp_plans"),
-            StateKey("dorp_waypoint_steps"),
-            StateKey("dorp_goal_steps"),
-            StateKey("dorp_failed", torch.bool),
-            StateKey("dorp_end"),
-            StateKey("dorp_end_group", fill=-1),
-        ]
 
     @property
     def state_keys(self) -> list[str]:
@@ -398,54 +273,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         self.goal_planner.set_seed(None if seed is None else derive_seed(seed, 1))
 
     def task_records(self, last: TensorDictBase) -> list[dict[str, Any]]:
-        """How the policy fared on each task, from the tensordicts of the tasks' last steps.
-
-        Args:
-            last: ``[N]`` tensordict of one step per task (the step the task ended at),
-                holding this policy's state keys.
-
-        Returns:
-            One dict per task: ``outcome`` (``"no_path"``, ``"goal_stalled"`` or
-            ``"removal_limit"`` when the policy gave the task up, ``None`` when it did
-            not), ``group`` (the group left without a path, or whose hop hit the removal
-            limit; ``None``), ``phase`` (the :data:`MODES` name at that step), and the
-            counts ``edge_removals``, ``reentries``, ``plans`` (waypoint plans made),
-            ``waypoints`` (reached), ``waypoint_steps``, ``goal_steps`` and ``relaxed``
-            (0 for a rule the policy does not have).
-            :func:`~dorp_rl.eval.evaluate_policy` puts them into its ``records``.
-        """
-        names = {v: k for k, v in ENDINGS.items()}
-        phases = {v: k for k, v in MODES.items()}
-
-        def column(key: str) -> list[int]:
-            if key not in self.state:
-                return [0] * last.shape[0]  # kept by a rule this policy does not have
-            value = last.get(key, None)
-            if value is None:
-                raise MissingKeyError(
-                    f"task_records needs {key!r}: was the step planned by this policy?"
-                )
-            return value.reshape(last.shape[0], -1)[:, 0].long().tolist()
-
-        ends, groups, modes = column("dorp_end"), column("dorp_end_group"), column("dorp_mode")
-        counts = {
-            "edge_removals": column("dorp_replans"),
-            "reentries": column("dorp_reentries"),
-            "plans": column("dorp_plans"),
-            "waypoints": column("dorp_waypoints"),
-            "waypoint_steps": column("dorp_waypoint_steps"),
-            "goal_steps": column("dorp_goal_steps"),
-            "relaxed": column("dorp_relaxed"),
-        }
-        return [
-            {
-                "outcome": None if ends[i] == _RUNNING else names.get(ends[i], str(ends[i])),
-                "group": None if groups[i] < 0 else groups[i],
-                "phase": phases.get(modes[i], str(modes[i])),
-                **{key: values[i] for key, values in counts.items()},
-            }
-            for i in range(last.shape[0])
-        ]
+        """How the policy fared on each task, from ``last`` (``[N]``, each task's last
+        step): :func:`~dorp_rl.policies.records.task_records` of this policy's state."""
+        return task_records(self.state, last)
 
     # ------------------------------------------------------------------ #
     # The loop
@@ -692,9 +522,22 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             for key, value in planner_state.items():
                 sub.set(key, value[index].to(device))
             if planner is self.waypoint_planner and self.action_prior_mix > 0:
-                sub.set(PRIOR_KEY, self._action_prior(state, index).to(device))
+                prior = waypoint_action_prior(
+                    self.graph,
+                    *(state[key][index] for key in ("code", "subgoal_code", "subgoal_mask")),
+                    planner.num_actions,
+                    self.action_prior_mix,
+                )
+                sub.set(PRIOR_KEY, prior.to(device))
             if planner is self.goal_planner and self.goal_action_prior_mix > 0:
-                prior = self._goal_action_prior(frames[0][index], frames[1][index])
+                prior = goal_action_prior(
+                    self.encoder,
+                    self.graph,
+                    frames[0][index],
+                    frames[1][index],
+                    planner.num_actions,
+                    self.goal_action_prior_mix,
+                )
                 sub.set(GOAL_PRIOR_KEY, prior.to(device))
             planner(sub)
             action[index] = sub.get(planner.action_key).reshape(-1, 1).cpu()
@@ -855,44 +698,9 @@ class AbstractGoalPolicy(TensorDictModuleBase):
         for rule in self.rules:
             rule.on_waypoint(state, rows)
 
-    def _action_prior(self, state: dict[str, torch.Tensor], index: torch.Tensor) -> torch.Tensor:
-        """``[len(index), A]``: the hop's one-hots' action shares, mixed with uniform draws."""
-        hop = (state["subgoal_code"][index] != state["code"][index]) & state["subgoal_mask"][index]
-        actions = self.waypoint_planner.num_actions
-        weights = self.graph.action_weights(hop, actions)
-        return self.action_prior_mix * weights + (1.0 - self.action_prior_mix) / actions
-
-    @torch.no_grad()
-    def _goal_action_prior(self, pixels: torch.Tensor, goal_pixels: torch.Tensor) -> torch.Tensor:
-        """``[rows, A]``: shares of the actions that moved the objects still off their goal
-        place (object maps farther from the goal image's than a quarter of the farthest),
-        mixed with uniform draws."""
-        module = self.encoder
-        was_training = module.training
-        module.eval()
-        try:
-            device = module_device(module)
-            maps = module.object_maps(torch.cat([pixels, goal_pixels]).to(device)).float()
-        finally:
-            module.train(was_training)
-        current, goal = maps.split(pixels.shape[0])
-        distance = (current - goal).flatten(2).norm(dim=-1).cpu()  # [rows, K]
-        farthest = distance.max(-1, keepdim=True).values
-        off = (distance > 0.25 * farthest) & (farthest > 0)
-        actions = self.goal_planner.num_actions
-        weights = self.graph.action_weights(off, actions)
-        mix = self.goal_action_prior_mix
-        return mix * weights + (1.0 - mix) / actions
-
     def _encode(self, frames: torch.Tensor) -> torch.Tensor:
-        module = self.encoder
-        was_training = module.training
-        module.eval()
-        try:
-            device = module_device(module)
-            code = module(frames.to(device))[0]
-        finally:
-            module.train(was_training)
+        with eval_mode(self.encoder):
+            code = self.encoder(frames.to(module_device(self.encoder)))[0]
         if code.shape[-1] != self.num_onehots:
             raise ValueError(
                 f"the encoder gave {code.shape[-1]} codes per frame, the graph has "

@@ -38,14 +38,16 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 
 from dorp_rl.envs.planning import row_hashes
+from dorp_rl.planners.base import DiscreteMPCPlanner
+from dorp_rl.planners.code_graph import CodeGraph
 from dorp_rl.policies.state import NOOPS_KEY, StateKey
 
 if TYPE_CHECKING:  # pragma: no cover
-    from dorp_rl.policies.abstract_goal import AbstractGoalPolicy
     from dorp_rl.policies.config import DORPConfig
 
 __all__ = [
     "PlanDecision",
+    "RuleContext",
     "Waypoints",
     "AvoidNoops",
     "ForgetBlocked",
@@ -74,6 +76,16 @@ class PlanDecision:
     cut: torch.Tensor | None = None
     drop: torch.Tensor | None = None
     restart: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class RuleContext:
+    """The parts of its policy a rule may read (:meth:`RecoveryRule.bind`): the code graph
+    and the two planners."""
+
+    graph: CodeGraph
+    waypoint_planner: DiscreteMPCPlanner
+    goal_planner: DiscreteMPCPlanner
 
 
 class Waypoints(NamedTuple):
@@ -118,11 +130,11 @@ class RecoveryRule:
         [True, False]
     """
 
-    policy: AbstractGoalPolicy
+    context: RuleContext
 
-    def bind(self, policy: AbstractGoalPolicy) -> None:
-        """Called once by the policy that owns the rule (its graph, its limits)."""
-        self.policy = policy
+    def bind(self, context: RuleContext) -> None:
+        """Called once by the policy that owns the rule, with the parts it may read."""
+        self.context = context
 
     def state_keys(self) -> tuple[StateKey, ...]:
         """The keys the rule keeps in the policy's state."""
@@ -249,7 +261,7 @@ class ForgetBlocked(RecoveryRule):
             return
         removed = state["dorp_removed"][rows]
         moved = state["dorp_group"][rows]
-        other = (self.policy.graph.group_of_edge(removed) != moved) & (removed >= 0)
+        other = (self.context.graph.group_of_edge(removed) != moved) & (removed >= 0)
         state["dorp_removed"][rows] = removed.masked_fill(other, -1)
 
 
@@ -341,7 +353,7 @@ class Reentry(RecoveryRule):
         that avoids the edges ``avoid`` ``[N, S]`` (False elsewhere)."""
         out = torch.zeros_like(ask)
         if ask.any():
-            nxt = self.policy.graph.next_waypoints(nodes[ask], goals[ask], avoid[ask])[0]
+            nxt = self.context.graph.next_waypoints(nodes[ask], goals[ask], avoid[ask])[0]
             out[ask] = nxt >= 0
         return out
 
@@ -352,7 +364,7 @@ class Reentry(RecoveryRule):
     def track(self, state: State, active: torch.Tensor) -> None:
         """Rows re-entering ``dorp_via``: note when they leave it; back in it after
         leaving, the re-entry is over."""
-        graph = self.policy.graph
+        graph = self.context.graph
         via = state["dorp_via"].squeeze(-1)
         index = (active & (via >= 0)).nonzero().squeeze(-1)
         if not index.numel():
@@ -374,7 +386,7 @@ class Reentry(RecoveryRule):
         index = rows.nonzero().squeeze(-1)
         if not self.hops or not index.numel():
             return taken
-        graph = self.policy.graph
+        graph = self.context.graph
         edge, entry = state["dorp_edge"][index, 0], state["dorp_entry_edge"][index, 0]
         ok = (edge >= 0) & (entry >= 0) & self._may_reenter(state, index, edge)
         source = graph.edge_source[edge.clamp(min=0)]
@@ -404,7 +416,7 @@ class Reentry(RecoveryRule):
         index = (rows & (via >= 0)).nonzero().squeeze(-1)
         if not index.numel():
             return None
-        graph = self.policy.graph
+        graph = self.context.graph
         ban = state["dorp_via_ban"][index, 0]
         group = graph.group_of_edge(ban)
         node = graph.nodes_of(state["code"][index], group)
@@ -435,7 +447,7 @@ class Reentry(RecoveryRule):
         index = rows.nonzero().squeeze(-1)
         if not index.numel():
             return taken
-        graph = self.policy.graph
+        graph = self.context.graph
         entry = state["dorp_entry_edge"][index, 0]
         ok = (entry >= 0) & (state["dorp_via"][index, 0] < 0)
         ok &= self._may_reenter(state, index, entry)
@@ -568,10 +580,10 @@ class AvoidNoops(RecoveryRule):
         self.memory = int(memory)
         self.num_actions = 0  # the planners' actions, set by bind
 
-    def bind(self, policy: AbstractGoalPolicy) -> None:
-        super().bind(policy)
-        self.num_actions = policy.waypoint_planner.num_actions
-        for planner in (policy.waypoint_planner, policy.goal_planner):
+    def bind(self, context: RuleContext) -> None:
+        super().bind(context)
+        self.num_actions = context.waypoint_planner.num_actions
+        for planner in (context.waypoint_planner, context.goal_planner):
             if planner.excluded_actions_key != NOOPS_KEY:
                 raise ValueError(
                     f"AvoidNoops needs planners that read {NOOPS_KEY!r}: build them with "

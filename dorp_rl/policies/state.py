@@ -31,7 +31,16 @@ from tensordict import TensorDictBase
 from torchrl.data import Binary, Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
-__all__ = ["GOAL_PRIOR_KEY", "NOOPS_KEY", "PRIOR_KEY", "PolicyState", "StateKey"]
+__all__ = [
+    "ENDINGS",
+    "GOAL_PRIOR_KEY",
+    "MODES",
+    "NOOPS_KEY",
+    "PRIOR_KEY",
+    "PolicyState",
+    "StateKey",
+    "loop_state_keys",
+]
 
 # The keys the policy's parts share with its planners (the rest are declared as
 # StateKeys by the part that keeps them).
@@ -120,3 +129,70 @@ class PolicyState:
                 )
             out[name] = value.cpu().to(key.dtype).clone()
         return out
+
+
+#: Values of ``dorp_mode``.
+MODES = {"new": 0, "waypoint": 1, "goal": 2, "failed": 3, "done": 4}
+#: Values of ``dorp_end``: why the policy gave a task up (the ``outcome`` of
+#: :func:`~dorp_rl.policies.records.task_records`).
+ENDINGS = {"running": 0, "no_path": 1, "goal_stalled": 2, "removal_limit": 3}
+
+
+def loop_state_keys(num_onehots: int, max_removed_edges: int) -> list[StateKey]:
+    """The keys the DORP loop (:class:`~dorp_rl.policies.AbstractGoalPolicy`) keeps for a
+    graph of ``num_onehots`` one-hots (each recovery rule declares its own):
+
+    =========================  ==================  =======================================
+    key                        dtype / shape       meaning
+    =========================  ==================  =======================================
+    ``code``, ``goal_code``    int64 ``[C]``       codes of the current frame and the goal
+    ``subgoal_code``           int64 ``[C]``       the waypoint (other one-hots: current)
+    ``subgoal_mask``           bool ``[C]``        the one-hots the waypoint concerns
+    ``dorp_mode``              int64 ``[1]``       0 new, 1 waypoint, 2 goal image,
+                                                   3 failed, 4 done (:data:`MODES`)
+    ``dorp_group``             int64 ``[1]``       group being moved
+    ``dorp_distance``          int64 ``[1]``       hops left on its path (incl. waypoint)
+    ``dorp_budget``            int64 ``[1]``       steps left to reach the waypoint
+    ``dorp_edge``              int64 ``[1]``       graph edge of the current hop (-1: none)
+    ``dorp_removed``           int64 ``[R]``       edges removed for this task (-1: free)
+    ``dorp_replans``           int64 ``[1]``       edges removed so far
+    ``dorp_stale_removals``    int64 ``[1]``       edges removed since the last waypoint
+    ``dorp_waypoints``         int64 ``[1]``       waypoints reached so far
+    ``dorp_plans``             int64 ``[1]``       waypoint plans made (fresh plans)
+    ``dorp_waypoint_steps``    int64 ``[1]``       steps spent moving to waypoints
+    ``dorp_goal_steps``        int64 ``[1]``       steps spent in the goal-image phase
+    ``dorp_failed``            bool ``[1]``        the task is given up
+    ``dorp_end``               int64 ``[1]``       why: 0 not given up, 1 no path left,
+                                                   2 goal phase out of budget, 3 edge-
+                                                   removal limit (:data:`ENDINGS`)
+    ``dorp_end_group``         int64 ``[1]``       the group left without a path (-1: none)
+    =========================  ==================  =======================================
+
+    ``R`` is ``max(1, max_removed_edges)``.
+
+    Examples:
+        >>> [key.name for key in loop_state_keys(3, 8)][:4]
+        ['code', 'goal_code', 'subgoal_code', 'subgoal_mask']
+    """
+    c, r = num_onehots, max(1, max_removed_edges)
+    return [
+        StateKey("code", width=c),
+        StateKey("goal_code", width=c),
+        StateKey("subgoal_code", width=c),
+        StateKey("subgoal_mask", torch.bool, width=c),
+        StateKey("dorp_mode"),
+        StateKey("dorp_group"),
+        StateKey("dorp_distance"),
+        StateKey("dorp_budget"),
+        StateKey("dorp_edge", fill=-1),
+        StateKey("dorp_removed", width=r, fill=-1),
+        StateKey("dorp_replans"),
+        StateKey("dorp_stale_removals"),
+        StateKey("dorp_waypoints"),
+        StateKey("dorp_plans"),
+        StateKey("dorp_waypoint_steps"),
+        StateKey("dorp_goal_steps"),
+        StateKey("dorp_failed", torch.bool),
+        StateKey("dorp_end"),
+        StateKey("dorp_end_group", fill=-1),
+    ]

@@ -12,6 +12,7 @@ from tensordict import NestedKey, unravel_key
 from torch import nn
 
 from dorp_rl.envs.planning import HeldFrames, RolloutFrames
+from dorp_rl.modules.encoder import eval_mode
 from dorp_rl.planners.costs.base import (
     RolloutCost,
     compact_broadcast,
@@ -194,10 +195,7 @@ class CodeMatchCost(RolloutCost):
         Imagined frames repeat a lot, within a call and across calls: each distinct frame
         is encoded once, and frames seen in earlier calls not at all."""
         module = self.encoder if isinstance(self.encoder, nn.Module) else None
-        was_training = module.training if module is not None else False
-        if module is not None:
-            module.eval()
-        try:
+        with eval_mode(module):
             flat, _, inverse, keys = frames.distinct(draw=False)
             if inverse is None and not callable(flat) and flat.shape[0] > 1:
                 # deduplication found two frames sharing a hash: keep them out of the
@@ -205,9 +203,6 @@ class CodeMatchCost(RolloutCost):
                 code, prob = self._encode_frames(flat)
             else:
                 code, prob = self.cache.encode(flat, self._encode_frames, module, keys=keys)
-        finally:
-            if module is not None:
-                module.train(was_training)
         return code, prob, inverse
 
     def _encode_frames(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

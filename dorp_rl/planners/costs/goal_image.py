@@ -14,6 +14,7 @@ from tensordict import NestedKey, unravel_key
 from torch import nn
 
 from dorp_rl.envs.planning import row_hashes
+from dorp_rl.modules.encoder import eval_mode
 from dorp_rl.planners.costs.base import (
     RolloutCost,
     compact_broadcast,
@@ -397,10 +398,7 @@ class ObjectMapCost(_GoalFrameCost):
         pairs = _GoalPairs(rollout, self.pixels_key, self.goal_key, type(self).__name__)
         frames, owner, inverse = pairs.distinct()
         module = self.encoder if isinstance(self.encoder, nn.Module) else None
-        was_training = module.training if module is not None else False
-        if module is not None:
-            module.eval()
-        try:
+        with eval_mode(module):
             goal_maps = self._maps(pairs.goals).to(torch.float32)
 
             def compute(index: torch.Tensor) -> torch.Tensor:
@@ -419,9 +417,6 @@ class ObjectMapCost(_GoalFrameCost):
             out = self._pair_costs(
                 frames, pairs.goals, owner, compute, module, cached=inverse is not None
             )
-        finally:
-            if module is not None:
-                module.train(was_training)
         if inverse is not None:
             out = out[inverse]
         return out.reshape(pairs.lead)
