@@ -58,6 +58,18 @@ def test_scan_counts_pieces_of_one_colour_that_differ_in_shape():
     assert scan_frames(two).pieces == 2
 
 
+def test_scan_finds_the_grid_the_pieces_move_on():
+    # one-colour pieces placed at any pixel: no grid
+    assert scan_frames(one_colour_frames(300)).motion_step == 1
+    # the same pieces on a grid of 3-pixel cells (each piece drawn 3 pixels a cell)
+    cells = one_colour_frames(300, height=12, width=16)
+    grid = cells.repeat_interleave(3, -2).repeat_interleave(3, -1)
+    scan = scan_frames(grid)
+    assert scan.motion_step == 3 and scan.smallest_piece == 3
+    # shifted by one pixel in every frame alike, it is still a grid of 3
+    assert scan_frames(torch.roll(grid, 1, -1)).motion_step == 3
+
+
 def test_scan_refuses_what_is_not_a_batch_of_frames():
     with pytest.raises(ValueError, match=r"frames \[N, C, H, W\] with N >= 2"):
         scan_frames(torch.zeros(1, 3, 8, 8, dtype=torch.uint8))
@@ -223,8 +235,11 @@ def test_a_static_background_that_is_not_black_is_subtracted(tmp_path):
 
 def test_large_frames_train_codes_and_a_latent_model_at_the_chosen_stride(tmp_path):
     codes = RepresentationTrainer(tiny_codes("counting_pieces:make_large_env", tmp_path))
-    # 48 x 64 frames, pieces 4 pixels a cell: maps of 16 x 22 cells
-    assert codes.config.encoder.map_stride == 3 and codes.encoder.map_shape == (16, 22)
+    # 48 x 64 frames of a 12 x 16 grid drawn 4 pixels a cell: maps at the grid's cells (a
+    # stride of 3 would leave 16 x 22 cells, each straddling two grid cells)
+    assert codes.scan.motion_step == 4
+    assert codes.config.encoder.map_stride == 4 and codes.encoder.map_shape == (12, 16)
+    assert "grid of 4 pixels" in codes.chosen["encoder.map_stride"]["why"]
     assert codes.config.code_sizes == (32, 32)
     codes.train()
     cfg = LatentWorldModelConfig(
@@ -242,9 +257,9 @@ def test_large_frames_train_codes_and_a_latent_model_at_the_chosen_stride(tmp_pa
         model={"latent_channels": 4, "channels": 4, "hidden": 8, "decoder_hidden": 8},
     )
     latent = LatentWorldModelTrainer(cfg, encoder=codes.encoder)
-    # the encoder's stride: the model reads and decodes 16 x 22 frames
-    assert latent.config.model.frame_stride == 3
-    assert latent.model.model_frame_shape == (3, 16, 22)
+    # the encoder's stride: the model reads and decodes 12 x 16 frames
+    assert latent.config.model.frame_stride == 4
+    assert latent.model.model_frame_shape == (3, 12, 16)
     result = latent.train()
     assert len(result["evaluation"]["code_accuracy"]) == 3
     frames = latent.buffer[:2]["pixels"]

@@ -59,12 +59,26 @@ def test_choose_map_stride_is_at_most_the_smallest_object():
     assert choose_map_stride((3, 16, 16), smallest_object=4) == 1
 
 
+def test_choose_map_stride_fits_the_grid_the_pieces_move_on():
+    # a stride the grid's cells fit: a multiple of the step within the bounds ...
+    assert choose_map_stride((3, 84, 84), smallest_object=8, motion_step=2) == 4
+    assert choose_map_stride((3, 64, 64), smallest_object=4, motion_step=4) == 4
+    # ... or the step itself, maps at the grid's resolution (a 12 x 12 grid, 3 pixels a cell)
+    assert choose_map_stride((1, 36, 36), smallest_object=3, motion_step=3) == 3
+    # not where a piece is smaller than its cell (its shape would be averaged away) ...
+    assert choose_map_stride((3, 80, 80), smallest_object=3, motion_step=5) == 3
+    # ... nor below 4 cells a side, nor on frames of no grid
+    assert choose_map_stride((3, 12, 12), smallest_object=4, motion_step=4) == 1
+    assert choose_map_stride((3, 64, 64), motion_step=1) == 4
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (((3, 64),), "frame_shape"),
         (((3, 64, 0),), "frame_shape"),
         (((3, 64, 64), 0), "smallest_object"),
+        (((3, 64, 64), 4, 0), "motion_step"),
     ],
 )
 def test_choose_map_stride_refuses_bad_arguments(args, message):

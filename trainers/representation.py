@@ -339,13 +339,15 @@ def choose_code_settings(
     if config.encoder.map_stride is None:
         frame_shape = tuple(config.encoder.frame_shape)
         smallest = scan.smallest_piece if scan is not None and scan.smallest_piece else None
-        stride = choose_map_stride(frame_shape, smallest)
+        step = scan.motion_step if scan is not None else None
+        stride = choose_map_stride(frame_shape, smallest, step)
         config = config.replace(encoder={"map_stride": stride})
         choose(
             "encoder.map_stride",
             stride,
             f"frames {frame_shape[1]} x {frame_shape[2]}"
             + (f", smallest piece {smallest} pixels" if smallest else "")
+            + (f", pieces moving on a grid of {step} pixels" if step and step > 1 else "")
             + f": maps of {-(-frame_shape[1] // stride)} x {-(-frame_shape[2] // stride)} cells",
         )
     return config, chosen

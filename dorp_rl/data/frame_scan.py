@@ -2,7 +2,9 @@
 
 The code trainer reads an env through its frames before it trains: the frame size,
 how many separate regions of a frame differ from the static background (the objects
-the codes must tell apart) and how small the smallest of them is. Settings that depend
+the codes must tell apart), how small the smallest of them is and the pixel grid they
+move on (a grid world drawn ``k`` pixels a cell puts every piece of one shape at places
+``k`` pixels apart). Settings that depend
 on the env (the number of one-hots, the object maps' resolution) are chosen from this
 scan rather than set by hand (:class:`~dorp_rl.trainers.RepresentationConfig`).
 
@@ -37,6 +39,10 @@ class FrameScan:
             (a low quantile over all pieces seen; 0 when nothing moved).
         foreground_share: share of pixels that differ from the background, mean over frames.
         background: the per-pixel median frame, uint8 ``[C, H, W]``.
+        motion_step: the grid the pieces move on, in pixels: the largest step ``k`` such
+            that the pieces of one shape lie ``k`` pixels apart in both directions (their
+            places modulo ``k`` agree for 95% of the pieces); 1 where none does (pieces
+            placed at any pixel, or too few seen).
     """
 
     frame_shape: tuple[int, int, int]
@@ -46,6 +52,7 @@ class FrameScan:
     smallest_piece: int
     foreground_share: float
     background: torch.Tensor = field(repr=False, compare=False)
+    motion_step: int = 1
 
     @property
     def plain_background(self) -> bool:
@@ -85,6 +92,29 @@ def _label_pieces(foreground: torch.Tensor) -> torch.Tensor:
     return labels.squeeze(1).long()
 
 
+def _motion_step(
+    row: torch.Tensor, col: torch.Tensor, shape: torch.Tensor, largest: int, share: float = 0.95
+) -> int:
+    """The largest step ``k <= largest`` (pixels) such that, in each group of pieces of one
+    ``shape`` (an int64 id per piece), ``share`` of the pieces have the group's most common
+    place modulo ``k`` (``row``, ``col``: their top-left corners); 1 where no ``k > 1``
+    does. Only groups of at least 8 pieces count (a lone piece fits every step)."""
+    shapes, counts = shape.unique(return_counts=True)
+    seen = torch.isin(shape, shapes[counts >= 8])
+    if int(seen.sum()) < 16:
+        return 1
+    row, col, shape = row[seen], col[seen], shape[seen]
+    for step in range(largest, 1, -1):
+        place = (shape * step + row % step) * step + col % step
+        places, number = place.unique(return_counts=True)
+        group = places // (step * step)
+        best = torch.zeros(int(group.max()) + 1, dtype=torch.long)
+        best.scatter_reduce_(0, group, number, "amax")
+        if int(best.sum()) >= share * row.shape[0]:
+            return step
+    return 1
+
+
 @torch.no_grad()
 def scan_frames(
     frames: torch.Tensor,
@@ -113,6 +143,12 @@ def scan_frames(
         >>> scan = scan_frames(frames)
         >>> scan.pieces, scan.smallest_piece
         (2, 2)
+        >>> grid = torch.zeros(64, 1, 24, 24, dtype=torch.uint8)
+        >>> for i in range(64):  # a 3 x 3 block on a grid of 3-pixel cells
+        ...     r, c = 3 * (i % 8), 3 * ((5 * i) % 8)
+        ...     grid[i, :, r : r + 3, c : c + 3] = 200
+        >>> scan_frames(grid).motion_step, scan.motion_step
+        (3, 1)
     """
     if frames.dim() != 4 or frames.shape[0] < 2:
         raise ValueError(
@@ -141,8 +177,11 @@ def scan_frames(
     col_hi = small.scatter_reduce(0, ids, cols, "amax")
     kept = roots.flatten() & (sizes >= min_pixels)
     per_frame = kept.reshape(n, h * w).sum(1).float()
-    sides = torch.minimum(row_hi - row_lo + 1, col_hi - col_lo + 1)[kept]
+    heights, widths = (row_hi - row_lo + 1)[kept], (col_hi - col_lo + 1)[kept]
+    sides = torch.minimum(heights, widths)
     smallest = int(sides.float().quantile(0.05).floor()) if sides.numel() else 0
+    shape_id = (heights * (w + 1) + widths) * (h * w + 1) + sizes[kept]
+    step = _motion_step(row_lo[kept], col_lo[kept], shape_id, largest=min(h, w) // 4)
     return FrameScan(
         frame_shape=tuple(int(d) for d in frames.shape[1:]),
         frames=count,
@@ -151,4 +190,5 @@ def scan_frames(
         smallest_piece=smallest,
         foreground_share=float(foreground.float().mean()),
         background=background.to(torch.uint8),
+        motion_step=step,
     )

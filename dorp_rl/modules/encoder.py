@@ -115,15 +115,28 @@ def competing_maps(code_sizes: Sequence[int]) -> bool:
 
 #: The fewest cells :func:`choose_map_stride` leaves on the maps' shorter side.
 MIN_MAP_CELLS = 16
+#: The fewest cells a side of the maps at a grid's own resolution (``motion_step``).
+MIN_GRID_CELLS = 4
 
 
-def choose_map_stride(frame_shape: tuple[int, int, int], smallest_object: int | None = None) -> int:
+def choose_map_stride(
+    frame_shape: tuple[int, int, int],
+    smallest_object: int | None = None,
+    motion_step: int | None = None,
+) -> int:
     """The :attr:`EncoderConfig.map_stride` for frames of ``frame_shape`` ``(C, H, W)``.
 
     The largest stride ``s`` that leaves the object maps at least 16 cells on their shorter
     side (``min(H, W) // s >= 16``) and, when ``smallest_object`` (the extent in pixels of
     the smallest moving object) is given, at most that extent, so that an object still
     covers a whole map cell's worth of pixels. Frames of 16 pixels or fewer a side get 1.
+
+    When the objects move on a grid of ``motion_step`` pixels a cell (a grid world drawn
+    ``k`` pixels a cell; :attr:`~dorp_rl.data.FrameScan.motion_step`), the stride is one
+    the grid's cells fit: the largest multiple of the step within the bounds above, or
+    the step itself (maps at the grid's own resolution, at least 4 cells a side) where
+    the objects fill their cells. A map cell then never straddles two grid cells, so an
+    object in one place always falls on the same map cells.
 
     Code training costs about as much per step at every frame size with it: 64 x 64 frames
     get 16 x 16 maps, 84 x 84 frames 17 x 17 maps.
@@ -134,14 +147,24 @@ def choose_map_stride(frame_shape: tuple[int, int, int], smallest_object: int | 
         [1, 1, 4, 5]
         >>> choose_map_stride((3, 84, 84), smallest_object=3), choose_map_stride((1, 24, 32))
         (3, 1)
+        >>> # a 12 x 12 grid drawn 3 pixels a cell; 2 x 2 cells drawn 4 pixels a cell
+        >>> choose_map_stride((1, 36, 36), 3, motion_step=3), choose_map_stride((3, 84, 84), 8, 2)
+        (3, 4)
     """
     shape = tuple(frame_shape)
     if len(shape) != 3:
         raise ValueError(f"frame_shape must be (C, H, W), got {frame_shape}.")
     _, height, width = (check_int(f"frame_shape[{i}]", d, low=1) for i, d in enumerate(shape))
-    stride = max(1, min(height, width) // MIN_MAP_CELLS)
-    if smallest_object is not None:
-        stride = min(stride, check_int("smallest_object", smallest_object, low=1))
+    side = min(height, width)
+    limit = (
+        side if smallest_object is None else check_int("smallest_object", smallest_object, low=1)
+    )
+    stride = min(max(1, side // MIN_MAP_CELLS), limit)
+    step = 1 if motion_step is None else check_int("motion_step", motion_step, low=1)
+    if 1 < step <= stride:
+        stride -= stride % step
+    elif step > stride and step <= limit and side // step >= MIN_GRID_CELLS:
+        stride = step
     return stride
 
 
