@@ -25,6 +25,13 @@ PROFILE = EnvProfile(
 
 
 def make_large_env(batch_size=(4,), seed=0, device=None) -> PiecesEnv:
-    """The same two pieces drawn 4 pixels a cell: 3 x 48 x 64 frames."""
+    """The same two pieces drawn 4 pixels a cell, in two colours: 3 x 48 x 64 frames."""
+    shapes = [cells_of(["##", "#."]), cells_of(["###"])]
+    colours = [(255, 255, 255), (240, 80, 80)]
+    return PiecesEnv(shapes, colours, (12, 16), 4, batch_size, seed, device)
+
+
+def make_large_one_colour_env(batch_size=(4,), seed=0, device=None) -> PiecesEnv:
+    """The same two pieces drawn 4 pixels a cell, both white: 3 x 48 x 64 frames."""
     shapes = [cells_of(["##", "#."]), cells_of(["###"])]
     return PiecesEnv(shapes, [(255, 255, 255)] * 2, (12, 16), 4, batch_size, seed, device)

@@ -70,6 +70,22 @@ def test_scan_finds_the_grid_the_pieces_move_on():
     assert scan_frames(torch.roll(grid, 1, -1)).motion_step == 3
 
 
+def test_scan_counts_the_colours_of_the_pieces():
+    assert scan_frames(one_colour_frames(300)).colours == 1
+    coloured = one_colour_frames(300)
+    coloured[:, 1:, 13:26] = 0  # the middle band's piece red
+    scan = scan_frames(coloured)
+    assert scan.colours == 2 and scan.pieces == 3 and scan.pieces_share_colours
+
+
+def test_pieces_of_one_colour_keep_maps_that_show_their_shapes(tmp_path):
+    codes = RepresentationTrainer(tiny_codes("counting_pieces:make_large_one_colour_env", tmp_path))
+    assert codes.scan.pieces_share_colours and codes.scan.smallest_piece == 4
+    # the bar is 4 pixels high: at stride 4 it would be one map cell high, at 1 four
+    assert codes.config.encoder.map_stride == 1
+    assert "told apart by shape" in codes.chosen["encoder.map_stride"]["why"]
+
+
 def test_scan_refuses_what_is_not_a_batch_of_frames():
     with pytest.raises(ValueError, match=r"frames \[N, C, H, W\] with N >= 2"):
         scan_frames(torch.zeros(1, 3, 8, 8, dtype=torch.uint8))
@@ -240,6 +256,7 @@ def test_large_frames_train_codes_and_a_latent_model_at_the_chosen_stride(tmp_pa
     assert codes.scan.motion_step == 4
     assert codes.config.encoder.map_stride == 4 and codes.encoder.map_shape == (12, 16)
     assert "grid of 4 pixels" in codes.chosen["encoder.map_stride"]["why"]
+    assert codes.scan.colours == 2 and not codes.scan.pieces_share_colours
     assert codes.config.code_sizes == (32, 32)
     codes.train()
     cfg = LatentWorldModelConfig(

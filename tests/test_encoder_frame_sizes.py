@@ -72,6 +72,14 @@ def test_choose_map_stride_fits_the_grid_the_pieces_move_on():
     assert choose_map_stride((3, 64, 64), motion_step=1) == 4
 
 
+def test_choose_map_stride_shows_the_shapes_of_pieces_of_one_colour():
+    # the smallest piece spans at least 3 map cells
+    assert choose_map_stride((1, 36, 36), 3, motion_step=3, shapes_only=True) == 1
+    assert choose_map_stride((3, 84, 84), 12, shapes_only=True) == 4
+    assert choose_map_stride((3, 84, 84), 12, motion_step=4, shapes_only=True) == 4
+    assert choose_map_stride((3, 84, 84), 6, shapes_only=True) == 2
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

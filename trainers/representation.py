@@ -340,7 +340,8 @@ def choose_code_settings(
         frame_shape = tuple(config.encoder.frame_shape)
         smallest = scan.smallest_piece if scan is not None and scan.smallest_piece else None
         step = scan.motion_step if scan is not None else None
-        stride = choose_map_stride(frame_shape, smallest, step)
+        shapes_only = scan is not None and scan.pieces_share_colours
+        stride = choose_map_stride(frame_shape, smallest, step, shapes_only)
         config = config.replace(encoder={"map_stride": stride})
         choose(
             "encoder.map_stride",
@@ -348,6 +349,7 @@ def choose_code_settings(
             f"frames {frame_shape[1]} x {frame_shape[2]}"
             + (f", smallest piece {smallest} pixels" if smallest else "")
             + (f", pieces moving on a grid of {step} pixels" if step and step > 1 else "")
+            + (", pieces of one colour told apart by shape" if shapes_only else "")
             + f": maps of {-(-frame_shape[1] // stride)} x {-(-frame_shape[2] // stride)} cells",
         )
     return config, chosen

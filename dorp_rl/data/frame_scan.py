@@ -43,6 +43,8 @@ class FrameScan:
             that the pieces of one shape lie ``k`` pixels apart in both directions (their
             places modulo ``k`` agree for 95% of the pieces); 1 where none does (pieces
             placed at any pixel, or too few seen).
+        colours: the colours of the pieces in a frame, at the ``quantile`` over frames
+            (a piece's colour: the mean of its pixels, to steps of 32 of 255).
     """
 
     frame_shape: tuple[int, int, int]
@@ -53,6 +55,13 @@ class FrameScan:
     foreground_share: float
     background: torch.Tensor = field(repr=False, compare=False)
     motion_step: int = 1
+    colours: int = 1
+
+    @property
+    def pieces_share_colours(self) -> bool:
+        """Whether pieces of one colour move in the frames (fewer colours than pieces): the
+        codes must tell them apart by their shapes alone."""
+        return self.colours < self.pieces
 
     @property
     def plain_background(self) -> bool:
@@ -113,6 +122,28 @@ def _motion_step(
         if int(best.sum()) >= share * row.shape[0]:
             return step
     return 1
+
+
+def _colours_per_frame(
+    values: torch.Tensor,
+    foreground: torch.Tensor,
+    ids: torch.Tensor,
+    sizes: torch.Tensor,
+    kept: torch.Tensor,
+    frames: int,
+    level: int = 32,
+) -> torch.Tensor:
+    """How many colours the kept pieces of each frame have, float ``[frames]``: a piece's
+    colour is the mean of its pixels, each channel rounded to steps of ``level`` (a
+    renderer's shaded edges move the mean less than that)."""
+    pixels = values.permute(0, 2, 3, 1)[foreground].float()  # [P, C], in the order of ids
+    total = torch.zeros(sizes.shape[0], pixels.shape[1]).index_add_(0, ids, pixels)
+    mean = total[kept] / sizes[kept].unsqueeze(1)
+    key = (mean / level).round().long()  # at most 8 levels a channel
+    key = (key * torch.tensor([1, 16, 256])[: key.shape[1]]).sum(1)
+    frame = kept.nonzero().squeeze(1) // (sizes.shape[0] // frames)
+    pairs = (frame * 4096 + key).unique()
+    return torch.bincount(pairs // 4096, minlength=frames).float()
 
 
 @torch.no_grad()
@@ -182,6 +213,7 @@ def scan_frames(
     smallest = int(sides.float().quantile(0.05).floor()) if sides.numel() else 0
     shape_id = (heights * (w + 1) + widths) * (h * w + 1) + sizes[kept]
     step = _motion_step(row_lo[kept], col_lo[kept], shape_id, largest=min(h, w) // 4)
+    colours = _colours_per_frame(values, foreground, ids, sizes, kept, n)
     return FrameScan(
         frame_shape=tuple(int(d) for d in frames.shape[1:]),
         frames=count,
@@ -191,4 +223,5 @@ def scan_frames(
         foreground_share=float(foreground.float().mean()),
         background=background.to(torch.uint8),
         motion_step=step,
+        colours=max(1, int(colours.quantile(quantile).round())),
     )

@@ -117,12 +117,15 @@ def competing_maps(code_sizes: Sequence[int]) -> bool:
 MIN_MAP_CELLS = 16
 #: The fewest cells a side of the maps at a grid's own resolution (``motion_step``).
 MIN_GRID_CELLS = 4
+#: The fewest map cells across the smallest object where objects differ in shape alone.
+MIN_SHAPE_CELLS = 3
 
 
 def choose_map_stride(
     frame_shape: tuple[int, int, int],
     smallest_object: int | None = None,
     motion_step: int | None = None,
+    shapes_only: bool = False,
 ) -> int:
     """The :attr:`EncoderConfig.map_stride` for frames of ``frame_shape`` ``(C, H, W)``.
 
@@ -138,6 +141,12 @@ def choose_map_stride(
     the objects fill their cells. A map cell then never straddles two grid cells, so an
     object in one place always falls on the same map cells.
 
+    With ``shapes_only`` (objects of one colour move:
+    :attr:`~dorp_rl.data.FrameScan.pieces_share_colours`) the codes tell them apart by
+    shape alone, so the smallest object spans at least 3 map cells, the fewest that show a
+    shape (at one cell each, two white dominoes, one lying and one standing, trained maps
+    that followed both or neither).
+
     Code training costs about as much per step at every frame size with it: 64 x 64 frames
     get 16 x 16 maps, 84 x 84 frames 17 x 17 maps.
 
@@ -150,6 +159,8 @@ def choose_map_stride(
         >>> # a 12 x 12 grid drawn 3 pixels a cell; 2 x 2 cells drawn 4 pixels a cell
         >>> choose_map_stride((1, 36, 36), 3, motion_step=3), choose_map_stride((3, 84, 84), 8, 2)
         (3, 4)
+        >>> choose_map_stride((1, 36, 36), 3, motion_step=3, shapes_only=True)
+        1
     """
     shape = tuple(frame_shape)
     if len(shape) != 3:
@@ -159,6 +170,8 @@ def choose_map_stride(
     limit = (
         side if smallest_object is None else check_int("smallest_object", smallest_object, low=1)
     )
+    if shapes_only:
+        limit = max(1, limit // MIN_SHAPE_CELLS)
     stride = min(max(1, side // MIN_MAP_CELLS), limit)
     step = 1 if motion_step is None else check_int("motion_step", motion_step, low=1)
     if 1 < step <= stride:
