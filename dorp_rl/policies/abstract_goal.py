@@ -35,7 +35,7 @@ are not planned for (action 0).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDictBase
@@ -52,23 +52,12 @@ from dorp_rl.policies.action_priors import goal_action_prior, waypoint_action_pr
 from dorp_rl.policies.checks import check_policy_parts
 from dorp_rl.policies.config import DORPConfig
 from dorp_rl.policies.records import task_records
-from dorp_rl.policies.recovery import (
-    PlanDecision,
-    RecoveryRule,
-    RuleContext,
-    Waypoints,
-    recovery_rules,
-)
-from dorp_rl.policies.state import (
-    ENDINGS,
-    GOAL_PRIOR_KEY,
-    MODES,
-    NOOPS_KEY,
-    PRIOR_KEY,
-    PolicyState,
-    loop_state_keys,
-)
+from dorp_rl.policies.recovery import RecoveryRule, RuleContext, Waypoints, recovery_rules
+from dorp_rl.policies.state import ENDINGS, MODES, PLANNER_INPUTS, PolicyState, loop_state_keys
 from dorp_rl.validation import MissingKeyError, check_keywords, check_seed, derive_seed
+
+if TYPE_CHECKING:  # pragma: no cover
+    from dorp_rl.policies.recovery import PlanDecision
 
 __all__ = ["LOOP_FIELDS", "AbstractGoalPolicy"]
 
@@ -95,15 +84,6 @@ LOOP_FIELDS = (
     "max_goal_returns",
     "action_prior_mix",
     "goal_action_prior_mix",
-)
-#: State keys the planners of the policy may read.
-_PLANNER_INPUTS = (
-    "code",
-    "goal_code",
-    "subgoal_code",
-    "subgoal_mask",
-    "goal_code_weight",
-    NOOPS_KEY,
 )
 
 
@@ -516,7 +496,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
             # The checked uint8 frames (float frames in [0, 1] converted once, here).
             sub.set(self.pixels_key, frames[0][index].to(device))
             sub.set(self.goal_pixels_key, frames[1][index].to(device))
-            for key in _PLANNER_INPUTS:
+            for key in PLANNER_INPUTS:
                 if key in state:
                     sub.set(key, state[key][index].to(device))
             for key, value in planner_state.items():
@@ -528,7 +508,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                     planner.num_actions,
                     self.action_prior_mix,
                 )
-                sub.set(PRIOR_KEY, prior.to(device))
+                sub.set(planner.action_prior_key, prior.to(device))
             if planner is self.goal_planner and self.goal_action_prior_mix > 0:
                 prior = goal_action_prior(
                     self.encoder,
@@ -538,7 +518,7 @@ class AbstractGoalPolicy(TensorDictModuleBase):
                     planner.num_actions,
                     self.goal_action_prior_mix,
                 )
-                sub.set(GOAL_PRIOR_KEY, prior.to(device))
+                sub.set(planner.action_prior_key, prior.to(device))
             planner(sub)
             action[index] = sub.get(planner.action_key).reshape(-1, 1).cpu()
             for key in planner.state_keys:

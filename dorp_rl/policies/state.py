@@ -36,6 +36,7 @@ __all__ = [
     "GOAL_PRIOR_KEY",
     "MODES",
     "NOOPS_KEY",
+    "PLANNER_INPUTS",
     "PRIOR_KEY",
     "PolicyState",
     "StateKey",
@@ -51,6 +52,16 @@ GOAL_PRIOR_KEY = "goal_action_prior"
 #: The actions seen to leave the current frame unchanged (kept by
 #: :class:`~dorp_rl.policies.AvoidNoops`; the planners' ``excluded_actions_key``).
 NOOPS_KEY = "dorp_noops"
+#: The policy's state keys its planners may read (their costs' ``subgoal_code`` and
+#: ``subgoal_mask``, the goal cost's weight, the excluded actions).
+PLANNER_INPUTS = (
+    "code",
+    "goal_code",
+    "subgoal_code",
+    "subgoal_mask",
+    "goal_code_weight",
+    NOOPS_KEY,
+)
 
 
 @dataclass(frozen=True)
